@@ -1,0 +1,139 @@
+"""Contact onset, initial thickness L0, indentation dL and stiffness (Eq. 1), per tactile element.
+
+How they are found from the data — written down once, here:
+
+* The probe descends under force control with its face level. For each element we watch its pressure
+  against the TSI face height z (robot kinematics, interpolated at the frame's own timestamp, since the
+  sensor lags the robot and runs 10-100x slower than the loop).
+* **Contact onset.** The first frame pair in which the element's pressure crosses the onset threshold
+  p_on gives the crossing height z1 (linear interpolation between the two frames). Pressure near onset
+  rises roughly linearly with indentation, so once the pressure also crosses the confirm threshold
+  p_c (height z2), the onset height is refined by extrapolating that line back to zero pressure:
+  z0 = z1 + p_on * (z1 - z2) / (p_c - p_on). A crossing that falls back below p_on before reaching
+  p_c is taken for noise and forgotten. The extrapolated onset lies at or above z1 and is kept only
+  when the descent between the crossings was real (z2 < z1); otherwise z0 = z1. An element that
+  already reads above p_on when tracking starts has an unknown onset (the region must start above
+  the tissue) and stays NaN for the region.
+* **L0**, the initial thickness under the element, is the onset height above the table:
+  L0 = z0 - z_table (the table height comes from the rig's calibration, ContactSettings.table_height_m).
+* **dL**, the element's indentation, is how far the face has travelled below that element's onset:
+  dL = z0 - z (an element on a bump starts earlier and is indented more than one over a gap).
+* An element is **in contact** while its pressure is at least p_on and its onset is known.
+* **Stiffness** (Eq. 1): E = F L0 / (A dL) with F = p A the element's force and A its area (4e-6 m^2).
+  It is NaN for elements not in contact and for dL below min_indentation_m, where the ratio is
+  dominated by noise; never inf, never a division error.
+* The **TSI indentation depth** is the mean dL over the elements in contact (NaN if none).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from control.config import ContactSettings
+
+
+class ContactTracker:
+    """Per-element contact onset during one region's descent."""
+
+    def __init__(self, contact: ContactSettings, shape: tuple[int, int]):
+        self.settings = contact
+        self.shape = shape
+        self.reset()
+
+    def reset(self) -> None:
+        self.onset_height_m = np.full(self.shape, np.nan)
+        self._z1 = np.full(self.shape, np.nan)
+        self._confirmed = np.zeros(self.shape, dtype=bool)
+        self._blind = np.zeros(self.shape, dtype=bool)  # in contact before tracking began
+        self._prev_p: np.ndarray | None = None
+        self._prev_z = np.nan
+
+    def update(self, pressure_pa: np.ndarray, tsi_z_m: float) -> None:
+        s = self.settings
+        p_on, p_c = s.onset_threshold_pa, s.confirm_threshold_pa
+        if self._prev_p is None:
+            self._blind = pressure_pa >= p_on
+            self._prev_p, self._prev_z = pressure_pa.copy(), tsi_z_m
+            return
+        p0, z0 = self._prev_p, self._prev_z
+        dz = tsi_z_m - z0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            first = np.isnan(self._z1) & ~self._blind & (p0 < p_on) & (pressure_pa >= p_on)
+            if first.any():
+                frac = (p_on - p0[first]) / (pressure_pa[first] - p0[first])
+                z1 = z0 + frac * dz
+                self._z1[first] = z1
+                self.onset_height_m[first] = z1
+            conf = ~np.isnan(self._z1) & ~self._confirmed & (p0 < p_c) & (pressure_pa >= p_c)
+            if conf.any():
+                frac = (p_c - p0[conf]) / (pressure_pa[conf] - p0[conf])
+                z2 = z0 + frac * dz
+                z1 = self._z1[conf]
+                descended = z2 < z1
+                refined = z1 + p_on * (z1 - z2) / (p_c - p_on)
+                self.onset_height_m[conf] = np.where(descended, refined, z1)
+                self._confirmed[conf] = True
+            # an unconfirmed crossing that falls back below p_on was noise, not contact
+            blip = ~np.isnan(self._z1) & ~self._confirmed & (pressure_pa < p_on)
+            self._z1[blip] = np.nan
+            self.onset_height_m[blip] = np.nan
+        self._prev_p[...] = pressure_pa
+        self._prev_z = tsi_z_m
+
+    @property
+    def blind(self) -> np.ndarray:
+        return self._blind
+
+
+def element_analysis(
+    pressure_pa: np.ndarray,
+    onset_height_m: np.ndarray,
+    tsi_z_m: float,
+    contact: ContactSettings,
+    element_area_m2: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """(L0_m, dL_m, stiffness_pa, in_contact, tsi_indentation_m) for one pressure map at one height."""
+    known = ~np.isnan(onset_height_m)
+    in_contact = known & (pressure_pa >= contact.onset_threshold_pa)
+    L0 = np.where(known, onset_height_m - contact.table_height_m, np.nan)
+    dL = np.where(in_contact, onset_height_m - tsi_z_m, np.nan)
+    usable = in_contact & (dL >= contact.min_indentation_m) & (L0 > 0)
+    force = pressure_pa * element_area_m2
+    stiffness = np.full(pressure_pa.shape, np.nan)
+    stiffness[usable] = force[usable] * L0[usable] / (element_area_m2 * dL[usable])
+    indentation = float(dL[in_contact].mean()) if in_contact.any() else float("nan")
+    return L0, dL, stiffness, in_contact, indentation
+
+
+class PoseHistory:
+    """The slave's recent positions, to look up where the TSI was when a (late) frame was sampled."""
+
+    def __init__(self, duration_s: float, rate_hz: float):
+        n = max(4, int(np.ceil(duration_s * rate_hz)) + 2)
+        self._t = np.full(n, -np.inf)
+        self._p = np.zeros((n, 3))
+        self._i = 0
+        self._count = 0
+
+    def push(self, t_s: float, position_m) -> None:
+        i = self._i
+        self._t[i] = t_s
+        self._p[i] = position_m
+        self._i = (i + 1) % len(self._t)
+        self._count = min(self._count + 1, len(self._t))
+
+    def at(self, t_s: float) -> tuple[float, float, float]:
+        """Linear interpolation at t_s, clamped to the oldest / newest sample held."""
+        if self._count == 0:
+            raise LookupError("no pose recorded yet")
+        n = len(self._t)
+        order = (np.arange(self._count) + self._i - self._count) % n
+        ts = self._t[order]
+        ps = self._p[order]
+        if t_s <= ts[0]:
+            return tuple(ps[0])  # type: ignore[return-value]
+        if t_s >= ts[-1]:
+            return tuple(ps[-1])  # type: ignore[return-value]
+        k = int(np.searchsorted(ts, t_s))
+        w = (t_s - ts[k - 1]) / (ts[k] - ts[k - 1])
+        return tuple(ps[k - 1] + w * (ps[k] - ps[k - 1]))  # type: ignore[return-value]

@@ -1,0 +1,229 @@
+"""Settings of the control core, validated on construction.
+
+Every settings object refuses an invalid value with :class:`ConfigError`, whose message names the key
+and the problem, so the same check serves the TOML loader, the GUI and the command queue.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+Vec3 = tuple[float, float, float]
+
+
+class ConfigError(ValueError):
+    def __init__(self, key: str, problem: str):
+        super().__init__(f"{key}: {problem}")
+        self.key = key
+        self.problem = problem
+
+
+def _finite(key: str, value: float) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(key, f"must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ConfigError(key, f"must be finite, got {value!r}")
+    return v
+
+
+def _positive(key: str, value: float) -> float:
+    v = _finite(key, value)
+    if v <= 0:
+        raise ConfigError(key, f"must be > 0, got {v:g}")
+    return v
+
+
+def _vec3(key: str, value: Any, positive: bool = False) -> Vec3:
+    try:
+        items = list(value)
+    except TypeError:
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}") from None
+    if len(items) != 3:
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {len(items)}")
+    check = _positive if positive else _finite
+    return tuple(check(f"{key}[{i}]", v) for i, v in enumerate(items))  # type: ignore[return-value]
+
+
+class _Settings:
+    """Shared helpers: build from a mapping with unknown keys refused, and dump back to one."""
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any], prefix: str = ""):
+        if not isinstance(data, dict):
+            raise ConfigError(prefix.rstrip(".") or cls.__name__, "must be a table")
+        known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                raise ConfigError(f"{prefix}{key}", f"unknown key (known: {', '.join(sorted(known))})")
+            sub = _NESTED.get((cls.__name__, key))
+            kwargs[key] = sub.from_mapping(value, f"{prefix}{key}.") if sub else value
+        try:
+            return cls(**kwargs)
+        except ConfigError as err:
+            raise ConfigError(f"{prefix}{err.key}", err.problem) from None
+
+    def to_mapping(self) -> dict[str, Any]:
+        return _plain(asdict(self))  # type: ignore[call-overload]
+
+    def replace(self, **changes):
+        return replace(self, **changes)  # type: ignore[type-var]
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class ImpedanceGains(_Settings):
+    """M_d, B_d, K_d of Eq. 2, diagonal, per tissue-frame axis (x, y, z)."""
+
+    mass_kg: Vec3 = (1.0, 1.0, 1.0)
+    damping_N_s_m: Vec3 = (80.0, 80.0, 80.0)
+    stiffness_N_m: Vec3 = (1600.0, 1600.0, 1600.0)
+
+    def __post_init__(self):
+        object.__setattr__(self, "mass_kg", _vec3("mass_kg", self.mass_kg, positive=True))
+        object.__setattr__(self, "damping_N_s_m", _vec3("damping_N_s_m", self.damping_N_s_m, positive=True))
+        object.__setattr__(self, "stiffness_N_m", _vec3("stiffness_N_m", self.stiffness_N_m, positive=True))
+
+
+@dataclass(frozen=True)
+class RampSettings(_Settings):
+    """The Fig. 4 force ramp: F_d from F_min to F_max in steps of dF, each level settled to RMSE < eps."""
+
+    force_min_N: float = 1.0
+    force_max_N: float = 7.0
+    force_step_N: float = 1.0
+    rmse_threshold_N: float = 0.05
+    settle_window_s: float = 0.3
+    min_settle_s: float = 0.5
+    level_timeout_s: float = 8.0
+
+    def __post_init__(self):
+        for name in ("force_min_N", "force_max_N", "force_step_N", "rmse_threshold_N", "settle_window_s",
+                     "min_settle_s", "level_timeout_s"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        if self.force_max_N < self.force_min_N:
+            raise ConfigError("force_max_N", f"must be >= force_min_N ({self.force_min_N:g} N), got {self.force_max_N:g}")
+        if self.force_step_N > self.force_max_N - self.force_min_N and self.force_max_N > self.force_min_N:
+            raise ConfigError("force_step_N", f"{self.force_step_N:g} N is larger than the ramp span "
+                              f"{self.force_max_N - self.force_min_N:g} N")
+        if self.n_levels > 200:
+            raise ConfigError("force_step_N", f"gives {self.n_levels} levels; at most 200 are allowed")
+        if self.level_timeout_s <= self.min_settle_s:
+            raise ConfigError("level_timeout_s", f"must exceed min_settle_s ({self.min_settle_s:g} s)")
+
+    @property
+    def n_levels(self) -> int:
+        span = self.force_max_N - self.force_min_N
+        return int(math.floor(span / self.force_step_N + 1e-9)) + 1 + (0 if _is_multiple(span, self.force_step_N) else 1)
+
+    def level_force_N(self, k: int) -> float:
+        """Level k's desired force; the last level is always exactly F_max."""
+        return min(self.force_min_N + k * self.force_step_N, self.force_max_N)
+
+
+def _is_multiple(span: float, step: float) -> bool:
+    q = span / step
+    return abs(q - round(q)) < 1e-9
+
+
+@dataclass(frozen=True)
+class ContactSettings(_Settings):
+    """How contact, L0 and dL are found from the data (see control/analysis.py)."""
+
+    onset_threshold_pa: float = 300.0
+    confirm_threshold_pa: float = 900.0
+    min_indentation_m: float = 0.2e-3
+    table_height_m: float = 0.0
+    retract_height_m: float = 8e-3
+    retract_speed_m_s: float = 0.02
+    max_seek_depth_m: float = 0.04
+    pose_history_s: float = 0.5
+
+    def __post_init__(self):
+        for name in ("onset_threshold_pa", "confirm_threshold_pa", "min_indentation_m", "retract_height_m",
+                     "retract_speed_m_s", "max_seek_depth_m", "pose_history_s"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        object.__setattr__(self, "table_height_m", _finite("table_height_m", self.table_height_m))
+        if self.confirm_threshold_pa <= self.onset_threshold_pa:
+            raise ConfigError("confirm_threshold_pa", f"must exceed onset_threshold_pa ({self.onset_threshold_pa:g} Pa)")
+
+
+@dataclass(frozen=True)
+class SafetyLimits(_Settings):
+    force_ceiling_N: float = 12.0
+    element_pressure_ceiling_pa: float = 95e3
+    indentation_ceiling_m: float = 0.016
+    velocity_limit_m_s: float = 0.1
+    workspace_min_m: Vec3 = (-0.02, -0.02, 0.0)
+    workspace_max_m: Vec3 = (0.10, 0.06, 0.10)
+    sensor_timeout_s: float = 0.06
+    master_timeout_s: float = 0.05
+    slave_timeout_s: float = 0.01
+
+    def __post_init__(self):
+        for name in ("force_ceiling_N", "element_pressure_ceiling_pa", "indentation_ceiling_m", "velocity_limit_m_s",
+                     "sensor_timeout_s", "master_timeout_s", "slave_timeout_s"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        lo = _vec3("workspace_min_m", self.workspace_min_m)
+        hi = _vec3("workspace_max_m", self.workspace_max_m)
+        for i, axis in enumerate("xyz"):
+            if hi[i] <= lo[i]:
+                raise ConfigError("workspace_max_m", f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
+        object.__setattr__(self, "workspace_min_m", lo)
+        object.__setattr__(self, "workspace_max_m", hi)
+
+
+@dataclass(frozen=True)
+class MasterMapping(_Settings):
+    """X_d = scale * master position + offset; the offset is re-clutched whenever an axis is handed back to
+    the operator (start-up, end of a ramp, cleared fault) so the robot never jumps to the master."""
+
+    scale: float = 1.0
+    jog_speed_m_s: float = 0.01
+    derivative_filter_s: float = 0.005
+
+    def __post_init__(self):
+        object.__setattr__(self, "scale", _positive("scale", self.scale))
+        object.__setattr__(self, "jog_speed_m_s", _positive("jog_speed_m_s", self.jog_speed_m_s))
+        object.__setattr__(self, "derivative_filter_s", _positive("derivative_filter_s", self.derivative_filter_s))
+
+
+@dataclass(frozen=True)
+class ControlConfig(_Settings):
+    rate_hz: float = 1000.0
+    max_step_s: float = 0.002
+    gains: ImpedanceGains = field(default_factory=ImpedanceGains)
+    ramp: RampSettings = field(default_factory=RampSettings)
+    contact: ContactSettings = field(default_factory=ContactSettings)
+    safety: SafetyLimits = field(default_factory=SafetyLimits)
+    master: MasterMapping = field(default_factory=MasterMapping)
+
+    def __post_init__(self):
+        object.__setattr__(self, "rate_hz", _positive("rate_hz", self.rate_hz))
+        object.__setattr__(self, "max_step_s", _positive("max_step_s", self.max_step_s))
+        if self.max_step_s < 1.0 / self.rate_hz:
+            raise ConfigError("max_step_s", f"must be at least one period ({1.0 / self.rate_hz:g} s)")
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+_NESTED: dict[tuple[str, str], type[_Settings]] = {
+    ("ControlConfig", "gains"): ImpedanceGains,
+    ("ControlConfig", "ramp"): RampSettings,
+    ("ControlConfig", "contact"): ContactSettings,
+    ("ControlConfig", "safety"): SafetyLimits,
+    ("ControlConfig", "master"): MasterMapping,
+}

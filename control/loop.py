@@ -1,0 +1,388 @@
+"""The steppable control loop: one call of :meth:`ControlLoop.step` is one 1 kHz tick.
+
+The loop is pure: it does no I/O and reads no clock. A driver (the real-time controller process, the
+fast-forward driver, or a test) polls the devices, passes their latest readings and the pending commands
+with the tick's time, and applies the returned reference to the slave.
+
+Order within a tick: readings -> commands -> new tactile frame (analysis, Fig. 4 state machine) -> safety
+supervisor -> reference (Eq. 2) -> telemetry. The supervisor runs before the law so a violated limit
+changes this tick's reference, not the next one's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from control.analysis import PoseHistory, element_analysis
+from control.config import ControlConfig
+from control.law import HybridImpedanceLaw
+from control.messages import (AbortRegion, ClearFault, Command, CommandRefused, EStop, Event, FaultCleared,
+                              FaultKind, FaultRaised, Jog, Notice, Phase, SetGains, SetRamp, SetRegion, SetSz,
+                              Source, SzChanged, Tare)
+from control.palpation import PalpationStateMachine
+from control.safety import RETRACT_FAULTS, SafetySupervisor
+from control.telemetry import empty_frame, empty_tick
+from hardware.interfaces import MasterFeedback, MasterState, SlaveState, TactileConstraints, TactileFrame, Vec3
+
+Z = 2
+ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(slots=True)
+class StepResult:
+    position_ref_m: Vec3  # X_r for the slave's inner position loop
+    velocity_ref_m_s: Vec3
+    hold: bool  # True: call slave.hold() instead of command() (no valid reference)
+    new_frame: bool  # True: loop.frame holds the analysis of a sensor frame first seen this tick
+    events: list[Event] = field(default_factory=list)
+    feedback: MasterFeedback | None = None
+    tare: bool = False  # True: the driver must tare the tactile sensor now
+
+
+class ControlLoop:
+    """State: ``tick`` (TICK_DTYPE row, updated in place every step) and ``frame`` (FRAME_DTYPE row)."""
+
+    def __init__(self, config: ControlConfig, sensor: TactileConstraints, has_master: bool = True):
+        self.config = config
+        self.sensor = sensor
+        self.has_master = has_master
+        self.law = HybridImpedanceLaw(config.gains)
+        self.safety = SafetySupervisor(config.safety)
+        self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2)
+        self.history = PoseHistory(config.contact.pose_history_s, config.rate_hz)
+        self.tick = empty_tick()
+        self.frame = empty_frame()
+        self._started = False
+        self._t0 = 0.0
+        self._last = 0.0
+        self._ticks = 0
+        self._x_s: Vec3 = ZERO3
+        self._v_s: Vec3 = ZERO3
+        self._slave_seq = -1
+        # operator side: X_d = scale * master + offset, with a rate-limited jog folded into the offset
+        self._offset = [0.0, 0.0, 0.0]
+        self._jog_pending = [0.0, 0.0, 0.0]
+        self._master_pos: Vec3 | None = None
+        self._master_seq = -1
+        self._master_t = 0.0
+        self._master_switch: bool | None = None
+        self._v_d = [0.0, 0.0, 0.0]
+        self._a_d = [0.0, 0.0, 0.0]
+        # sensor side
+        self._sensor_seq = -1
+        self._force_N = 0.0
+        self._max_pressure_pa = 0.0
+        self._indentation_m = math.nan
+        # safe hold
+        self._hold_xy: tuple[float, float] = (0.0, 0.0)
+        self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
+        self._seen = [-math.inf, -math.inf, -math.inf]  # newest reading time of sensor, master, slave
+
+    # ---- helpers -------------------------------------------------------------------------------------
+
+    def _master_term(self, i: int) -> float:
+        return self.config.master.scale * self._master_pos[i] if self._master_pos is not None else 0.0
+
+    def _x_d(self, i: int) -> float:
+        return self._master_term(i) + self._offset[i]
+
+    def _clutch(self, axes: Iterable[int]) -> None:
+        """Re-anchor X_d on X_r for these axes so handing them to the operator moves nothing."""
+        for i in axes:
+            self._offset[i] = self.law.x_r[i] - self._master_term(i)
+            self._jog_pending[i] = 0.0
+
+    def _set_sz(self, now_s: float, position_control: bool, source: Source, events: list) -> None:
+        self.law.set_selection(Z, position_control)
+        events.append(SzChanged(now_s, int(position_control), source))
+
+    # ---- commands ------------------------------------------------------------------------------------
+
+    def _refuse(self, now_s: float, cmd: Command, reason: str, events: list) -> None:
+        events.append(CommandRefused(now_s, type(cmd).__name__, reason))
+
+    def _command(self, now_s: float, cmd: Command, events: list, result: StepResult) -> None:
+        sm = self.sm
+        if isinstance(cmd, SetSz):
+            self._command_sz(now_s, cmd, events)
+        elif isinstance(cmd, EStop):
+            self._raise_fault(now_s, FaultKind.ESTOP, f"Emergency stop: {cmd.reason}. The robot was stopped "
+                                                      f"where it is; clear the fault to continue.", events)
+        elif isinstance(cmd, ClearFault):
+            self._clear_fault(now_s, cmd, events)
+        elif isinstance(cmd, AbortRegion):
+            if sm.force_control:
+                sm.abort(now_s, cmd.reason, self.law.x_r[Z])
+                self._set_sz(now_s, True, Source.CONTROLLER, events)
+            else:
+                self._refuse(now_s, cmd, "no region is being palpated", events)
+        elif isinstance(cmd, Tare):
+            if sm.force_control or sm.phase == Phase.RETRACT:
+                self._refuse(now_s, cmd, "tare only with the probe off the tissue (not during a ramp)", events)
+            else:
+                result.tare = True
+                events.append(Notice(now_s, "Tactile sensor tared: the current reading is the new zero."))
+        elif isinstance(cmd, (SetRamp, SetGains, SetRegion)):
+            if not (sm.idle or sm.phase == Phase.HOLD):
+                self._refuse(now_s, cmd, "settings can change only between regions", events)
+            elif isinstance(cmd, SetRamp):
+                sm.set_ramp(cmd.ramp)
+                r = cmd.ramp
+                events.append(Notice(now_s, f"Ramp set: {r.force_min_N:g} to {r.force_max_N:g} N in "
+                                            f"{r.force_step_N:g} N steps ({r.n_levels} levels), eps = "
+                                            f"{r.rmse_threshold_N:g} N over {r.settle_window_s:g} s."))
+            elif isinstance(cmd, SetGains):
+                self.law.set_gains(cmd.gains)
+                events.append(Notice(now_s, "Impedance gains changed."))
+            else:
+                sm.region = cmd.index - 1
+                events.append(Notice(now_s, f"Next region is number {cmd.index}."))
+        elif isinstance(cmd, Jog):
+            if not sm.idle:
+                self._refuse(now_s, cmd, "jog only while the operator holds position control", events)
+            else:
+                for i in range(3):
+                    self._jog_pending[i] += cmd.delta_m[i]
+        else:
+            self._refuse(now_s, cmd, "unknown command", events)
+
+    def _command_sz(self, now_s: float, cmd: SetSz, events: list) -> None:
+        sm = self.sm
+        if not cmd.position_control:
+            if sm.phase == Phase.HOLD:
+                self._refuse(now_s, cmd, f"clear the fault first ({self.safety.message})", events)
+            elif sm.force_control:
+                self._refuse(now_s, cmd, "force control is already on", events)
+            elif sm.phase == Phase.RETRACT:
+                self._refuse(now_s, cmd, "the probe is still retracting", events)
+            else:
+                sm.start(now_s, self._x_s[Z])
+                self._set_sz(now_s, False, cmd.source, events)
+        elif sm.force_control:
+            sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
+            self._clutch((Z,))
+            self._set_sz(now_s, True, cmd.source, events)
+        elif sm.phase == Phase.RETRACT:
+            sm.operator_took_over(now_s)
+            self._clutch((Z,))
+
+    def _raise_fault(self, now_s: float, kind: FaultKind, message: str, events: list) -> None:
+        if not self.safety.latch(kind, message):
+            return
+        events.append(FaultRaised(now_s, kind, message))
+        self.sm.fault(now_s, message, self.law.x_r[Z], retract=self.safety.retract)
+        self._hold_xy = (self.law.x_r[0], self.law.x_r[1])
+        if not self.safety.retract:
+            self.law.reset(self._x_s, ZERO3)
+
+    def _clear_fault(self, now_s: float, cmd: ClearFault, events: list) -> None:
+        kind = self.safety.fault
+        reason = self.safety.clear(self._violation(now_s))
+        if reason is not None:
+            self._refuse(now_s, cmd, reason, events)
+            return
+        if kind not in RETRACT_FAULTS:
+            self.law.reset(self._x_s, ZERO3)  # Eq. 3 again: the reference restarts where the robot stopped
+        self._clutch((0, 1, 2))
+        self.sm.clear_fault(now_s)
+        events.append(FaultCleared(now_s, kind))
+
+    # ---- the tick ------------------------------------------------------------------------------------
+
+    def _violation(self, now_s: float):
+        return self.safety.check(
+            uptime_s=now_s - self._t0,
+            x_ref_m=self.law.x_r,
+            v_ref_m_s=self.law.v_r,
+            force_N=self._force_N,
+            max_pressure_pa=self._max_pressure_pa,
+            indentation_m=self._indentation_m,
+            sensor_age_s=self._ages[0],
+            master_age_s=self._ages[1] if self.has_master else None,
+            slave_age_s=self._ages[2],
+        )
+
+    def _read_master(self, master: MasterState, now_s: float, events: list, result: StepResult) -> None:
+        if master.seq == self._master_seq:
+            return
+        pos = master.position_m
+        if self._master_pos is not None:
+            dt = master.t_s - self._master_t
+            if dt > 0:
+                alpha = dt / (self.config.master.derivative_filter_s + dt)
+                scale = self.config.master.scale
+                for i in range(3):
+                    v_raw = scale * (pos[i] - self._master_pos[i]) / dt
+                    v_new = self._v_d[i] + alpha * (v_raw - self._v_d[i])
+                    self._a_d[i] += alpha * ((v_new - self._v_d[i]) / dt - self._a_d[i])
+                    self._v_d[i] = v_new
+        else:
+            # first sample: anchor X_d on the robot so start-up moves nothing
+            self._master_pos = pos
+            self._clutch((0, 1, 2))
+        self._master_pos = pos
+        self._master_seq = master.seq
+        self._master_t = master.t_s
+        switch = master.sz_switch
+        if switch is not None and self._master_switch is not None and switch != self._master_switch:
+            self._command(now_s, SetSz(position_control=switch, source=Source.MASTER), events, result)
+        self._master_switch = switch
+
+    def _read_frame(self, frame: TactileFrame) -> None:
+        self._sensor_seq = frame.seq
+        p = frame.pressure_pa
+        area = self.sensor.element_area_m2
+        self._force_N = float(p.sum()) * area
+        self._max_pressure_pa = float(p.max())
+        pos = self.history.at(frame.t_s)
+        sm = self.sm
+        sm.on_frame(frame.t_s, p, self._force_N, pos)
+        fr = self.frame
+        fr["tick"] = self._ticks
+        fr["sensor_seq"] = frame.seq
+        fr["t_s"] = frame.t_s
+        fr["tsi_position_m"] = pos
+        fr["pressure_pa"] = p
+        if sm.force_control:
+            _, dL, stiffness, _, self._indentation_m = element_analysis(
+                p, sm.tracker.onset_height_m, pos[Z], self.config.contact, area)
+            fr["dL_m"] = dL
+            fr["stiffness_pa"] = stiffness
+        else:
+            self._indentation_m = math.nan
+            fr["dL_m"] = np.nan
+            fr["stiffness_pa"] = np.nan
+
+    def step(
+        self,
+        now_s: float,
+        sensor: TactileFrame | None,
+        slave: SlaveState | None,
+        master: MasterState | None,
+        commands: Iterable[Command] = (),
+    ) -> StepResult:
+        events: list[Event] = []
+        result = StepResult(ZERO3, ZERO3, hold=True, new_frame=False, events=events)
+        if slave is not None:
+            self._x_s, self._v_s = slave.position_m, slave.velocity_m_s
+            if slave.seq != self._slave_seq:
+                self._slave_seq = slave.seq
+                self.history.push(slave.t_s, slave.position_m)
+        if not self._started:
+            if slave is None:
+                self._fill_tick(now_s)  # nothing to anchor the reference on yet: hold
+                return result
+            self._started = True
+            self._t0 = self._last = now_s
+            self.law.reset(self._x_s, self._v_s)  # Eq. 3
+            self._clutch((0, 1, 2))
+            events.append(SzChanged(now_s, 1, Source.CONTROLLER))
+        dt = min(max(now_s - self._last, 0.0), self.config.max_step_s)
+        self._last = now_s
+        if sensor is not None:
+            self._seen[0] = sensor.t_s
+        if master is not None:
+            self._seen[1] = master.t_s
+        if slave is not None:
+            self._seen[2] = slave.t_s
+        # a device that stops answering keeps ageing from its last reading
+        self._ages = (now_s - self._seen[0], now_s - self._seen[1], now_s - self._seen[2])
+
+        if master is not None and self.has_master:
+            self._read_master(master, now_s, events, result)
+        for cmd in commands:
+            self._command(now_s, cmd, events, result)
+        if sensor is not None and sensor.seq != self._sensor_seq:
+            self._read_frame(sensor)
+            result.new_frame = True
+
+        sm = self.sm
+        if sm.force_control:
+            sm.on_tick(now_s, self._x_s[Z])
+        events.extend(sm.take_events())
+
+        if not self.safety.faulted:
+            violation = self._violation(now_s)
+            if violation is not None:
+                self._raise_fault(now_s, violation[0], violation[1], events)
+                events.extend(sm.take_events())
+        if self.law.sz == 0 and not sm.force_control:
+            # the ramp ended (done, timeout, no tissue, fault): z goes back to position control
+            self._set_sz(now_s, True, Source.CONTROLLER, events)
+
+        self._reference(now_s, dt, result, events)
+        events.extend(sm.take_events())
+        result.feedback = MasterFeedback(now_s, int(sm.phase), sm.region_done, self._force_N, self.safety.faulted)
+        self._fill_tick(now_s)
+        return result
+
+    def _reference(self, now_s: float, dt: float, result: StepResult, events: list) -> None:
+        sm, law = self.sm, self.law
+        if sm.phase == Phase.HOLD and not self.safety.retract:
+            # stopped: keep the reference on the robot so clearing the fault restarts without a jump
+            law.reset(self._x_s, ZERO3)
+            result.position_ref_m = self._x_s
+            result.hold = True
+            return
+        f_d_z = -sm.force_desired_N if sm.force_control else 0.0
+        if sm.phase in (Phase.RETRACT, Phase.HOLD):
+            z, vz, finished = sm.retract_setpoint(now_s)
+            if sm.phase == Phase.HOLD:
+                x_d = (self._hold_xy[0], self._hold_xy[1], z)
+                v_d = (0.0, 0.0, vz)
+            else:
+                x_d = (self._x_d(0), self._x_d(1), z)
+                v_d = (self._v_d[0], self._v_d[1], vz)
+            law.step(dt, x_d, v_d, ZERO3, (0.0, 0.0, -self._force_N), ZERO3)
+            if sm.phase == Phase.RETRACT and finished and abs(law.x_r[Z] - z) < 2e-4:
+                sm.retract_finished(now_s)
+                self._clutch((Z,))
+        else:
+            self._advance_jog(dt)
+            x_d = (self._x_d(0), self._x_d(1), self._x_d(2))
+            law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), (0.0, 0.0, -self._force_N), (0.0, 0.0, f_d_z))
+        result.position_ref_m = (law.x_r[0], law.x_r[1], law.x_r[2])
+        result.velocity_ref_m_s = (law.v_r[0], law.v_r[1], law.v_r[2])
+        result.hold = False
+
+    def _advance_jog(self, dt: float) -> None:
+        pending = self._jog_pending
+        if pending[0] == pending[1] == pending[2] == 0.0:
+            return
+        norm = math.sqrt(pending[0] ** 2 + pending[1] ** 2 + pending[2] ** 2)
+        step = min(1.0, self.config.master.jog_speed_m_s * dt / norm)
+        for i in range(3):
+            moved = pending[i] * step
+            self._offset[i] += moved
+            pending[i] -= moved
+            if abs(pending[i]) < 1e-9:
+                pending[i] = 0.0
+
+    def _fill_tick(self, now_s: float) -> None:
+        t, sm, law = self.tick, self.sm, self.law
+        t["tick"] = self._ticks
+        self._ticks += 1
+        t["t_s"] = now_s
+        t["phase"] = sm.phase
+        t["sz"] = law.sz
+        t["region_done"] = sm.region_done
+        t["fault"] = self.safety.fault
+        t["region"] = sm.region
+        t["level"] = sm.level
+        t["n_levels"] = sm.n_levels
+        t["force_desired_N"] = sm.force_desired_N
+        t["force_measured_N"] = self._force_N
+        t["rmse_N"] = sm.rmse_N
+        t["x_ref_m"] = law.x_r
+        t["v_ref_m_s"] = law.v_r
+        t["x_des_m"] = (self._x_d(0), self._x_d(1), self._x_d(2))
+        t["x_slave_m"] = self._x_s
+        t["indentation_m"] = self._indentation_m
+        t["sensor_seq"] = self._sensor_seq
+        t["sensor_age_s"] = self._ages[0]
+        t["master_age_s"] = self._ages[1] if self.has_master else math.nan
+        t["slave_age_s"] = self._ages[2]

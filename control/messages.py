@@ -1,0 +1,207 @@
+"""Typed commands into the control loop and events out of it.
+
+Commands and events are small frozen dataclasses that cross the process boundary by pickling; the loop
+dispatches on their type, never on strings.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from control.config import ImpedanceGains, RampSettings
+
+Vec3 = tuple[float, float, float]
+
+
+class Phase(enum.IntEnum):
+    """States of the Fig. 4 flowchart as the operator sees them."""
+
+    APPROACH = 0  # S_z = 1: the operator positions the TSI under position control
+    SEEK_CONTACT = 1  # S_z = 0: force control at F_min, no element in contact yet
+    SETTLING = 2  # S_z = 0: at level k, waiting for RMSE(F_d - F_ts) < eps
+    RETRACT = 3  # S_z = 1: lifting the TSI off the tissue after the ramp, an abort or a fault
+    DONE = 4  # region done: the ramp reached F_max; the operator may move to the next area
+    HOLD = 5  # a fault latched a safe hold; cleared only by the operator
+
+
+class FaultKind(enum.IntEnum):
+    NONE = 0
+    FORCE_CEILING = 1
+    PRESSURE_CEILING = 2
+    INDENTATION_CEILING = 3
+    VELOCITY_LIMIT = 4
+    WORKSPACE = 5
+    SENSOR_STALE = 6
+    MASTER_STALE = 7
+    SLAVE_STALE = 8
+    ESTOP = 9
+    CONTROLLER = 10  # the controller process itself (crash, stall) as seen from outside
+
+
+class Source(enum.IntEnum):
+    OPERATOR = 0  # GUI or keyboard
+    MASTER = 1  # the switch on the master device
+    CONTROLLER = 2  # the palpation state machine or the safety supervisor
+
+
+# ---- commands ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class SetSz:
+    """S_z = 1 (position control in z) or 0 (force control: starts the Fig. 4 ramp for this area)."""
+
+    position_control: bool
+    source: Source = Source.OPERATOR
+
+
+@dataclass(frozen=True, slots=True)
+class AbortRegion:
+    reason: str = "aborted by the operator"
+
+
+@dataclass(frozen=True, slots=True)
+class EStop:
+    reason: str = "emergency stop pressed"
+
+
+@dataclass(frozen=True, slots=True)
+class ClearFault:
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class Tare:
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class SetRamp:
+    ramp: RampSettings
+
+
+@dataclass(frozen=True, slots=True)
+class SetGains:
+    gains: ImpedanceGains
+
+
+@dataclass(frozen=True, slots=True)
+class Jog:
+    """Move X_d by a delta (console jog when no master device is attached)."""
+
+    delta_m: Vec3
+
+
+@dataclass(frozen=True, slots=True)
+class SetRegion:
+    """Name the area being palpated next (the index used in records and stitching)."""
+
+    index: int
+
+
+Command = SetSz | AbortRegion | EStop | ClearFault | Tare | SetRamp | SetGains | Jog | SetRegion
+
+
+# ---- events -----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class LevelRecord:
+    """One recorded force level of one region (the data behind Figs. 6-11)."""
+
+    region: int
+    level: int
+    t_s: float
+    force_desired_N: float
+    force_measured_N: float
+    rmse_N: float
+    settle_time_s: float
+    tsi_position_m: Vec3
+    indentation_m: float  # TSI indentation depth: mean dL over elements in contact (NaN if none)
+    pressure_pa: np.ndarray  # (4, 15), mean over the settle window
+    element_force_N: np.ndarray  # (4, 15)
+    onset_height_m: np.ndarray  # (4, 15) TSI height at each element's contact onset (NaN: never)
+    L0_m: np.ndarray  # (4, 15) initial tissue thickness under each element
+    dL_m: np.ndarray  # (4, 15) indentation of each element
+    stiffness_pa: np.ndarray  # (4, 15) Eq. 1, NaN where not in contact
+
+
+@dataclass(frozen=True, slots=True)
+class SzChanged:
+    t_s: float
+    sz: int
+    source: Source
+
+
+@dataclass(frozen=True, slots=True)
+class PhaseChanged:
+    t_s: float
+    phase: Phase
+    level: int
+    n_levels: int
+
+
+@dataclass(frozen=True, slots=True)
+class LevelRecorded:
+    t_s: float
+    record: LevelRecord
+
+
+@dataclass(frozen=True, slots=True)
+class LevelTimedOut:
+    t_s: float
+    region: int
+    level: int
+    force_desired_N: float
+    rmse_N: float
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class RegionDone:
+    t_s: float
+    region: int
+    n_levels: int
+
+
+@dataclass(frozen=True, slots=True)
+class RegionAborted:
+    t_s: float
+    region: int
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class FaultRaised:
+    t_s: float
+    kind: FaultKind
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class FaultCleared:
+    t_s: float
+    kind: FaultKind
+
+
+@dataclass(frozen=True, slots=True)
+class CommandRefused:
+    t_s: float
+    command: str
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """Anything else the operator should read in the messages pane (tare done, settings applied...)."""
+
+    t_s: float
+    message: str
+    level: str = field(default="info")  # info | warning
+
+
+Event = (SzChanged | PhaseChanged | LevelRecorded | LevelTimedOut | RegionDone | RegionAborted | FaultRaised
+         | FaultCleared | CommandRefused | Notice)

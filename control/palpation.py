@@ -1,0 +1,242 @@
+"""The palpation flowchart of Fig. 4 as a state machine.
+
+APPROACH (S_z = 1, the operator positions the TSI above an area)
+  -> start(): S_z = 0, force control at F_min: SEEK_CONTACT until an element's pressure passes the confirm
+     threshold (a real touch, not noise)
+  -> SETTLING at level k (F_d = F_min + k dF): once the RMSE of F_d - F_ts over the settle window is below
+     eps and the level has lasted the minimum settle time, record the level (pressure and force per
+     element averaged over the window, L0, dL, stiffness, TSI indentation) and go to level k + 1
+  -> after the F_max level: set "region done" and RETRACT (S_z = 1, lift the TSI) -> DONE
+A level that does not settle within the level timeout, a seek that finds no tissue, or an operator abort
+ends the region without "region done" (RETRACT -> APPROACH). A fault (from the safety supervisor) goes to
+HOLD from any phase and stays there until the operator clears it.
+
+The machine decides phases, F_d and the retract trajectory; the loop owns the law and the devices.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from control.analysis import ContactTracker, element_analysis
+from control.config import ContactSettings, RampSettings
+from control.messages import (LevelRecord, LevelRecorded, LevelTimedOut, Phase, PhaseChanged, RegionAborted,
+                              RegionDone)
+
+FRAME_BUFFER = 512  # frames held for the settle window: 5 s at 100 frames/s
+
+
+class PalpationStateMachine:
+    def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float):
+        self.ramp = ramp
+        self.contact = contact
+        self.area = element_area_m2
+        self.tracker = ContactTracker(contact, shape)
+        self.phase = Phase.APPROACH
+        self.region = -1
+        self.level = -1
+        self.region_done = False
+        self.force_desired_N = 0.0
+        self.rmse_N = math.nan
+        self._t_level = 0.0
+        self._t_start = 0.0
+        self._z_start = 0.0
+        self._events: list = []
+        # settle window: per-frame time, force error, total force, height, pressure
+        self._ft = np.full(FRAME_BUFFER, -np.inf)
+        self._ferr = np.zeros(FRAME_BUFFER)
+        self._fN = np.zeros(FRAME_BUFFER)
+        self._fz = np.zeros(FRAME_BUFFER)
+        self._fpos = np.zeros((FRAME_BUFFER, 3))
+        self._fp = np.zeros((FRAME_BUFFER, *shape))
+        self._fi = 0
+        # retract trajectory
+        self._r_t0 = 0.0
+        self._r_z0 = 0.0
+        self._r_z1 = 0.0
+        self._after_retract = Phase.APPROACH
+
+    # ---- queries -------------------------------------------------------------------------------------
+
+    @property
+    def n_levels(self) -> int:
+        return self.ramp.n_levels
+
+    @property
+    def force_control(self) -> bool:
+        return self.phase in (Phase.SEEK_CONTACT, Phase.SETTLING)
+
+    @property
+    def idle(self) -> bool:
+        """The operator owns the z axis and may start a region or change settings."""
+        return self.phase in (Phase.APPROACH, Phase.DONE)
+
+    def take_events(self) -> list:
+        events, self._events = self._events, []
+        return events
+
+    # ---- transitions ---------------------------------------------------------------------------------
+
+    def _enter(self, now_s: float, phase: Phase) -> None:
+        self.phase = phase
+        self._events.append(PhaseChanged(now_s, phase, self.level, self.n_levels))
+
+    def set_ramp(self, ramp: RampSettings) -> None:
+        self.ramp = ramp
+
+    def start(self, now_s: float, tsi_z_m: float) -> None:
+        """The operator switched S_z to force control above an area: begin the Fig. 4 ramp."""
+        self.region += 1
+        self.region_done = False
+        self.level = 0
+        self.force_desired_N = self.ramp.level_force_N(0)
+        self.rmse_N = math.nan
+        self.tracker.reset()
+        self._t_start = now_s
+        self._t_level = now_s
+        self._z_start = tsi_z_m
+        self._ft[:] = -np.inf
+        self._enter(now_s, Phase.SEEK_CONTACT)
+
+    def abort(self, now_s: float, reason: str, tsi_z_m: float, retract: bool = True) -> None:
+        """End the region without "region done"; retract unless the operator takes z over in place."""
+        if not self.force_control:
+            return
+        self._events.append(RegionAborted(now_s, self.region, reason))
+        self._finish_ramp()
+        if retract:
+            self.begin_retract(now_s, tsi_z_m, then=Phase.APPROACH)
+        else:
+            self._enter(now_s, Phase.APPROACH)
+
+    def fault(self, now_s: float, reason: str, tsi_z_m: float, retract: bool) -> None:
+        if self.force_control:
+            self._events.append(RegionAborted(now_s, self.region, reason))
+        self._finish_ramp()
+        if retract:
+            self._set_retract(now_s, tsi_z_m)
+        self._enter(now_s, Phase.HOLD)
+
+    def clear_fault(self, now_s: float) -> None:
+        self._enter(now_s, Phase.APPROACH)
+
+    def operator_took_over(self, now_s: float) -> None:
+        """S_z switched back to position control by the operator while retracting or done."""
+        self._enter(now_s, Phase.APPROACH)
+
+    def _finish_ramp(self) -> None:
+        self.level = -1
+        self.force_desired_N = 0.0
+        self.rmse_N = math.nan
+
+    # ---- retract -------------------------------------------------------------------------------------
+
+    def retract_target_m(self, tsi_z_m: float) -> float:
+        """Where to lift to: the retract height above the highest onset seen, or above here."""
+        onsets = self.tracker.onset_height_m
+        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else tsi_z_m
+        return max(top, tsi_z_m) + self.contact.retract_height_m
+
+    def _set_retract(self, now_s: float, tsi_z_m: float) -> None:
+        self._r_t0, self._r_z0 = now_s, tsi_z_m
+        self._r_z1 = self.retract_target_m(tsi_z_m)
+
+    def begin_retract(self, now_s: float, tsi_z_m: float, then: Phase) -> None:
+        self._set_retract(now_s, tsi_z_m)
+        self._after_retract = then
+        self._enter(now_s, Phase.RETRACT)
+
+    def retract_setpoint(self, now_s: float) -> tuple[float, float, bool]:
+        """(z, vz, finished) of the retract ramp at now_s."""
+        v = self.contact.retract_speed_m_s
+        z = self._r_z0 + v * (now_s - self._r_t0)
+        if z >= self._r_z1:
+            return self._r_z1, 0.0, True
+        return z, v, False
+
+    # ---- per frame and per tick ----------------------------------------------------------------------
+
+    def on_frame(self, t_s: float, pressure_pa: np.ndarray, force_N: float, tsi_position_m) -> None:
+        """A new tactile frame, with the TSI position at the frame's timestamp."""
+        if not self.force_control:
+            return
+        z = tsi_position_m[2]
+        self.tracker.update(pressure_pa, z)
+        i = self._fi
+        self._ft[i] = t_s
+        self._ferr[i] = self.force_desired_N - force_N
+        self._fN[i] = force_N
+        self._fz[i] = z
+        self._fpos[i] = tsi_position_m
+        self._fp[i] = pressure_pa
+        self._fi = (i + 1) % FRAME_BUFFER
+
+        if self.phase == Phase.SEEK_CONTACT:
+            if (pressure_pa >= self.contact.confirm_threshold_pa).any():
+                self._t_level = t_s
+                self._enter(t_s, Phase.SETTLING)
+            return
+
+        window = (self._ft >= t_s - self.ramp.settle_window_s) & (self._ft >= self._t_level)
+        self.rmse_N = float(np.sqrt(np.mean(self._ferr[window] ** 2)))
+        window_full = t_s - self._t_level >= max(self.ramp.settle_window_s, self.ramp.min_settle_s)
+        if window_full and self.rmse_N < self.ramp.rmse_threshold_N:
+            self._record(t_s, window)
+
+    def _record(self, t_s: float, window: np.ndarray) -> None:
+        pressure = self._fp[window].mean(axis=0)
+        z = float(self._fz[window].mean())
+        pos = self._fpos[window].mean(axis=0)
+        onset = self.tracker.onset_height_m.copy()
+        L0, dL, stiffness, in_contact, indentation = element_analysis(pressure, onset, z, self.contact, self.area)
+        record = LevelRecord(
+            region=self.region,
+            level=self.level,
+            t_s=t_s,
+            force_desired_N=self.force_desired_N,
+            force_measured_N=float(self._fN[window].mean()),
+            rmse_N=self.rmse_N,
+            settle_time_s=t_s - self._t_level,
+            tsi_position_m=(float(pos[0]), float(pos[1]), float(pos[2])),
+            indentation_m=indentation,
+            pressure_pa=pressure,
+            element_force_N=pressure * self.area,
+            onset_height_m=onset,
+            L0_m=L0,
+            dL_m=dL,
+            stiffness_pa=stiffness,
+        )
+        self._events.append(LevelRecorded(t_s, record))
+        if self.level + 1 >= self.n_levels:
+            self.region_done = True
+            self._events.append(RegionDone(t_s, self.region, self.n_levels))
+            self._finish_ramp()
+            self.begin_retract(t_s, z, then=Phase.DONE)
+            return
+        self.level += 1
+        self.force_desired_N = self.ramp.level_force_N(self.level)
+        self.rmse_N = math.nan
+        self._t_level = t_s
+        self._enter(t_s, Phase.SETTLING)
+
+    def on_tick(self, now_s: float, tsi_z_m: float) -> None:
+        """Time-outs of the ramp; called every tick while in force control."""
+        if self.phase == Phase.SEEK_CONTACT:
+            if self._z_start - tsi_z_m > self.contact.max_seek_depth_m:
+                self.abort(now_s, f"no tissue found within {self.contact.max_seek_depth_m * 1e3:.0f} mm "
+                                  f"below the start height", tsi_z_m)
+            elif now_s - self._t_level > self.ramp.level_timeout_s:
+                self.abort(now_s, f"no tissue contact within {self.ramp.level_timeout_s:g} s of force control",
+                           tsi_z_m)
+        elif self.phase == Phase.SETTLING and now_s - self._t_level > self.ramp.level_timeout_s:
+            message = (f"Level {self.level + 1} of {self.n_levels} ({self.force_desired_N:.2f} N) did not settle "
+                       f"within {self.ramp.level_timeout_s:g} s (RMSE {self.rmse_N:.3f} N against "
+                       f"eps = {self.ramp.rmse_threshold_N:.3f} N); the region was ended without recording it.")
+            self._events.append(LevelTimedOut(now_s, self.region, self.level, self.force_desired_N,
+                                              self.rmse_N, message))
+            self.abort(now_s, message, tsi_z_m)
+
+    def retract_finished(self, now_s: float) -> None:
+        self._enter(now_s, self._after_retract)

@@ -1,0 +1,172 @@
+"""Abstract device interfaces: the only way the control loop talks to hardware.
+
+Conventions (the one place they are written down):
+
+* SI units everywhere: m, N, Pa, s.
+* Tissue frame: x along the phantom's length, y across it, z up from the table.
+* The TSI pose is the position of the centre of its sensing face in the tissue frame; the face is
+  level and its 15-element axis runs along y, its 4-element axis along x.
+* Every tactile array is shaped ``(rows, cols) == (4, 15)``: row ``i`` is along x, column ``j`` along
+  y. Element ``(i, j)`` is centred at ``((i - (rows-1)/2) * pitch, (j - (cols-1)/2) * pitch)`` from
+  the TSI centre (see :meth:`TactileConstraints.element_offsets_m`).
+* Every reading carries the host-clock time it describes (``t_s``, the device timestamp mapped to
+  the host's monotonic clock) and the device's sequence number, so the loop always knows its age.
+
+Devices are polled: :meth:`Device.poll` does whatever non-blocking I/O (or, for a simulator,
+physics) brings the device up to ``now_s`` and must return within a small fraction of a tick.
+``latest()`` then returns the newest reading, or ``None`` if there has never been one.
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+Vec3 = tuple[float, float, float]
+
+
+class DeviceError(RuntimeError):
+    """A device failed in a way the caller should report (open failed, unplugged, bad frame)."""
+
+
+class ConnectionState(enum.IntEnum):
+    DISCONNECTED = 0
+    CONNECTING = 1
+    CONNECTED = 2
+    LOST = 3  # was connected, stopped answering or was unplugged
+
+
+@dataclass(frozen=True, slots=True)
+class TactileConstraints:
+    rows: int = 4
+    cols: int = 15
+    pitch_m: float = 2e-3
+    full_scale_pa: float = 100e3
+    frame_rate_hz: float = 100.0
+
+    @property
+    def element_area_m2(self) -> float:
+        return self.pitch_m * self.pitch_m
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.rows, self.cols)
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """Extent of the sensing face along (x, y)."""
+        return (self.rows * self.pitch_m, self.cols * self.pitch_m)
+
+    def element_offsets_m(self) -> np.ndarray:
+        """(rows, cols, 2) array of element-centre (x, y) offsets from the TSI centre."""
+        ix = (np.arange(self.rows) - (self.rows - 1) / 2.0) * self.pitch_m
+        jy = (np.arange(self.cols) - (self.cols - 1) / 2.0) * self.pitch_m
+        gx, gy = np.meshgrid(ix, jy, indexing="ij")
+        return np.stack([gx, gy], axis=-1)
+
+
+@dataclass(frozen=True, slots=True)
+class TactileFrame:
+    seq: int
+    t_s: float
+    pressure_pa: np.ndarray  # (rows, cols), calibrated and tared, >= 0 apart from noise
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveConstraints:
+    workspace_min_m: Vec3 = (-0.05, -0.05, 0.0)
+    workspace_max_m: Vec3 = (0.15, 0.10, 0.12)
+    max_speed_m_s: float = 0.1
+    rate_hz: float = 1000.0
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveState:
+    seq: int
+    t_s: float
+    position_m: Vec3  # TSI face centre, from the robot's kinematics
+    velocity_m_s: Vec3
+
+
+@dataclass(frozen=True, slots=True)
+class MasterConstraints:
+    rate_hz: float = 1000.0
+    has_sz_switch: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class MasterState:
+    seq: int
+    t_s: float
+    position_m: Vec3  # in the master's own frame; the loop maps it to X_d
+    sz_switch: bool | None = None  # True = position control; None = the device has no switch
+
+
+@dataclass(frozen=True, slots=True)
+class MasterFeedback:
+    """What the operator is told back through the master each tick (a haptic master may render it)."""
+
+    t_s: float
+    phase: int
+    region_done: bool
+    force_measured_N: float
+    faulted: bool
+
+
+class Device(ABC):
+    name: str = "device"
+
+    @property
+    @abstractmethod
+    def connection(self) -> ConnectionState: ...
+
+    @abstractmethod
+    def open(self) -> None:
+        """Connect; raise DeviceError with a sentence a user can act on if it cannot."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Disconnect and release every OS resource; safe to call twice."""
+
+    @abstractmethod
+    def poll(self, now_s: float) -> None:
+        """Non-blocking I/O (or simulation) up to ``now_s``; never blocks for long."""
+
+
+class TactileSensor(Device):
+    constraints: TactileConstraints
+
+    @abstractmethod
+    def latest(self) -> TactileFrame | None: ...
+
+    @abstractmethod
+    def tare(self) -> None:
+        """Take the current unloaded reading as zero for every element."""
+
+
+class SlaveManipulator(Device):
+    constraints: SlaveConstraints
+
+    @abstractmethod
+    def latest(self) -> SlaveState | None: ...
+
+    @abstractmethod
+    def command(self, position_m: Vec3, velocity_m_s: Vec3, now_s: float) -> None:
+        """Send the reference pose for the robot's inner position loop."""
+
+    @abstractmethod
+    def hold(self, now_s: float) -> None:
+        """Stop where it is (brakes or zero-velocity hold); used by the safety supervisor."""
+
+
+class MasterDevice(Device):
+    constraints: MasterConstraints
+
+    @abstractmethod
+    def latest(self) -> MasterState | None: ...
+
+    def feedback(self, fb: MasterFeedback) -> None:
+        """Tell the operator's side what the slave is doing; devices without a display ignore it."""

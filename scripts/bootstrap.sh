@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Make a fresh machine ready: the system libraries Qt needs (when missing) and .venv with everything.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+# Qt's offscreen and xcb platforms load these at run time; pip cannot provide them.
+need=()
+have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+have_lib libEGL.so.1 || need+=(libegl1)
+have_lib libGL.so.1 || need+=(libgl1)
+have_lib libxkbcommon.so.0 || need+=(libxkbcommon0)
+have_lib libxkbcommon-x11.so.0 || need+=(libxkbcommon-x11-0)
+have_lib libfontconfig.so.1 || need+=(libfontconfig1)
+have_lib libdbus-1.so.3 || need+=(libdbus-1-3)
+have_lib libxcb-cursor.so.0 || need+=(libxcb-cursor0)
+have_lib libxcb-icccm.so.4 || need+=(libxcb-icccm4)
+have_lib libxcb-keysyms.so.1 || need+=(libxcb-keysyms1)
+have_lib libxcb-image.so.0 || need+=(libxcb-image0)
+have_lib libxcb-render-util.so.0 || need+=(libxcb-render-util0)
+have_lib libxcb-shape.so.0 || need+=(libxcb-shape0)
+have_lib libxcb-xinerama.so.0 || need+=(libxcb-xinerama0)
+have_lib libusb-1.0.so.0 || need+=(libusb-1.0-0)
+command -v Xvfb >/dev/null || need+=(xvfb)
+if [ ${#need[@]} -gt 0 ]; then
+  echo "bootstrap: installing system packages: ${need[*]}"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  if ! { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}"; } >/dev/null; then
+    echo "bootstrap: could not install ${need[*]}; install them with your package manager" >&2
+    exit 1
+  fi
+fi
+
+stamp=.venv/.installed
+if [ ! -x .venv/bin/python ] || [ pyproject.toml -nt "$stamp" ]; then
+  [ -x .venv/bin/python ] || "$PY" -m venv .venv
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q -e ".[test]"
+  touch "$stamp"
+fi

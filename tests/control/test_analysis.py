@@ -1,0 +1,85 @@
+"""Contact onset, L0, dL and Eq. 1 stiffness."""
+
+import numpy as np
+import pytest
+
+from control.analysis import ContactTracker, PoseHistory, element_analysis
+from control.config import ContactSettings
+
+A = 4e-6
+SHAPE = (4, 15)
+
+
+def test_eq1_numbers():
+    contact = ContactSettings(table_height_m=0.0)
+    p = np.full(SHAPE, 20e3)  # F = 0.08 N per element
+    onset = np.full(SHAPE, 0.025)  # L0 = 25 mm
+    L0, dL, E, in_contact, depth = element_analysis(p, onset, 0.0225, contact, A)  # dL = 2.5 mm
+    assert in_contact.all()
+    np.testing.assert_allclose(L0, 0.025)
+    np.testing.assert_allclose(dL, 0.0025)
+    # E = F L0 / (A dL) = 0.08 * 0.025 / (4e-6 * 0.0025) = 200 kPa
+    np.testing.assert_allclose(E, 200e3)
+    assert depth == pytest.approx(0.0025)
+
+
+def test_elements_never_in_contact_are_nan_not_inf():
+    contact = ContactSettings()
+    p = np.zeros(SHAPE)
+    p[1, 3] = 5e3
+    onset = np.full(SHAPE, np.nan)
+    onset[1, 3] = 0.025
+    onset[2, 3] = 0.0201  # known onset but dL below min_indentation: noise-dominated, NaN
+    p[2, 3] = 5e3
+    with np.errstate(all="raise"):
+        _, dL, E, in_contact, depth = element_analysis(p, onset, 0.020, contact, A)
+    assert np.isfinite(E[1, 3]) and E[1, 3] == pytest.approx(5e3 * 0.025 / 0.005)
+    assert np.isnan(E[2, 3])
+    assert np.isnan(np.delete(E.ravel(), [1 * 15 + 3])).all()
+    assert not np.isinf(E).any()
+    assert depth == pytest.approx((0.005 + 0.0001) / 2)
+
+
+def test_no_contact_gives_nan_depth():
+    _, _, E, in_contact, depth = element_analysis(np.zeros(SHAPE), np.full(SHAPE, np.nan), 0.02, ContactSettings(), A)
+    assert np.isnan(depth) and np.isnan(E).all() and not in_contact.any()
+
+
+def test_onset_extrapolated_back_to_zero_pressure_on_a_linear_rise():
+    contact = ContactSettings(onset_threshold_pa=300, confirm_threshold_pa=900)
+    tracker = ContactTracker(contact, SHAPE)
+    surface = np.linspace(0.024, 0.026, 60).reshape(SHAPE)  # a sloping surface: onsets differ per element
+    slope = 800e3  # Pa per m of indentation
+    for z in np.arange(0.030, 0.018, -0.00037):  # frames every 0.37 mm of descent
+        tracker.update(slope * np.clip(surface - z, 0, None), z)
+    np.testing.assert_allclose(tracker.onset_height_m, surface, atol=1e-9)
+
+
+def test_element_in_contact_before_tracking_stays_unknown():
+    tracker = ContactTracker(ContactSettings(), SHAPE)
+    p = np.zeros(SHAPE)
+    p[0, 0] = 2e3
+    tracker.update(p, 0.03)
+    tracker.update(p * 2, 0.029)
+    assert np.isnan(tracker.onset_height_m[0, 0]) and tracker.blind[0, 0]
+
+
+def test_pose_history_interpolates_at_the_frames_timestamp():
+    h = PoseHistory(0.1, 1000)
+    for k in range(300):
+        h.push(k * 1e-3, (0.0, 0.0, 0.03 - k * 1e-5))
+    assert h.at(0.2505)[2] == pytest.approx(0.03 - 250.5e-5)
+    assert h.at(-1.0)[2] == pytest.approx(0.03 - 198e-5)  # clamped to the oldest sample held
+    with pytest.raises(LookupError):
+        PoseHistory(0.1, 1000).at(0.0)
+
+
+def test_a_noise_blip_is_not_taken_for_contact():
+    tracker = ContactTracker(ContactSettings(onset_threshold_pa=300, confirm_threshold_pa=900), SHAPE)
+    p = np.zeros(SHAPE)
+    tracker.update(p, 0.030)
+    p[2, 7] = 400.0  # one noisy frame above p_on
+    tracker.update(p, 0.0299)
+    p[2, 7] = 0.0
+    tracker.update(p, 0.0298)
+    assert np.isnan(tracker.onset_height_m).all()

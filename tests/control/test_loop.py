@@ -1,0 +1,233 @@
+"""The Fig. 4 state machine and the safety supervisor, driven through ControlLoop.step on a test plant."""
+
+import math
+
+import numpy as np
+import pytest
+
+from control.config import ControlConfig, RampSettings, SafetyLimits
+from control.messages import (AbortRegion, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised,
+                              Jog, LevelRecorded, LevelTimedOut, Phase, PhaseChanged, RegionAborted, RegionDone,
+                              SetRamp, SetSz, SzChanged, Tare)
+
+from .plant import Harness, LayerPlant
+
+
+def phase(h):
+    return h.loop.sm.phase
+
+
+def start_region(h):
+    h.run(0.1)
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    assert phase(h) == Phase.SEEK_CONTACT
+    assert h.loop.law.sz == 0
+
+
+def test_full_ramp_records_every_level_then_sets_region_done_and_retracts():
+    h = Harness()
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE)
+    records = [e.record for e in h.of(LevelRecorded)]
+    ramp = h.config.ramp
+    assert [r.level for r in records] == list(range(ramp.n_levels))
+    assert [r.force_desired_N for r in records] == [ramp.level_force_N(k) for k in range(ramp.n_levels)]
+    for r in records:
+        assert r.rmse_N < ramp.rmse_threshold_N
+        assert abs(r.force_measured_N - r.force_desired_N) < 2 * ramp.rmse_threshold_N
+        assert r.settle_time_s >= ramp.min_settle_s
+        # the plant is a 60 kPa local layer: Eq. 1 must recover it in every element
+        np.testing.assert_allclose(r.stiffness_pa, 60e3, rtol=0.03)
+        np.testing.assert_allclose(r.L0_m, 0.025, atol=5e-5)
+    depths = [r.indentation_m for r in records]
+    assert all(b > a for a, b in zip(depths, depths[1:]))
+    assert depths[-1] == pytest.approx(7.0 / (60e3 * 240e-6 / 0.025), rel=0.05)
+    assert h.of(RegionDone) and h.loop.sm.region_done
+    assert h.loop.law.sz == 1
+    # retracted above the tissue, no longer pushing
+    assert h.plant.x[2] > 0.025 + h.config.contact.retract_height_m - 1e-3
+    assert h.loop.tick["region_done"] == 1 and h.loop.tick["phase"] == Phase.DONE
+
+
+def test_next_region_clears_the_done_flag_and_counts_regions():
+    h = Harness()
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE)
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    assert not h.loop.sm.region_done and h.loop.sm.region == 1
+
+
+def test_operator_abort_retracts_without_region_done():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: phase(h) == Phase.SETTLING and h.loop.sm.level == 2)
+    h.send(AbortRegion())
+    h.run(5, until=lambda h: phase(h) == Phase.APPROACH)
+    assert phase(h) == Phase.APPROACH
+    assert h.of(RegionAborted) and not h.of(RegionDone)
+    assert h.loop.law.sz == 1 and h.plant.x[2] > 0.025
+
+
+def test_switching_to_position_control_mid_ramp_hands_z_back_in_place():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    z = h.plant.x[2]
+    h.send(SetSz(position_control=True))
+    h.run(0.001)
+    assert h.plant.x[2] == pytest.approx(z, abs=1e-5)  # the reference is continuous across the switch
+    h.run(1.0)
+    assert phase(h) == Phase.APPROACH and h.loop.law.sz == 1
+    # re-clutched on the spot: the probe only yields as the impedance K_z predicts under the tissue force
+    k_z = h.config.gains.stiffness_N_m[2]
+    assert h.plant.x[2] == pytest.approx(z + h.loop.tick["force_measured_N"] / k_z, abs=1e-4)
+
+
+def test_a_level_that_never_settles_times_out_with_an_event():
+    # sensor noise of 100 Pa per element is ~3 mN on the total force: an eps of 0.5 mN is unreachable
+    h = Harness(config=ControlConfig(ramp=RampSettings(rmse_threshold_N=5e-4, level_timeout_s=2.0)),
+                plant=LayerPlant(noise_pa=100.0))
+    start_region(h)
+    h.run(10, until=lambda h: phase(h) == Phase.APPROACH)
+    (timeout,) = h.of(LevelTimedOut)
+    assert timeout.level == 0 and "did not settle" in timeout.message
+    assert not h.of(LevelRecorded) and not h.of(RegionDone)
+
+
+def test_no_tissue_below_aborts_the_seek():
+    h = Harness(plant=LayerPlant(surface_m=-1.0))  # nothing to touch
+    h.config = ControlConfig(safety=SafetyLimits(workspace_min_m=(-0.02, -0.02, -0.1)))
+    h.loop.__init__(h.config, h.loop.sensor, has_master=False)
+    start_region(h)
+    h.run(20, until=lambda h: phase(h) == Phase.APPROACH)
+    (aborted,) = h.of(RegionAborted)
+    assert "no tissue" in aborted.reason
+
+
+@pytest.mark.parametrize(
+    "kind, provoke",
+    [
+        (FaultKind.FORCE_CEILING, lambda h: setattr(h.plant, "extra_force_pa", 13.0 / (60 * 4e-6))),
+        (FaultKind.PRESSURE_CEILING, lambda h: h.plant.modulus.__setitem__((0, 0), 5e6)),
+        (FaultKind.SENSOR_STALE, lambda h: setattr(h.plant, "sensor_alive", False)),
+        (FaultKind.SLAVE_STALE, lambda h: setattr(h.plant, "slave_alive", False)),
+    ],
+)
+def test_each_fault_latches_a_safe_hold_with_an_explanation(kind, provoke):
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    provoke(h)
+    h.run(2, until=lambda h: h.loop.safety.faulted)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == kind and len(fault.message) > 40 and fault.message.endswith(".")
+    assert phase(h) == Phase.HOLD and h.loop.law.sz == 1
+    assert h.of(RegionAborted)
+    h.run(1.0)
+    if kind == FaultKind.SLAVE_STALE:
+        assert h.last.hold  # the slave cannot be trusted: tell it to hold, never a new reference
+    else:
+        assert h.plant.x[2] > 0.025  # lifted off the tissue
+
+
+def test_force_ceiling_value():
+    h = Harness()
+    h.plant.extra_force_pa = 13.0 / (60 * 4e-6)  # 13 N over the array, above the 12 N ceiling
+    h.run(0.2)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.FORCE_CEILING and "13.00 N" in fault.message
+
+
+def test_estop_holds_and_clearing_restarts_without_a_jump():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    h.send(EStop())
+    h.run(0.3)
+    assert h.loop.safety.fault == FaultKind.ESTOP and h.last.hold
+    z = h.plant.x[2]
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    assert "clear the fault first" in h.of(CommandRefused)[-1].reason
+    h.send(ClearFault())
+    h.run(0.5)
+    assert h.of(FaultCleared) and phase(h) == Phase.APPROACH
+    # restarted where it stopped (Eq. 3); it then only yields to the tissue force as K_z predicts
+    k_z = h.config.gains.stiffness_N_m[2]
+    assert h.plant.x[2] == pytest.approx(z + h.loop.tick["force_measured_N"] / k_z, abs=1e-4)
+
+
+def test_clear_is_refused_while_the_cause_persists():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    h.plant.sensor_alive = False
+    h.run(1.0)
+    h.send(ClearFault())
+    h.run(0.01)
+    assert "cause persists" in h.of(CommandRefused)[-1].reason
+    h.plant.sensor_alive = True
+    h.run(0.05)
+    h.send(ClearFault())
+    h.run(0.01)
+    assert h.of(FaultCleared)
+
+
+def test_velocity_and_workspace_limits():
+    h = Harness()
+    h.run(0.1)
+    h.loop.law.v_r[0] = 0.5  # a runaway reference
+    h.run(0.002)
+    assert h.of(FaultRaised)[0].kind == FaultKind.VELOCITY_LIMIT
+    h2 = Harness(config=ControlConfig(safety=SafetyLimits(workspace_max_m=(0.10, 0.06, 0.034))))
+    h2.run(0.1)
+    h2.send(Jog((0.0, 0.0, 0.005)))
+    h2.run(1.0, until=lambda h: h.loop.safety.faulted)
+    assert h2.of(FaultRaised)[0].kind == FaultKind.WORKSPACE
+    assert h2.last.hold
+
+
+def test_master_stale_is_a_fault_only_with_a_master():
+    h = Harness(master=True)
+    h.run(0.1)
+    h.master = False  # the master stops reporting
+    h.run(0.2)
+    assert h.of(FaultRaised)[0].kind == FaultKind.MASTER_STALE
+
+
+def test_master_switch_edges_drive_sz():
+    h = Harness(master=True)
+    h.run(0.1)
+    h.master_switch = False
+    h.run(0.02)
+    assert phase(h) == Phase.SEEK_CONTACT
+    assert [e.sz for e in h.of(SzChanged)][-1] == 0
+
+
+def test_settings_only_between_regions_and_tare_only_off_tissue():
+    h = Harness()
+    h.run(0.1)
+    h.send(Tare())
+    h.run(0.001)
+    assert h.last.tare
+    h.send(SetRamp(RampSettings(force_min_N=1, force_max_N=3, force_step_N=1)))
+    start_region(h)
+    assert h.loop.sm.n_levels == 3
+    h.send(Tare(), SetRamp(RampSettings()))
+    h.run(0.001)
+    refused = [e.command for e in h.of(CommandRefused)]
+    assert refused == ["Tare", "SetRamp"] and not h.last.tare
+
+
+def test_tick_row_reflects_the_state():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 2)
+    t = h.loop.tick
+    assert t["phase"] == Phase.SETTLING and t["sz"] == 0 and t["level"] == 2 and t["n_levels"] == 7
+    assert t["force_desired_N"] == 3.0
+    assert math.isfinite(t["indentation_m"]) and t["indentation_m"] > 0
+    assert np.isfinite(h.loop.frame["stiffness_pa"]).all()
+    assert [e.phase for e in h.of(PhaseChanged)][:2] == [Phase.SEEK_CONTACT, Phase.SETTLING]
