@@ -166,9 +166,7 @@ class ControlLoop:
             sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
             self._clutch((Z,))
             self._set_sz(now_s, True, cmd.source, events)
-        elif sm.phase == Phase.RETRACT:
-            sm.operator_took_over(now_s)
-            self._clutch((Z,))
+        # during a retract z is already position controlled: the lift finishes, then z is handed back
 
     def _raise_fault(self, now_s: float, kind: FaultKind, message: str, events: list) -> None:
         if not self.safety.latch(kind, message):

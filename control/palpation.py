@@ -122,10 +122,6 @@ class PalpationStateMachine:
     def clear_fault(self, now_s: float) -> None:
         self._enter(now_s, Phase.APPROACH)
 
-    def operator_took_over(self, now_s: float) -> None:
-        """S_z switched back to position control by the operator while retracting or done."""
-        self._enter(now_s, Phase.APPROACH)
-
     def _finish_ramp(self) -> None:
         self.level = -1
         self.force_desired_N = 0.0

@@ -231,3 +231,13 @@ def test_tick_row_reflects_the_state():
     assert math.isfinite(t["indentation_m"]) and t["indentation_m"] > 0
     assert np.isfinite(h.loop.frame["stiffness_pa"]).all()
     assert [e.phase for e in h.of(PhaseChanged)][:2] == [Phase.SEEK_CONTACT, Phase.SETTLING]
+
+
+def test_position_control_requested_during_the_retract_lets_the_lift_finish():
+    h = Harness()
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.RETRACT)
+    h.send(SetSz(position_control=True))
+    h.run(5, until=lambda h: phase(h) == Phase.DONE)
+    assert phase(h) == Phase.DONE
+    assert h.plant.x[2] > 0.025 + h.config.contact.retract_height_m - 1e-3

@@ -1,0 +1,237 @@
+"""A scripted operator at the master device, following the paper's protocol (Section IV-A).
+
+For each palpation area of the phantom, in order: with the switch ON (S_z = 1, position control) move at
+travel height to above the area, descend to ``clearance_m`` above the highest surface point under the
+TSI's footprint (the operator sees the tissue through the camera), steady there, switch OFF (S_z = 0: the
+loop approaches and ramps the force under force control), wait for the loop to report the area done
+(or a fault, or the phase falling back to APPROACH after an abort), switch ON, rise to travel height and
+go on to the next area. After the last area it returns home and reports :attr:`finished`.
+
+Positions are the hand's, in the master's frame, which the loop's default mapping (scale 1) carries into
+the tissue frame up to its clutch offset; they are sampled at ``rate_hz`` on the world's clock, each
+reading with its sequence number and instant. Every move is a
+minimum-jerk profile, the smooth bell-shaped speed of a human reach, timed so its peak speed is the
+configured lateral or vertical speed.
+
+The operator's targets are where it wants the TSI, which it sees on the camera. When the loop hands z
+back after an area it re-clutches the z offset (wherever the TSI is then, possibly still on its way up),
+and clearing a fault re-clutches every axis, so after each area the operator lines its hand up with the
+TSI it sees and aims its moves accordingly, as a person at a clutched master does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from control.config import ConfigError
+from control.messages import Phase
+from hardware.interfaces import MasterConstraints, MasterDevice, MasterFeedback, MasterState, TactileConstraints, Vec3
+from hardware.sim.world import SimDevice, SimWorld
+
+_MIN_JERK_PEAK = 1.875  # peak speed of a minimum-jerk move = 1.875 * distance / duration
+_ENGAGED = frozenset({Phase.SEEK_CONTACT, Phase.SETTLING, Phase.RETRACT, Phase.HOLD})
+_FOOTPRINT_STEP_M = 0.5e-3  # resolution at which the operator "sees" the surface under the TSI
+
+
+@dataclass(frozen=True, slots=True)
+class RegionOutcome:
+    index: int
+    centre_xy_m: tuple[float, float]
+    result: str  # "done" | "aborted" | "fault" | "timeout"
+    switched_off_s: float
+    ended_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class _Step:
+    kind: str  # "move" | "dwell" | "await"
+    target_m: Vec3  # moves: where the operator wants the TSI, in the tissue frame
+    duration_s: float  # dwells: their length; "await": the give-up time-out; moves: timed when they start
+    sz: bool
+    region: int  # the area this step belongs to, -1 on the way home
+    look: bool = False  # moves: first line the hand up with where the camera shows the TSI
+
+
+def _min_jerk(tau: float) -> float:
+    return tau * tau * tau * (10.0 + tau * (-15.0 + 6.0 * tau))
+
+
+class ScriptedOperator(SimDevice, MasterDevice):
+    name = "sim-operator"
+
+    def __init__(self, world: SimWorld, sensor: TactileConstraints | None = None):
+        super().__init__(world)
+        self.settings = world.settings.operator
+        self.constraints = MasterConstraints(rate_hz=self.settings.rate_hz, has_sz_switch=True)
+        self._sensor = sensor if sensor is not None else TactileConstraints()
+        self.regions = world.phantom.palpation_regions(self._sensor.size_m[0])
+        self.home_m: Vec3 = world.settings.robot.home_m
+        self.approach_heights_m = tuple(self._approach_height_m(x, y) for x, y in self.regions)
+        self._check_heights()
+        self._steps = self._plan()
+        self._index = 0
+        self._step_t0: float | None = None  # start of the current step; None until the first reading
+        self._hand_m: Vec3 = self.home_m  # where the current step starts
+        self._hand_to_m: Vec3 = self.home_m  # where the current move ends
+        self._move_s = 0.0
+        self._camera_offset_m: Vec3 = (0.0, 0.0, 0.0)  # TSI seen minus hand, at the last look
+        self._resolved_s: float | None = None
+        self._engaged = False
+        self._last_t = -math.inf
+        self._last_seq = -1
+        self._latest: MasterState | None = None
+        self.region_index = -1  # the area being worked on (or last worked on)
+        self.outcomes: list[RegionOutcome] = []
+
+    # ---- planning ------------------------------------------------------------------------------------
+
+    def _approach_height_m(self, x: float, y: float) -> float:
+        """Clearance above the highest surface point under the TSI's face centred at (x, y)."""
+        sx, sy = self._sensor.size_m
+        gx = np.linspace(x - sx / 2, x + sx / 2, int(math.ceil(sx / _FOOTPRINT_STEP_M)) + 1)
+        gy = np.linspace(y - sy / 2, y + sy / 2, int(math.ceil(sy / _FOOTPRINT_STEP_M)) + 1)
+        top = float(np.max(self.world.phantom.surface_height_m(*np.meshgrid(gx, gy, indexing="ij"))))
+        return top + self.settings.clearance_m
+
+    def _check_heights(self) -> None:
+        travel = self.settings.travel_height_m
+        highest = max(self.approach_heights_m)
+        if travel <= highest:
+            raise ConfigError("operator.travel_height_m",
+                              f"{travel * 1e3:g} mm does not clear phantom {self.world.phantom.name!r}: the approach "
+                              f"height above its highest area is {highest * 1e3:.1f} mm (surface + clearance)")
+        ceiling = self.world.settings.robot.workspace_max_m[2]
+        if travel > ceiling:
+            raise ConfigError("operator.travel_height_m",
+                              f"{travel * 1e3:g} mm is above the robot's workspace (z <= {ceiling * 1e3:g} mm)")
+
+    def _plan(self) -> list[_Step]:
+        s = self.settings
+        travel = s.travel_height_m
+        steps: list[_Step] = []
+        x, y = self.home_m[0], self.home_m[1]
+        for i, ((rx, ry), z_approach) in enumerate(zip(self.regions, self.approach_heights_m)):
+            # after an area the loop has re-clutched z (and a cleared fault every axis): look first
+            steps.append(_Step("move", (x, y, travel), 0.0, True, i, look=i > 0))
+            x, y = rx, ry
+            steps.append(_Step("move", (x, y, travel), 0.0, True, i))
+            steps.append(_Step("move", (x, y, z_approach), 0.0, True, i))
+            steps.append(_Step("dwell", (x, y, z_approach), s.dwell_above_s, True, i))
+            steps.append(_Step("await", (x, y, z_approach), s.region_timeout_s, False, i))
+            steps.append(_Step("dwell", (x, y, z_approach), s.dwell_after_s, False, i))
+        steps.append(_Step("move", (x, y, travel), 0.0, True, -1, look=True))
+        steps.append(_Step("move", (self.home_m[0], self.home_m[1], travel), 0.0, True, -1))
+        steps.append(_Step("move", self.home_m, 0.0, True, -1))
+        return steps
+
+    # ---- running the script --------------------------------------------------------------------------
+
+    @property
+    def finished(self) -> bool:
+        """True once the operator is back home after the last area."""
+        return self._index >= len(self._steps)
+
+    def _step_end_s(self, step: _Step) -> float:
+        if step.kind == "move":
+            return self._step_t0 + self._move_s
+        if step.kind == "await" and self._resolved_s is not None:
+            return self._resolved_s
+        return self._step_t0 + step.duration_s
+
+    def _enter(self, index: int, t0: float) -> None:
+        if self._step_t0 is not None:
+            self._hand_m = self._position_at(t0)[0]
+        self._index, self._step_t0 = index, t0
+        if self.finished:
+            return
+        step = self._steps[index]
+        if step.region >= 0:
+            self.region_index = step.region
+        if step.kind == "await":
+            self._resolved_s = None
+            self._engaged = False
+        elif step.kind == "move":
+            self._start_move(step, t0)
+
+    def _start_move(self, step: _Step, t0: float) -> None:
+        """Aim the hand so the TSI ends at the target, as the operator would by watching the camera."""
+        hand = self._hand_m
+        if step.look:
+            tsi = self.world.state_at(t0)[0]
+            self._camera_offset_m = (tsi[0] - hand[0], tsi[1] - hand[1], tsi[2] - hand[2])
+        c = self._camera_offset_m
+        to = (step.target_m[0] - c[0], step.target_m[1] - c[1], step.target_m[2] - c[2])
+        s = self.settings
+        lateral = math.hypot(to[0] - hand[0], to[1] - hand[1])
+        vertical = abs(to[2] - hand[2])
+        self._hand_to_m = to
+        self._move_s = _MIN_JERK_PEAK * max(lateral / s.lateral_speed_m_s, vertical / s.vertical_speed_m_s)
+
+    def _run_to(self, t: float) -> None:
+        if self._step_t0 is None:
+            self._enter(0, t)
+        while not self.finished:
+            step = self._steps[self._index]
+            end = self._step_end_s(step)
+            if end > t:
+                break
+            if step.kind == "await" and self._resolved_s is None:
+                self._conclude("timeout", end)
+            self._enter(self._index + 1, end)
+
+    def _position_at(self, t: float) -> tuple[Vec3, bool]:
+        if self.finished:
+            return self._hand_m, True
+        step = self._steps[self._index]
+        if step.kind != "move" or self._move_s <= 0.0:
+            return self._hand_m, step.sz
+        f = _min_jerk(min(max((t - self._step_t0) / self._move_s, 0.0), 1.0))
+        a, b = self._hand_m, self._hand_to_m
+        return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2])), step.sz
+
+    def _conclude(self, result: str, t: float) -> None:
+        self._resolved_s = t
+        i = self.region_index
+        self.outcomes.append(RegionOutcome(i, self.regions[i], result, self._step_t0, t))
+
+    # ---- the device ----------------------------------------------------------------------------------
+
+    def latest(self) -> MasterState | None:
+        return self._latest
+
+    def poll(self, now_s: float) -> None:
+        world = self.world
+        world.advance(now_s)
+        if not self.connected:
+            return
+        rate = self.constraints.rate_hz
+        m = world.instant_index(rate)
+        if m <= self._last_seq:
+            return
+        t = world.instant_s(m, rate)
+        self._run_to(t)
+        position, sz = self._position_at(t)
+        self._latest = MasterState(seq=m, t_s=t, position_m=position, sz_switch=sz)
+        self._last_seq, self._last_t = m, t
+
+    def feedback(self, fb: MasterFeedback) -> None:
+        """Watches for the end of the area being palpated; everything else the operator only looks at."""
+        if self.finished or self._step_t0 is None or fb.t_s < self._step_t0:
+            return
+        if self._steps[self._index].kind != "await" or self._resolved_s is not None:
+            return
+        if fb.phase in _ENGAGED:
+            self._engaged = True
+        if fb.faulted:
+            result = "fault"
+        elif self._engaged and fb.region_done:
+            result = "done"
+        elif self._engaged and fb.phase == Phase.APPROACH:
+            result = "aborted"
+        else:
+            return
+        # never before a reading already given out, so the script's clock only moves forwards
+        self._conclude(result, max(fb.t_s, self._last_t))

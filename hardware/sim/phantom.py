@@ -1,0 +1,283 @@
+"""Tissue phantom definitions: geometry, materials and embedded inclusions, loaded from TOML.
+
+Schema (all lengths in m, moduli in Pa)::
+
+    [phantom]
+    name = "flat"
+    description = "..."
+    length_m = 0.072          # extent along x
+    width_m = 0.030           # extent along y
+    thickness_m = 0.025       # base surface height above the table
+    youngs_modulus_pa = 20e3
+    poisson_ratio = 0.49
+
+    [[phantom.surface]]       # optional features added to the base height
+    kind = "half_cylinder"    # axis along x, centred at y = centre_y_m; adds sqrt(r^2 - (y-c)^2)
+    centre_y_m = 0.025
+    radius_m = 0.005
+    x_range_m = [0.0, 0.024]
+
+    [[phantom.surface]]
+    kind = "slope"            # adds gradient_x * (x - x0) + gradient_y * (y - y0) over x_range_m
+    gradient = [0.05, 0.0]
+    origin_m = [0.0, 0.0]
+    x_range_m = [0.0, 0.072]
+
+    [[phantom.inclusions]]    # spheres
+    centre_xy_m = [0.012, 0.015]
+    diameter_m = 0.008
+    youngs_modulus_pa = 160e3
+    depth_m = 0.002           # from the local surface to the sphere's top ...
+    # height_m = 0.020        # ... or the sphere centre's height above the table (exactly one of them)
+
+    [[phantom.regions]]       # palpation areas (TSI centre x, y); default: 8 mm strips along x
+    centre_xy_m = [0.004, 0.015]
+
+A bad file raises :class:`PhantomError` whose message names the key and the problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PHANTOM_DIR = Path(__file__).resolve().parents[2] / "resources" / "phantoms"
+
+
+class PhantomError(ValueError):
+    def __init__(self, source: str, key: str, problem: str):
+        super().__init__(f"{source}: {key}: {problem}")
+        self.source, self.key, self.problem = source, key, problem
+
+
+@dataclass(frozen=True)
+class SurfaceFeature:
+    kind: str  # "half_cylinder" | "slope"
+    x_range_m: tuple[float, float]
+    centre_y_m: float = 0.0
+    radius_m: float = 0.0
+    gradient: tuple[float, float] = (0.0, 0.0)
+    origin_m: tuple[float, float] = (0.0, 0.0)
+
+    def height_m(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        inside = (x >= self.x_range_m[0]) & (x <= self.x_range_m[1])
+        if self.kind == "half_cylinder":
+            d2 = self.radius_m**2 - (y - self.centre_y_m) ** 2
+            h = np.sqrt(np.clip(d2, 0.0, None))
+        else:
+            h = self.gradient[0] * (x - self.origin_m[0]) + self.gradient[1] * (y - self.origin_m[1])
+        return np.where(inside, h, 0.0)
+
+
+@dataclass(frozen=True)
+class Inclusion:
+    x_m: float
+    y_m: float
+    z_m: float  # centre height above the table
+    diameter_m: float
+    youngs_modulus_pa: float
+
+    @property
+    def radius_m(self) -> float:
+        return self.diameter_m / 2.0
+
+
+@dataclass(frozen=True)
+class Phantom:
+    name: str
+    description: str
+    length_m: float
+    width_m: float
+    thickness_m: float
+    youngs_modulus_pa: float
+    poisson_ratio: float
+    surface: tuple[SurfaceFeature, ...] = ()
+    inclusions: tuple[Inclusion, ...] = ()
+    regions: tuple[tuple[float, float], ...] = ()
+    source: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def surface_height_m(self, x, y) -> np.ndarray:
+        """Surface height above the table at (x, y); 0 outside the phantom's footprint."""
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        h = np.full(np.broadcast(x, y).shape, self.thickness_m)
+        for feature in self.surface:
+            h = h + feature.height_m(x, y)
+        outside = (x < 0) | (x > self.length_m) | (y < 0) | (y > self.width_m)
+        return np.where(outside, 0.0, h)
+
+    def inclusion_depth_m(self, inc: Inclusion) -> float:
+        """Depth of the inclusion's top below the surface directly above its centre."""
+        return float(self.surface_height_m(inc.x_m, inc.y_m)) - (inc.z_m + inc.radius_m)
+
+    def palpation_regions(self, tsi_length_x_m: float = 8e-3) -> tuple[tuple[float, float], ...]:
+        """The listed regions, or strips as long as the TSI along x across the whole phantom."""
+        if self.regions:
+            return self.regions
+        n = max(1, int(round(self.length_m / tsi_length_x_m)))
+        pitch = self.length_m / n
+        return tuple(((k + 0.5) * pitch, self.width_m / 2.0) for k in range(n))
+
+    def content_hash(self) -> str:
+        """Stable hash of everything that affects the mechanics (cache key)."""
+        blob = json.dumps(self.source, sort_keys=True, default=str).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+    def ground_truth(self) -> list[dict[str, float]]:
+        return [
+            {
+                "x_m": inc.x_m,
+                "y_m": inc.y_m,
+                "z_m": inc.z_m,
+                "depth_m": self.inclusion_depth_m(inc),
+                "diameter_m": inc.diameter_m,
+                "youngs_modulus_pa": inc.youngs_modulus_pa,
+            }
+            for inc in self.inclusions
+        ]
+
+
+def load_phantom(name_or_path: str | Path) -> Phantom:
+    """Load a phantom by name (a file in resources/phantoms) or by path."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = PHANTOM_DIR / f"{name_or_path}.toml"
+    src = str(path)
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in PHANTOM_DIR.glob("*.toml")))
+        raise PhantomError(src, "file", f"no such phantom (shipped phantoms: {known})")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise PhantomError(src, "file", f"not valid TOML: {err}") from None
+    return parse_phantom(data, src)
+
+
+def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
+    p = _Reader(src, data).table("phantom")
+    length = p.positive("length_m")
+    width = p.positive("width_m")
+    thickness = p.positive("thickness_m")
+    nu = p.number("poisson_ratio")
+    if not 0.0 <= nu < 0.5:
+        p.fail("poisson_ratio", f"must be in [0, 0.5), got {nu:g} (use 0.49-0.499 for nearly incompressible)")
+    surface = tuple(_feature(f) for f in p.list_of_tables("surface"))
+    base = Phantom(
+        name=p.string("name"),
+        description=p.string("description", default=""),
+        length_m=length,
+        width_m=width,
+        thickness_m=thickness,
+        youngs_modulus_pa=p.positive("youngs_modulus_pa"),
+        poisson_ratio=nu,
+        surface=surface,
+    )
+    inclusions = tuple(_inclusion(r, base) for r in p.list_of_tables("inclusions"))
+    regions = tuple(_region(r, base) for r in p.list_of_tables("regions"))
+    p.no_unknown({"name", "description", "length_m", "width_m", "thickness_m", "youngs_modulus_pa",
+                  "poisson_ratio", "surface", "inclusions", "regions"})
+    return Phantom(**{**base.__dict__, "inclusions": inclusions, "regions": regions, "source": data})
+
+
+def _feature(r: "_Reader") -> SurfaceFeature:
+    kind = r.string("kind")
+    x_range = r.pair("x_range_m")
+    if x_range[1] <= x_range[0]:
+        r.fail("x_range_m", "upper bound must exceed lower bound")
+    if kind == "half_cylinder":
+        r.no_unknown({"kind", "x_range_m", "centre_y_m", "radius_m"})
+        return SurfaceFeature(kind, x_range, centre_y_m=r.number("centre_y_m"), radius_m=r.positive("radius_m"))
+    if kind == "slope":
+        r.no_unknown({"kind", "x_range_m", "gradient", "origin_m"})
+        return SurfaceFeature(kind, x_range, gradient=r.pair("gradient"), origin_m=r.pair("origin_m", (0.0, 0.0)))
+    r.fail("kind", f"unknown surface feature {kind!r} (known: half_cylinder, slope)")
+    raise AssertionError
+
+
+def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
+    r.no_unknown({"centre_xy_m", "diameter_m", "youngs_modulus_pa", "depth_m", "height_m"})
+    x, y = r.pair("centre_xy_m")
+    if not (0 <= x <= phantom.length_m and 0 <= y <= phantom.width_m):
+        r.fail("centre_xy_m", f"({x:g}, {y:g}) m lies outside the phantom's {phantom.length_m:g} x {phantom.width_m:g} m")
+    d = r.positive("diameter_m")
+    has_depth, has_height = "depth_m" in r.data, "height_m" in r.data
+    if has_depth == has_height:
+        r.fail("depth_m", "give exactly one of depth_m (below the local surface) or height_m (above the table)")
+    surface = float(phantom.surface_height_m(x, y))
+    z = surface - r.positive("depth_m") - d / 2 if has_depth else r.positive("height_m")
+    if z - d / 2 < 0 or z + d / 2 > surface:
+        key = "depth_m" if has_depth else "height_m"
+        r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) does not fit "
+                    f"between the table and the surface at {surface * 1e3:.1f} mm")
+    return Inclusion(x, y, z, d, r.positive("youngs_modulus_pa"))
+
+
+def _region(r: "_Reader", phantom: Phantom) -> tuple[float, float]:
+    r.no_unknown({"centre_xy_m"})
+    x, y = r.pair("centre_xy_m")
+    if not (0 <= x <= phantom.length_m and 0 <= y <= phantom.width_m):
+        r.fail("centre_xy_m", f"({x:g}, {y:g}) m lies outside the phantom")
+    return (x, y)
+
+
+class _Reader:
+    """Typed access to one TOML table, with errors that name the full key."""
+
+    def __init__(self, src: str, data: Any, prefix: str = ""):
+        self.src, self.data, self.prefix = src, data, prefix
+
+    def fail(self, key: str, problem: str):
+        raise PhantomError(self.src, self.prefix + key, problem)
+
+    def table(self, key: str) -> "_Reader":
+        value = self.data.get(key)
+        if not isinstance(value, dict):
+            self.fail(key, "missing table" if value is None else "must be a table")
+        return _Reader(self.src, value, f"{self.prefix}{key}.")
+
+    def list_of_tables(self, key: str) -> list["_Reader"]:
+        value = self.data.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            self.fail(key, "must be an array of tables ([[...]])")
+        return [_Reader(self.src, v, f"{self.prefix}{key}[{i}].") for i, v in enumerate(value)]
+
+    def string(self, key: str, default: str | None = None) -> str:
+        value = self.data.get(key, default)
+        if not isinstance(value, str):
+            self.fail(key, "missing" if value is None else f"must be a string, got {value!r}")
+        return value
+
+    def number(self, key: str, default: float | None = None) -> float:
+        value = self.data.get(key, default)
+        if value is None:
+            self.fail(key, "missing")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            self.fail(key, f"must be a finite number, got {value!r}")
+        return float(value)
+
+    def positive(self, key: str) -> float:
+        v = self.number(key)
+        if v <= 0:
+            self.fail(key, f"must be > 0, got {v:g}")
+        return v
+
+    def pair(self, key: str, default: tuple[float, float] | None = None) -> tuple[float, float]:
+        value = self.data.get(key, default)
+        if value is None:
+            self.fail(key, "missing")
+        if (not isinstance(value, (list, tuple)) or len(value) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+            self.fail(key, f"must be two finite numbers, got {value!r}")
+        return (float(value[0]), float(value[1]))
+
+    def no_unknown(self, known: set[str]) -> None:
+        for key in self.data:
+            if key not in known:
+                self.fail(key, f"unknown key (known: {', '.join(sorted(known))})")

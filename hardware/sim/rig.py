@@ -1,0 +1,66 @@
+"""Build the simulated rig: tactile sensor, slave robot and scripted operator sharing one world."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hardware.interfaces import TactileConstraints
+from hardware.rig import Rig
+from hardware.sim.operator import ScriptedOperator
+from hardware.sim.phantom import Phantom, load_phantom
+from hardware.sim.robot import SimSlave
+from hardware.sim.sensor import SimTactileSensor
+from hardware.sim.settings import SimSettings
+from hardware.sim.tissue import TissueModel
+from hardware.sim.winkler import WinklerTissue
+from hardware.sim.world import SimWorld
+
+
+def build_sim_rig(
+    phantom: Phantom | str,
+    settings: SimSettings | dict[str, Any] | None = None,
+    tissue: TissueModel | None = None,
+    seed: int = 0,
+) -> Rig:
+    """The simulated rig for ``phantom`` (a loaded phantom or a shipped phantom's name / a TOML path).
+
+    ``settings`` may be the ``[sim]`` table of a config file; ``tissue`` defaults to the Winkler model
+    of the phantom; ``seed`` drives the run's sensor noise (the sensor as manufactured is fixed by
+    ``settings.sensor.seed``). Raises :class:`~hardware.sim.phantom.PhantomError` or
+    :class:`~control.config.ConfigError` naming the bad key, or ValueError for a mismatched tissue.
+    """
+    if isinstance(phantom, str):
+        phantom = load_phantom(phantom)
+    elif not isinstance(phantom, Phantom):
+        raise TypeError(f"phantom must be a Phantom or a phantom name, got {type(phantom).__name__}")
+    if settings is None:
+        settings = SimSettings()
+    elif isinstance(settings, dict):
+        settings = SimSettings.from_mapping(settings)
+    elif not isinstance(settings, SimSettings):
+        raise TypeError(f"settings must be SimSettings or a mapping, got {type(settings).__name__}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    sensor_geometry = TactileConstraints(full_scale_pa=settings.sensor.full_scale_pa,
+                                         frame_rate_hz=settings.sensor.frame_rate_hz)
+    if tissue is None:
+        tissue = WinklerTissue(phantom, sensor_geometry)
+    elif tissue.phantom.content_hash() != phantom.content_hash():
+        raise ValueError(f"the tissue model was built for phantom {tissue.phantom.name!r} "
+                         f"({tissue.phantom.content_hash()}), not for {phantom.name!r} ({phantom.content_hash()})")
+
+    world = SimWorld(phantom, tissue, settings)
+    return Rig(
+        sensor=SimTactileSensor(world, seed=seed),
+        slave=SimSlave(world),
+        master=ScriptedOperator(world, sensor_geometry),
+        ground_truth=phantom.ground_truth(),
+        description={
+            "backend": "sim",
+            "phantom": phantom.name,
+            "phantom_hash": phantom.content_hash(),
+            "tissue_model": type(tissue).__name__,
+            "seed": seed,
+            "settings": settings.to_mapping(),
+        },
+    )

@@ -1,0 +1,77 @@
+"""The simulated slave robot: the loop's reference X_r in, joint-encoder readings of the TSI pose out.
+
+The robot's motion is the world's :class:`~hardware.sim.world.RobotBody` (inner position loop with its
+bandwidth and speed/acceleration limits); this is the device the control loop sees: readings at the
+robot's rate, each with its sequence number and the instant it describes, references and holds in.
+Tissue contact does not stop the robot: it is position controlled and far stiffer than tissue. While the
+link is down nothing reaches the robot, and its controller's watchdog has already braked it to a hold.
+"""
+
+from __future__ import annotations
+
+import math
+
+from hardware.interfaces import DeviceError, SlaveConstraints, SlaveManipulator, SlaveState, Vec3
+from hardware.sim.world import SimDevice, SimWorld
+
+
+def _finite3(name: str, value: Vec3) -> Vec3:
+    try:
+        items = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise DeviceError(f"sim slave: {name} must be three numbers, got {value!r}") from None
+    if len(items) != 3 or not all(math.isfinite(v) for v in items):
+        raise DeviceError(f"sim slave: {name} must be three finite numbers, got {value!r}")
+    return items  # type: ignore[return-value]
+
+
+class SimSlave(SimDevice, SlaveManipulator):
+    name = "sim-slave"
+
+    def __init__(self, world: SimWorld):
+        super().__init__(world)
+        s = world.settings.robot
+        self.constraints = SlaveConstraints(
+            workspace_min_m=s.workspace_min_m,
+            workspace_max_m=s.workspace_max_m,
+            max_speed_m_s=s.max_speed_m_s,
+            rate_hz=s.rate_hz,
+        )
+        self._latest: SlaveState | None = None
+        self._last_index = -1
+
+    def latest(self) -> SlaveState | None:
+        return self._latest
+
+    def poll(self, now_s: float) -> None:
+        world = self.world
+        world.advance(now_s)
+        if not self.connected:
+            return
+        rate = self.constraints.rate_hz
+        m = world.instant_index(rate)
+        if m <= self._last_index:
+            return
+        t = world.instant_s(m, rate)
+        position, velocity = world.state_at(t)
+        self._latest = SlaveState(seq=m, t_s=t, position_m=position, velocity_m_s=velocity)
+        self._last_index = m
+
+    def command(self, position_m: Vec3, velocity_m_s: Vec3, now_s: float) -> None:
+        """Applies from ``now_s`` on; ignored while disconnected (it never reaches the robot)."""
+        position = _finite3("reference position", position_m)
+        velocity = _finite3("reference velocity", velocity_m_s)
+        self.world.advance(now_s)
+        if self.connected:
+            self.world.robot.set_reference(position, velocity)
+
+    def hold(self, now_s: float) -> None:
+        """Brakes within the acceleration limit and stays where it stops, until the next ``command``."""
+        self.world.advance(now_s)
+        if self.connected:
+            self.world.robot.hold()
+
+    def simulate_unplug(self) -> None:
+        """The robot controller's link watchdog brakes it to a hold when the host stops talking to it."""
+        super().simulate_unplug()
+        self.world.robot.hold()

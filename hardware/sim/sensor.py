@@ -1,0 +1,119 @@
+"""The simulated capacitive tactile array (15 x 4 elements of 2 mm, the paper's TSI).
+
+Every ``1 / frame_rate_hz`` the array samples the tissue under the TSI where the robot had it at that
+instant; the frame becomes readable ``latency_s`` later and carries the sampling instant as ``t_s`` and
+the sample index as ``seq`` (a jump in ``seq`` is a frame the host never saw). Per element, in order:
+
+1. true pressure ``p`` = the tissue model's element force / element area;
+2. creep ``c``: the dielectric relaxes under load, a first-order rise towards ``creep_fraction * p``
+   with time constant ``creep_time_constant_s`` (and back when unloaded);
+3. the raw reading ``offset + gain * (p + c) + noise``: a per-element zero offset and sensitivity fixed
+   by the sensor's own seed, white noise from the run's seed;
+4. quantisation to the converter step and saturation of the converter at ``[0, full_scale +
+   zero_offset]``, so a tared element saturates at about full scale;
+5. minus the tare (the raw reading taken as zero), giving the calibrated, tared pressure.
+
+On connection the array takes its first frame as zero, as acquisition software does on start-up;
+:meth:`tare` takes the latest frame's reading instead.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, TactileSensor
+from hardware.sim.world import SimDevice, SimWorld
+
+
+class SimTactileSensor(SimDevice, TactileSensor):
+    name = "sim-tsi"
+
+    def __init__(self, world: SimWorld, seed: int = 0):
+        super().__init__(world)
+        s = world.settings.sensor
+        self.settings = s
+        self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz)
+        shape = self.constraints.shape
+        made = np.random.default_rng(s.seed)
+        # log-normal: a relative spread that can never make an element's sensitivity negative
+        self._gain = np.exp(s.gain_spread * made.standard_normal(shape))
+        self._offset_pa = np.clip(s.zero_offset_pa + s.zero_offset_spread_pa * made.standard_normal(shape), 0.0, None)
+        self._noise = np.random.default_rng(seed)
+        self._area_m2 = self.constraints.element_area_m2
+        self._raw_max_pa = s.full_scale_pa + s.zero_offset_pa
+        # frames in flight: (readable at, seq, sampling instant, raw reading)
+        self._in_flight: deque[tuple[float, int, float, np.ndarray]] = deque()
+        self._backlog = int(math.ceil(s.latency_s * s.frame_rate_hz)) + 1
+        self._next_index: int | None = None
+        self._creep_pa = np.zeros(shape)
+        self._creep_t: float | None = None
+        self._zero_pa: np.ndarray | None = None
+        self._latest: TactileFrame | None = None
+        self._latest_raw: np.ndarray | None = None
+
+    def _on_open(self) -> None:
+        self._in_flight.clear()
+        self._next_index = None
+        self._zero_pa = None
+
+    def close(self) -> None:
+        super().close()
+        self._in_flight.clear()
+
+    def latest(self) -> TactileFrame | None:
+        return self._latest
+
+    def tare(self) -> None:
+        """Zero every element at its latest reading (at the next frame if there is none yet)."""
+        self._zero_pa = None if self._latest_raw is None else self._latest_raw.copy()
+
+    def true_pressure_pa(self, t_s: float) -> np.ndarray:
+        """What an ideal array would read at ``t_s``: the tissue model's forces over the element area,
+        before creep, gain, noise and the converter (the first stage of every frame)."""
+        x, y, z = self.world.state_at(t_s)[0]
+        forces = np.asarray(self.world.tissue.element_forces_N(x, y, z), dtype=float)
+        if forces.shape != self.constraints.shape or not np.isfinite(forces).all():
+            problem = "non-finite forces" if forces.shape == self.constraints.shape else f"shape {forces.shape}"
+            raise DeviceError(f"sim tactile sensor: the tissue model {type(self.world.tissue).__name__} returned "
+                              f"{problem} at ({x:.4f}, {y:.4f}, {z:.4f}) m; it must return finite "
+                              f"{self.constraints.shape} forces")
+        return forces / self._area_m2
+
+    def poll(self, now_s: float) -> None:
+        world = self.world
+        world.advance(now_s)
+        if not self.connected:
+            return
+        rate = self.constraints.frame_rate_hz
+        newest = world.instant_index(rate)
+        if self._next_index is None:
+            self._next_index = newest
+        # frames sampled long before now are superseded by newer ones before the host could read them
+        for k in range(max(self._next_index, newest - self._backlog), newest + 1):
+            t = world.instant_s(k, rate)
+            self._in_flight.append((t + self.settings.latency_s, k, t, self._sample(t)))
+        self._next_index = max(self._next_index, newest + 1)
+        while self._in_flight and self._in_flight[0][0] <= now_s:
+            _, seq, t, raw = self._in_flight.popleft()
+            if self._zero_pa is None:
+                self._zero_pa = raw.copy()
+            self._latest_raw = raw
+            self._latest = TactileFrame(seq=seq, t_s=t, pressure_pa=raw - self._zero_pa)
+
+    def _sample(self, t_s: float) -> np.ndarray:
+        s = self.settings
+        p = self.true_pressure_pa(t_s)
+        if self._creep_t is not None:
+            # exact first-order update, taking the load over the interval to be the one sampled at its end
+            decay = math.exp(-max(t_s - self._creep_t, 0.0) / s.creep_time_constant_s)
+            self._creep_pa = self._creep_pa * decay + s.creep_fraction * p * (1.0 - decay)
+        self._creep_t = t_s
+        raw = self._offset_pa + self._gain * (p + self._creep_pa)
+        if s.noise_std_pa > 0:
+            raw = raw + s.noise_std_pa * self._noise.standard_normal(raw.shape)
+        if s.quantisation_pa > 0:
+            raw = np.round(raw / s.quantisation_pa) * s.quantisation_pa
+        return np.clip(raw, 0.0, self._raw_max_pa)

@@ -1,0 +1,223 @@
+"""Settings of the simulated rig, validated on construction.
+
+``SimSettings.from_mapping`` takes the ``[sim]`` table of a config file (sections ``sensor``, ``robot``,
+``operator`` and the world's integration keys) and refuses unknown keys and bad values with
+:class:`control.config.ConfigError`, whose message names the full key (``sim.sensor.noise_std_pa``), so
+the console reports simulator settings exactly like control settings.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, ClassVar
+
+from control.config import ConfigError
+
+Vec3 = tuple[float, float, float]
+
+
+def _number(key: str, value: Any) -> float:
+    if isinstance(value, bool):
+        raise ConfigError(key, f"must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(key, f"must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ConfigError(key, f"must be finite, got {value!r}")
+    return v
+
+
+def _positive(key: str, value: Any) -> float:
+    v = _number(key, value)
+    if v <= 0:
+        raise ConfigError(key, f"must be > 0, got {v:g}")
+    return v
+
+
+def _non_negative(key: str, value: Any) -> float:
+    v = _number(key, value)
+    if v < 0:
+        raise ConfigError(key, f"must be >= 0, got {v:g}")
+    return v
+
+
+def _at_most(key: str, v: float, limit: float, why: str) -> None:
+    if v > limit:
+        raise ConfigError(key, f"must be <= {limit:g} ({why}), got {v:g}")
+
+
+def _vec3(key: str, value: Any) -> Vec3:
+    if isinstance(value, (str, bytes)):
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}")
+    try:
+        items = list(value)
+    except TypeError:
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}") from None
+    if len(items) != 3:
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {len(items)}")
+    return tuple(_number(f"{key}[{i}]", v) for i, v in enumerate(items))  # type: ignore[return-value]
+
+
+class _Section:
+    """Build from a mapping with unknown keys refused, nested sections included, and dump back."""
+
+    _nested: ClassVar[dict[str, type[_Section]]] = {}
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any], prefix: str = ""):
+        if not isinstance(data, dict):
+            raise ConfigError(prefix.rstrip(".") or cls.__name__, f"must be a table, got {data!r}")
+        known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                raise ConfigError(f"{prefix}{key}", f"unknown key (known: {', '.join(sorted(known))})")
+            sub = cls._nested.get(key)
+            kwargs[key] = sub.from_mapping(value, f"{prefix}{key}.") if sub else value
+        try:
+            return cls(**kwargs)
+        except ConfigError as err:
+            raise ConfigError(f"{prefix}{err.key}", err.problem) from None
+
+    def to_mapping(self) -> dict[str, Any]:
+        return _plain(asdict(self))  # type: ignore[call-overload]
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class SensorSimSettings(_Section):
+    """The capacitive tactile array and its electronics.
+
+    ``seed`` fixes the sensor as manufactured (per-element gains and zero offsets: the same physical
+    array in every run); the noise of a run comes from the rig's seed.
+    """
+
+    full_scale_pa: float = 100e3  # the ADC saturates here (above the element's zero offset)
+    frame_rate_hz: float = 100.0
+    latency_s: float = 0.010  # from the sampling instant to the frame being readable by the host
+    noise_std_pa: float = 50.0  # white, per element and frame
+    quantisation_pa: float = 100e3 / 4096  # a 12-bit converter over full scale; 0 = none
+    gain_spread: float = 0.03  # relative standard deviation of the per-element sensitivity
+    zero_offset_pa: float = 1000.0  # mean unloaded reading before tare (capacitive baseline)
+    zero_offset_spread_pa: float = 200.0  # its standard deviation across elements
+    creep_fraction: float = 0.03  # final relative rise of the reading under a constant load
+    creep_time_constant_s: float = 2.0
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("full_scale_pa", "frame_rate_hz", "creep_time_constant_s"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
+                     "zero_offset_spread_pa", "creep_fraction"):
+            object.__setattr__(self, name, _non_negative(name, getattr(self, name)))
+        _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
+        _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
+        _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")
+        _at_most("creep_fraction", self.creep_fraction, 0.5, "capacitive arrays creep by a few %")
+        _at_most("quantisation_pa", self.quantisation_pa, self.full_scale_pa / 16, "at least 4 bits over full scale")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ConfigError("seed", f"must be a non-negative integer, got {self.seed!r}")
+
+
+@dataclass(frozen=True)
+class RobotSimSettings(_Section):
+    """The slave robot as its inner Cartesian position loop presents it.
+
+    The loop is a cascade (position P feeding a velocity loop) with natural frequency ``bandwidth_hz``
+    and damping ratio ``damping_ratio`` for small motions; larger ones are shaped by the speed and
+    acceleration limits. The reference is clamped into the workspace (the controller's soft limits).
+    """
+
+    bandwidth_hz: float = 20.0
+    damping_ratio: float = 0.7
+    max_speed_m_s: float = 0.25
+    max_accel_m_s2: float = 5.0
+    rate_hz: float = 1000.0  # joint-encoder readings per second
+    home_m: Vec3 = (0.036, 0.015, 0.060)
+    workspace_min_m: Vec3 = (-0.05, -0.05, 0.0)
+    workspace_max_m: Vec3 = (0.15, 0.10, 0.12)
+
+    def __post_init__(self):
+        for name in ("bandwidth_hz", "damping_ratio", "max_speed_m_s", "max_accel_m_s2", "rate_hz"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        _at_most("damping_ratio", self.damping_ratio, 2.0, "an inner loop is not tuned that sluggish")
+        _at_most("rate_hz", self.rate_hz, 10e3, "encoder readings are polled by a 1 kHz loop")
+        lo = _vec3("workspace_min_m", self.workspace_min_m)
+        hi = _vec3("workspace_max_m", self.workspace_max_m)
+        home = _vec3("home_m", self.home_m)
+        for i, axis in enumerate("xyz"):
+            if hi[i] <= lo[i]:
+                raise ConfigError("workspace_max_m",
+                                  f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
+            if not lo[i] <= home[i] <= hi[i]:
+                raise ConfigError("home_m",
+                                  f"{axis} = {home[i]:g} m lies outside the workspace [{lo[i]:g}, {hi[i]:g}] m")
+        object.__setattr__(self, "workspace_min_m", lo)
+        object.__setattr__(self, "workspace_max_m", hi)
+        object.__setattr__(self, "home_m", home)
+
+
+@dataclass(frozen=True)
+class OperatorSimSettings(_Section):
+    """The scripted operator of Section IV-A: heights are above the table, speeds are peak speeds."""
+
+    clearance_m: float = 0.003  # above the highest surface point under the TSI before switching S_z off
+    travel_height_m: float = 0.045  # for moves between areas
+    lateral_speed_m_s: float = 0.02
+    vertical_speed_m_s: float = 0.015
+    dwell_above_s: float = 0.3  # steadying above the area before switching S_z off
+    dwell_after_s: float = 0.2  # noticing the "region done" flag before switching S_z back on
+    region_timeout_s: float = 120.0  # gives up on an area the loop never finishes
+    rate_hz: float = 1000.0
+
+    def __post_init__(self):
+        for name in ("clearance_m", "travel_height_m", "lateral_speed_m_s", "vertical_speed_m_s",
+                     "region_timeout_s", "rate_hz"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        for name in ("dwell_above_s", "dwell_after_s"):
+            object.__setattr__(self, name, _non_negative(name, getattr(self, name)))
+        _at_most("rate_hz", self.rate_hz, 10e3, "positions are polled by a 1 kHz loop")
+
+
+@dataclass(frozen=True)
+class SimSettings(_Section):
+    """Everything the simulated rig is built from, plus how its shared world is integrated."""
+
+    sensor: SensorSimSettings = field(default_factory=SensorSimSettings)
+    robot: RobotSimSettings = field(default_factory=RobotSimSettings)
+    operator: OperatorSimSettings = field(default_factory=OperatorSimSettings)
+    substep_s: float = 2.5e-4  # fixed integration step of the robot dynamics
+    max_catchup_s: float = 0.1  # longest host stall integrated step by step; the rest is skipped
+
+    _nested: ClassVar[dict[str, type[_Section]]] = {
+        "sensor": SensorSimSettings,
+        "robot": RobotSimSettings,
+        "operator": OperatorSimSettings,
+    }
+
+    def __post_init__(self):
+        for name, kind in self._nested.items():
+            if not isinstance(getattr(self, name), kind):
+                raise ConfigError(name, f"must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+        substep = _positive("substep_s", self.substep_s)
+        _at_most("substep_s", substep, 1e-3, "the world must be integrated at 1 kHz or finer")
+        # Semi-implicit Euler on the inner loop stays accurate while the velocity-loop gain times the
+        # step is small; 0.2 keeps the step response within a few % of the continuous one.
+        velocity_gain = 2.0 * self.robot.damping_ratio * 2.0 * math.pi * self.robot.bandwidth_hz
+        if velocity_gain * substep > 0.2:
+            raise ConfigError("substep_s", f"{substep:g} s is too coarse for a {self.robot.bandwidth_hz:g} Hz inner "
+                                           f"loop; use at most {0.2 / velocity_gain:.3g} s")
+        catchup = _positive("max_catchup_s", self.max_catchup_s)
+        if catchup < substep:
+            raise ConfigError("max_catchup_s", f"must be at least one substep ({substep:g} s)")
+        object.__setattr__(self, "substep_s", substep)
+        object.__setattr__(self, "max_catchup_s", catchup)

@@ -1,0 +1,236 @@
+"""The simulated tactile array: timing, what a frame describes, converter, tare, creep, seeds, connection."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hardware.interfaces import ConnectionState, DeviceError, TactileConstraints
+from hardware.sim.phantom import load_phantom
+from hardware.sim.sensor import SimTactileSensor
+from hardware.sim.settings import SensorSimSettings, SimSettings
+from hardware.sim.winkler import WinklerTissue
+from hardware.sim.world import SimWorld
+
+T0 = 40.0
+MS = 1e-3
+AREA = TactileConstraints().element_area_m2
+IDEAL = dict(noise_std_pa=0.0, quantisation_pa=0.0, gain_spread=0.0, creep_fraction=0.0)
+
+
+class KnownLoad:
+    """Tissue double: the element forces the test sets, wherever the TSI is."""
+
+    def __init__(self):
+        self.phantom = load_phantom("flat")
+        self.force_N = np.zeros((4, 15))
+
+    def element_forces_N(self, x_m, y_m, z_m):
+        return self.force_N.copy()
+
+
+def make_sensor(tissue=None, run_seed=0, **sensor):
+    tissue = tissue if tissue is not None else KnownLoad()
+    world = SimWorld(tissue.phantom, tissue, SimSettings(sensor=SensorSimSettings(**sensor)))
+    s = SimTactileSensor(world, seed=run_seed)
+    s.open()
+    return s
+
+
+def run(sensor, start_s, duration_s, on_tick=None):
+    """Poll at 1 kHz; the distinct frames in arrival order and the (now, latest) pairs."""
+    frames, pairs = [], []
+    for m in range(int(round(duration_s / MS)) + 1):
+        now = start_s + m * MS
+        if on_tick is not None:
+            on_tick(now)
+        sensor.poll(now)
+        f = sensor.latest()
+        pairs.append((now, f))
+        if f is not None and (not frames or frames[-1] is not f):
+            frames.append(f)
+    return frames, pairs
+
+
+@pytest.mark.parametrize("rate_hz, latency_s", [(100.0, 0.010), (50.0, 0.025)])
+def test_frames_arrive_at_the_frame_rate_with_their_latency(rate_hz, latency_s):
+    sensor = make_sensor(frame_rate_hz=rate_hz, latency_s=latency_s)
+    frames, pairs = run(sensor, T0, 1.0)
+    assert [f.seq for f in frames] == list(range(frames[0].seq, frames[0].seq + len(frames)))
+    assert len(frames) == pytest.approx(rate_hz * (1.0 - latency_s), abs=1)
+    assert np.allclose(np.diff([f.t_s for f in frames]), 1 / rate_hz)
+    for now, f in pairs:
+        if f is not None:
+            assert f.t_s <= now - latency_s + 1e-9
+            assert now - f.t_s < latency_s + 1 / rate_hz + 1e-9
+    assert frames[0].pressure_pa.shape == (4, 15)
+
+
+def test_a_frame_describes_the_tsi_where_it_was_at_its_own_instant():
+    phantom = load_phantom("flat")
+    sensor = make_sensor(WinklerTissue(phantom), latency_s=0.03, **IDEAL)
+    world = sensor.world
+    robot = world.robot
+    x, y = 0.036, 0.015
+    robot.position = [x, y, 0.0260]
+    robot.set_reference((x, y, 0.0260), (0.0, 0.0, 0.0))
+    speed = 0.01  # descending 10 mm/s through the surface at 25 mm
+
+    def descend(now):
+        robot.set_reference((x, y, 0.0260 - speed * (now - T0)), (0.0, 0.0, -speed))
+
+    frames, _ = run(sensor, T0, 0.6, descend)
+    loaded = [f for f in frames if f.pressure_pa.max() > 0]
+    assert len(loaded) > 20
+    for f in loaded:
+        z_then = world.state_at(f.t_s)[0][2]
+        expected = WinklerTissue(phantom).element_forces_N(x, y, z_then) / AREA
+        assert np.allclose(f.pressure_pa, expected, rtol=1e-9, atol=1e-6)
+    # 30 ms later the TSI is 0.3 mm deeper: a frame read "now" would be visibly off
+    assert world.state_at(loaded[-1].t_s)[0][2] - world.state_at(loaded[-1].t_s + 0.03)[0][2] > 0.25e-3
+
+
+def test_readings_are_quantised_to_the_converter_step():
+    q = 100.0
+    sensor = make_sensor(**{**IDEAL, "quantisation_pa": q})
+    tissue = sensor.world.tissue
+    rng = np.random.default_rng(1)
+    loads = rng.uniform(0.0, 50e3, size=(4, 15))
+
+    def load(now):
+        if now > T0 + 0.05:
+            tissue.force_N = loads * AREA
+
+    frames, _ = run(sensor, T0, 0.2, load)
+    last = frames[-1].pressure_pa
+    assert np.allclose(last / q, np.round(last / q), atol=1e-9)
+    assert np.abs(last - loads).max() <= q + 1e-6
+    assert np.abs(last - loads).max() > 1.0  # it really is rounding
+
+
+def test_the_converter_saturates_at_full_scale():
+    sensor = make_sensor(**{**IDEAL, "full_scale_pa": 100e3})
+    tissue = sensor.world.tissue
+    run(sensor, T0, 0.05)
+    tissue.force_N[:, :7] = 150e3 * AREA  # beyond full scale
+    tissue.force_N[:, 7:] = 60e3 * AREA  # within it
+    frames, _ = run(sensor, T0 + 0.051, 0.1)
+    first = frames[-1].pressure_pa
+    tissue.force_N[:, :7] = 400e3 * AREA
+    frames, _ = run(sensor, T0 + 0.152, 0.1)
+    p = frames[-1].pressure_pa
+    assert np.array_equal(p[:, :7], first[:, :7])  # more load reads the same
+    assert np.allclose(p[:, :7], 100e3, atol=1000.0)  # about full scale (it depends on each zero offset)
+    assert np.allclose(p[:, 7:], 60e3)  # the rest is unaffected
+
+
+def test_tare_zeroes_the_current_reading_per_element():
+    sensor = make_sensor(noise_std_pa=30.0, creep_fraction=0.0)
+    tissue = sensor.world.tissue
+    load = np.linspace(5e3, 30e3, 60).reshape(4, 15)
+    run(sensor, T0, 0.05)
+    unloaded = sensor.latest().pressure_pa
+    assert np.abs(unloaded).max() < 6 * 30.0 + 50  # the connection baseline took the zero offsets out
+    tissue.force_N = load * AREA
+    frames, _ = run(sensor, T0 + 0.051, 0.1)
+    assert np.allclose(frames[-1].pressure_pa, load, rtol=0.15)
+    sensor.tare()
+    frames, _ = run(sensor, T0 + 0.152, 0.1)
+    assert np.abs(frames[-1].pressure_pa).max() < 6 * 30.0 * math.sqrt(2) + 50
+    tissue.force_N[:] = 0.0
+    frames, _ = run(sensor, T0 + 0.253, 0.1)
+    assert np.allclose(frames[-1].pressure_pa, -load, rtol=0.15)
+
+
+def test_creep_rises_by_its_fraction_with_its_time_constant_and_recovers():
+    alpha, tau = 0.05, 0.8
+    sensor = make_sensor(**{**IDEAL, "creep_fraction": alpha, "creep_time_constant_s": tau})
+    tissue = sensor.world.tissue
+    p0 = 20e3
+    run(sensor, T0, 0.05)
+    tissue.force_N[:] = p0 * AREA
+    frames, _ = run(sensor, T0 + 0.051, 3.0)
+    loaded = [f for f in frames if f.pressure_pa[0, 0] > 0]
+    t_load = loaded[0].t_s - 0.01  # the load counts from the frame interval it was first sampled in
+    for f in loaded:
+        expected = p0 * (1 + alpha * (1 - math.exp(-(f.t_s - t_load) / tau)))
+        assert f.pressure_pa == pytest.approx(np.full((4, 15), expected), rel=1e-9)
+    assert loaded[-1].pressure_pa[0, 0] / p0 - 1 == pytest.approx(alpha, rel=0.05)
+    tissue.force_N[:] = 0.0
+    frames, _ = run(sensor, T0 + 3.052, 2.0)
+    residue = np.array([f.pressure_pa[0, 0] for f in frames[2:]])
+    assert residue[0] > 0.9 * alpha * p0  # the dielectric has not relaxed yet ...
+    assert np.all(np.diff(residue) < 0)  # ... and does so steadily
+    assert residue[-1] < 0.12 * residue[0]
+
+
+def loaded_frames(settings_seed=0, run_seed=0, duration_s=0.1, **sensor):
+    """Frames of a sensor zeroed unloaded, then loaded with 10 kPa on every element."""
+    sensor = make_sensor(run_seed=run_seed, **{**IDEAL, **sensor, "seed": settings_seed})
+    run(sensor, T0, 0.05)
+    sensor.world.tissue.force_N[:] = 10e3 * AREA
+    frames, _ = run(sensor, T0 + 0.051, duration_s)
+    return np.array([f.pressure_pa for f in frames[3:]])
+
+
+def test_the_noise_comes_from_the_run_seed():
+    a = loaded_frames(run_seed=0, duration_s=2.0, noise_std_pa=50.0)
+    assert np.array_equal(a, loaded_frames(run_seed=0, duration_s=2.0, noise_std_pa=50.0))
+    b = loaded_frames(run_seed=1, duration_s=2.0, noise_std_pa=50.0)
+    assert not np.array_equal(a, b)
+    assert (a - a.mean(axis=0)).std() == pytest.approx(50.0, rel=0.05)
+    assert (b - b.mean(axis=0)).std() == pytest.approx(50.0, rel=0.05)
+
+
+def test_the_element_gains_come_from_the_sensor_seed():
+    g0 = loaded_frames(settings_seed=0, gain_spread=0.03)[-1] / 10e3
+    assert np.array_equal(g0, loaded_frames(settings_seed=0, run_seed=7, gain_spread=0.03)[-1] / 10e3)
+    g1 = loaded_frames(settings_seed=1, gain_spread=0.03)[-1] / 10e3
+    assert not np.allclose(g0, g1)
+    assert g0.std() == pytest.approx(0.03, rel=0.35)
+    assert g0.mean() == pytest.approx(1.0, abs=0.02)
+    assert np.allclose(loaded_frames(settings_seed=0)[-1], 10e3)  # no spread configured, none seen
+
+
+def test_connection_state_follows_open_unplug_and_reopen():
+    sensor = SimTactileSensor(SimWorld(load_phantom("flat"), KnownLoad()))
+    assert sensor.connection == ConnectionState.DISCONNECTED
+    sensor.poll(T0)
+    sensor.poll(T0 + 0.1)
+    assert sensor.latest() is None
+    sensor.open()
+    assert sensor.connection == ConnectionState.CONNECTED
+    run(sensor, T0 + 0.1, 0.1)
+    last = sensor.latest()
+    assert last is not None
+    sensor.world.tissue.force_N[:] = 10e3 * AREA
+    sensor.simulate_unplug()
+    assert sensor.connection == ConnectionState.LOST
+    run(sensor, T0 + 0.201, 0.1)
+    assert sensor.latest() is last
+    sensor.open()  # reconnecting takes a new baseline, under load or not
+    frames, _ = run(sensor, T0 + 0.302, 0.1)
+    fresh = [f for f in frames if f.seq > last.seq]
+    assert fresh and np.abs(fresh[0].pressure_pa).max() == 0.0
+    sensor.close()
+    assert sensor.connection == ConnectionState.DISCONNECTED
+
+
+def test_a_long_host_stall_leaves_only_a_fresh_frame():
+    sensor = make_sensor()
+    run(sensor, T0, 0.1)
+    before = sensor.latest()
+    sensor.poll(T0 + 5.0)
+    after = sensor.latest()
+    assert after.seq - before.seq == pytest.approx(490, abs=1)
+    assert 5.0 + T0 - after.t_s <= 0.010 + 0.010 + 1e-9
+
+
+def test_a_tissue_model_returning_garbage_is_reported():
+    class Broken(KnownLoad):
+        def element_forces_N(self, x_m, y_m, z_m):
+            return np.zeros((15, 4))
+
+    sensor = make_sensor(Broken())
+    with pytest.raises(DeviceError, match=r"Broken returned shape \(15, 4\)"):
+        run(sensor, T0, 0.05)
