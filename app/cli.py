@@ -1,0 +1,131 @@
+"""`palpation-console` / `python -m app`: the console and its headless commands."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app.config import AppConfig, load_config
+from control.config import ConfigError
+from control.messages import (CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice, RegionAborted,
+                              RegionDone)
+from hardware.interfaces import DeviceError
+from hardware.sim.phantom import PhantomError
+
+
+def _config(args) -> AppConfig:
+    overrides: dict = {}
+    if getattr(args, "phantom", None):
+        overrides.setdefault("rig", {})["phantom"] = args.phantom
+    if getattr(args, "seed", None) is not None:
+        overrides.setdefault("rig", {})["seed"] = args.seed
+    return load_config(args.config, overrides)
+
+
+def cmd_run(args) -> int:
+    from app.gui import run_gui
+
+    return run_gui(_config(args), screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
+
+
+def _level_line(r) -> str:
+    stiff = r.stiffness_pa[np.isfinite(r.stiffness_pa)]
+    med = f"{np.median(stiff) / 1e3:7.1f}" if stiff.size else "    n/a"
+    peak = f"{np.max(stiff) / 1e3:7.1f}" if stiff.size else "    n/a"
+    contact = int(np.isfinite(r.dL_m).sum())
+    depth = f"{r.indentation_m * 1e3:6.2f}" if math.isfinite(r.indentation_m) else "   n/a"
+    return (f"  {r.level + 1:>5} {r.force_desired_N:8.2f} {r.force_measured_N:8.3f} {depth} {contact:>7}"
+            f" {med} {peak} {r.pressure_pa.max() / 1e3:9.1f} {r.rmse_N:7.3f} {r.settle_time_s:7.2f}")
+
+
+HEADER = ("  level  F_d [N] F_ts [N] depth[mm] contact E_med[kPa] E_max[kPa] p_max[kPa] RMSE[N] settle[s]")
+
+
+def cmd_simulate(args) -> int:
+    """Palpate the phantom end to end on a virtual clock with the scripted operator, as in Section IV-A."""
+    from app.fastforward import FastForward
+    from app.rigs import build_rig
+
+    config = _config(args)
+    rig = build_rig(config.rig)
+    operator = rig.master
+    if operator is None or not hasattr(operator, "finished"):
+        raise ConfigError("rig.backend", "simulate needs the simulated rig's scripted operator")
+    phantom = rig.description.get("phantom", config.rig.phantom)
+    print(f"Palpating phantom {phantom!r} with the scripted operator ({config.control.ramp.n_levels} levels, "
+          f"{config.control.ramp.force_min_N:g}-{config.control.ramp.force_max_N:g} N)")
+    failures = 0
+    done = 0
+    with FastForward(config.control, rig) as ff:
+        printed = 0
+        deadline_s = args.max_time_s
+
+        def report() -> None:
+            nonlocal printed, failures, done
+            for event in ff.events[printed:]:
+                if isinstance(event, LevelRecorded):
+                    if event.record.level == 0:
+                        x, y, _ = event.record.tsi_position_m
+                        print(f"\nRegion {event.record.region + 1} at x = {x * 1e3:.1f} mm, y = {y * 1e3:.1f} mm")
+                        print(HEADER)
+                    print(_level_line(event.record))
+                elif isinstance(event, RegionDone):
+                    done += 1
+                    print(f"  region {event.region + 1} done ({event.n_levels} levels)")
+                elif isinstance(event, (FaultRaised, LevelTimedOut, RegionAborted)):
+                    failures += 1
+                    print(f"  ! {getattr(event, 'message', None) or getattr(event, 'reason', '')}")
+                elif isinstance(event, (CommandRefused, Notice)) and args.verbose:
+                    print(f"  {event}")
+            ff.clear()  # the rows are not needed here: keep memory flat over long runs
+            printed = 0
+
+        while not operator.finished:
+            ff.run_for(1.0)
+            report()
+            if ff.now_s > deadline_s:
+                print(f"error: the scripted operator had not finished after {deadline_s:g} s of simulated time",
+                      file=sys.stderr)
+                return 1
+        report()
+    print(f"\n{done} of {len(operator.regions)} regions done, {failures} problems, "
+          f"{ff.now_s:.1f} s of simulated time")
+    return 0 if done == len(operator.regions) and failures == 0 else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
+    parser.add_argument("--config", type=Path, help="a TOML file overriding resources/config/default.toml")
+    sub = parser.add_subparsers(dest="command")
+
+    run = sub.add_parser("run", help="open the console (default)")
+    run.add_argument("--phantom", help="simulated rig: phantom name or TOML file")
+    run.add_argument("--screenshot", metavar="PNG", help="save the window to PNG after --screenshot-after-s, then quit")
+    run.add_argument("--screenshot-after-s", type=float, default=10.0)
+    run.set_defaults(func=cmd_run)
+
+    sim = sub.add_parser("simulate", help="palpate a phantom headlessly and print every recorded level")
+    sim.add_argument("--phantom", help="phantom name (resources/phantoms) or TOML file")
+    sim.add_argument("--seed", type=int, help="random seed of the simulated sensor")
+    sim.add_argument("--max-time-s", type=float, default=600.0, help="give up after this much simulated time")
+    sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
+    sim.set_defaults(func=cmd_simulate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        args = parser.parse_args([*(argv or sys.argv[1:]), "run"])
+    try:
+        return args.func(args)
+    except (ConfigError, PhantomError, DeviceError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130

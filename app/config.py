@@ -1,0 +1,75 @@
+"""The application's configuration: the shipped defaults, overridden key by key by a user's TOML file."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from app.rigs import RigSpec
+from control.config import ConfigError, ControlConfig
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "config" / "default.toml"
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    control: ControlConfig
+    rig: RigSpec
+    sources: tuple[str, ...] = ()
+    raw: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(str(path), "no such configuration file") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(str(path), f"not valid TOML: {err}") from None
+
+
+def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConfig:
+    where = sources[-1] if sources else "<config>"
+    unknown = set(data) - {"control", "rig", "sim"}
+    if unknown:
+        raise ConfigError(f"{where}: {sorted(unknown)[0]}", "unknown section (known: control, rig, sim)")
+    try:
+        control = ControlConfig.from_mapping(data.get("control", {}), "control.")
+        rig = data.get("rig", {})
+        if not isinstance(rig, dict):
+            raise ConfigError("rig", "must be a table")
+        extra = set(rig) - {"backend", "phantom", "seed"}
+        if extra:
+            raise ConfigError(f"rig.{sorted(extra)[0]}", "unknown key (known: backend, phantom, seed)")
+        seed = rig.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise ConfigError("rig.seed", f"must be an integer, got {seed!r}")
+        spec = RigSpec(backend=str(rig.get("backend", "sim")), phantom=str(rig.get("phantom", "flat")),
+                       sim=dict(data.get("sim", {})), seed=seed)
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err.key}", err.problem) from None
+    return AppConfig(control=control, rig=spec, sources=sources, raw=data)
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> AppConfig:
+    """The defaults, then the user's file (if any), then command-line overrides."""
+    data = _read(DEFAULT_CONFIG)
+    sources = [str(DEFAULT_CONFIG)]
+    if path is not None:
+        data = _merge(data, _read(Path(path)))
+        sources.append(str(path))
+    if overrides:
+        data = _merge(data, overrides)
+    return parse_config(data, tuple(sources))

@@ -1,0 +1,40 @@
+"""Which hardware to build, as a small picklable description, and the one function that builds it.
+
+The controller process receives a :class:`RigSpec` (not a built rig: devices hold OS handles that do
+not cross a process boundary) and calls :func:`build_rig` on its own side.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from control.config import ConfigError
+from hardware.rig import Rig
+
+
+@dataclass(frozen=True)
+class RigSpec:
+    backend: str = "sim"
+    phantom: str = "flat"  # simulated rigs: a phantom name from resources/phantoms or a path to a TOML file
+    sim: dict[str, Any] = field(default_factory=dict)  # simulated rigs: SimSettings overrides
+    seed: int = 0
+
+
+def _build_sim(spec: RigSpec) -> Rig:
+    # Imported here so a process driving real hardware never loads the simulator.
+    from hardware.sim.rig import build_sim_rig
+
+    return build_sim_rig(spec.phantom, settings=dict(spec.sim), seed=spec.seed)
+
+
+BACKENDS: dict[str, Callable[[RigSpec], Rig]] = {"sim": _build_sim}
+
+
+def build_rig(spec: RigSpec) -> Rig:
+    """Build (but do not open) the rig ``spec`` describes."""
+    builder = BACKENDS.get(spec.backend)
+    if builder is None:
+        raise ConfigError("rig.backend", f"unknown backend {spec.backend!r} (known: {', '.join(sorted(BACKENDS))})")
+    return builder(spec)

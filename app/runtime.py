@@ -1,0 +1,40 @@
+"""The one tick every driver runs: poll the rig, step the loop, apply its reference to the hardware.
+
+The real-time controller process, the fast-forward driver and the tests all call :func:`make_loop` and
+:func:`run_tick`, so whatever a test proves about a tick holds for the robot too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from control.config import ControlConfig
+from control.loop import ControlLoop, StepResult
+from control.messages import Command
+from hardware.rig import Rig
+
+
+def make_loop(config: ControlConfig, rig: Rig) -> ControlLoop:
+    return ControlLoop(config, rig.sensor.constraints, has_master=rig.master is not None)
+
+
+def run_tick(loop: ControlLoop, rig: Rig, now_s: float, commands: Iterable[Command] = ()) -> StepResult:
+    """One control period at host time ``now_s``."""
+    rig.poll(now_s)
+    master = rig.master
+    result = loop.step(
+        now_s,
+        rig.sensor.latest(),
+        rig.slave.latest(),
+        master.latest() if master is not None else None,
+        commands,
+    )
+    if result.hold:
+        rig.slave.hold(now_s)
+    else:
+        rig.slave.command(result.position_ref_m, result.velocity_ref_m_s, now_s)
+    if result.tare:
+        rig.sensor.tare()
+    if master is not None and result.feedback is not None:
+        master.feedback(result.feedback)
+    return result

@@ -1,0 +1,50 @@
+"""Configuration loading and the command line's handling of bad input."""
+
+import pytest
+
+from app.cli import main
+from app.config import load_config
+from control.config import ConfigError
+
+
+def test_defaults_load_and_validate():
+    config = load_config()
+    assert config.control.ramp.n_levels == 7
+    assert config.rig.backend == "sim" and config.rig.phantom == "flat"
+
+
+def test_user_file_overrides_single_keys(tmp_path):
+    f = tmp_path / "user.toml"
+    f.write_text("[control.ramp]\nforce_max_N = 5.0\n")
+    config = load_config(f)
+    assert config.control.ramp.force_max_N == 5.0 and config.control.ramp.force_min_N == 1.0
+
+
+@pytest.mark.parametrize(
+    "text, key, problem",
+    [
+        ("[control.ramp]\nforce_max_N = 0.5\n", "control.ramp.force_max_N", "must be >= force_min_N"),
+        ("[control.ramp]\nforce_stepN = 1\n", "control.ramp.force_stepN", "unknown key"),
+        ("[control.safety]\nworkspace_min_m = [0, 0]\n", "control.safety.workspace_min_m", "three numbers"),
+        ("[control.gains]\nmass_kg = [1, -1, 1]\n", "control.gains.mass_kg[1]", "must be > 0"),
+        ("[robot]\nx = 1\n", "robot", "unknown section"),
+        ("[rig]\nseed = 1.5\n", "rig.seed", "integer"),
+        ("[control\n", "user.toml", "not valid TOML"),
+    ],
+)
+def test_bad_config_names_the_key_and_the_problem(tmp_path, text, key, problem):
+    f = tmp_path / "user.toml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(f)
+    assert key in str(err.value) and problem in str(err.value)
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    f = tmp_path / "user.toml"
+    f.write_text("[control.ramp]\nrmse_threshold_N = -1\n")
+    assert main(["--config", str(f), "simulate"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "rmse_threshold_N: must be > 0" in err and "Traceback" not in err
+    assert main(["simulate", "--phantom", "no-such-phantom"]) == 2
+    assert "no such phantom" in capsys.readouterr().err
