@@ -105,7 +105,7 @@ class MasterState:
     sz_switch: bool | None = None  # True = position control; None = the device has no switch
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)  # not frozen: built every tick, and frozen dataclasses are several times slower to build
 class MasterFeedback:
     """What the operator is told back through the master each tick (a haptic master may render it)."""
 
