@@ -45,6 +45,7 @@ class ContactTracker:
         self._z1 = np.full(self.shape, np.nan)
         self._confirmed = np.zeros(self.shape, dtype=bool)
         self._blind = np.zeros(self.shape, dtype=bool)  # in contact before tracking began
+        self._settled = np.zeros(self.shape, dtype=bool)  # confirmed or blind: nothing more to find
         self._prev_p: np.ndarray | None = None
         self._prev_z = np.nan
 
@@ -53,32 +54,38 @@ class ContactTracker:
         p_on, p_c = s.onset_threshold_pa, s.confirm_threshold_pa
         if self._prev_p is None:
             self._blind = pressure_pa >= p_on
+            self._settled = self._blind.copy()
             self._prev_p, self._prev_z = pressure_pa.copy(), tsi_z_m
             return
-        p0, z0 = self._prev_p, self._prev_z
-        dz = tsi_z_m - z0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            first = np.isnan(self._z1) & ~self._blind & (p0 < p_on) & (pressure_pa >= p_on)
-            if first.any():
-                frac = (p_on - p0[first]) / (pressure_pa[first] - p0[first])
-                z1 = z0 + frac * dz
-                self._z1[first] = z1
-                self.onset_height_m[first] = z1
-            conf = ~np.isnan(self._z1) & ~self._confirmed & (p0 < p_c) & (pressure_pa >= p_c)
-            if conf.any():
-                frac = (p_c - p0[conf]) / (pressure_pa[conf] - p0[conf])
-                z2 = z0 + frac * dz
-                z1 = self._z1[conf]
-                descended = z2 < z1
-                refined = z1 + p_on * (z1 - z2) / (p_c - p_on)
-                self.onset_height_m[conf] = np.where(descended, refined, z1)
-                self._confirmed[conf] = True
-            # an unconfirmed crossing that falls back below p_on was noise, not contact
-            blip = ~np.isnan(self._z1) & ~self._confirmed & (pressure_pa < p_on)
-            self._z1[blip] = np.nan
-            self.onset_height_m[blip] = np.nan
+        if not self._settled.all():
+            self._track(pressure_pa, tsi_z_m, p_on, p_c)
         self._prev_p[...] = pressure_pa
         self._prev_z = tsi_z_m
+
+    def _track(self, pressure_pa: np.ndarray, tsi_z_m: float, p_on: float, p_c: float) -> None:
+        # Divisions below only run where p0 < threshold <= p, so their denominators are positive.
+        p0, z0 = self._prev_p, self._prev_z
+        dz = tsi_z_m - z0
+        unknown = np.isnan(self._z1)
+        first = unknown & ~self._blind & (p0 < p_on) & (pressure_pa >= p_on)
+        if first.any():
+            z1 = z0 + (p_on - p0[first]) / (pressure_pa[first] - p0[first]) * dz
+            self._z1[first] = z1
+            self.onset_height_m[first] = z1
+            unknown &= ~first
+        conf = ~unknown & ~self._confirmed & (p0 < p_c) & (pressure_pa >= p_c)
+        if conf.any():
+            z2 = z0 + (p_c - p0[conf]) / (pressure_pa[conf] - p0[conf]) * dz
+            z1 = self._z1[conf]
+            refined = z1 + p_on * (z1 - z2) / (p_c - p_on)
+            self.onset_height_m[conf] = np.where(z2 < z1, refined, z1)
+            self._confirmed[conf] = True
+            self._settled |= conf
+        # an unconfirmed crossing that falls back below p_on was noise, not contact
+        blip = ~unknown & ~self._confirmed & (pressure_pa < p_on)
+        if blip.any():
+            self._z1[blip] = np.nan
+            self.onset_height_m[blip] = np.nan
 
     @property
     def blind(self) -> np.ndarray:
@@ -93,15 +100,16 @@ def element_analysis(
     element_area_m2: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """(L0_m, dL_m, stiffness_pa, in_contact, tsi_indentation_m) for one pressure map at one height."""
-    known = ~np.isnan(onset_height_m)
-    in_contact = known & (pressure_pa >= contact.onset_threshold_pa)
-    L0 = np.where(known, onset_height_m - contact.table_height_m, np.nan)
+    L0 = onset_height_m - contact.table_height_m  # NaN where the onset is unknown
+    in_contact = (pressure_pa >= contact.onset_threshold_pa) & (L0 == L0)
     dL = np.where(in_contact, onset_height_m - tsi_z_m, np.nan)
     usable = in_contact & (dL >= contact.min_indentation_m) & (L0 > 0)
     force = pressure_pa * element_area_m2
-    stiffness = np.full(pressure_pa.shape, np.nan)
-    stiffness[usable] = force[usable] * L0[usable] / (element_area_m2 * dL[usable])
-    indentation = float(dL[in_contact].mean()) if in_contact.any() else float("nan")
+    # Eq. 1 with unusable elements divided by 1 and then blanked: no division warnings, no inf
+    stiffness = force * L0 / (element_area_m2 * np.where(usable, dL, 1.0))
+    stiffness[~usable] = np.nan
+    n = np.count_nonzero(in_contact)
+    indentation = float(dL[in_contact].sum() / n) if n else float("nan")
     return L0, dL, stiffness, in_contact, indentation
 
 
@@ -124,16 +132,21 @@ class PoseHistory:
 
     def at(self, t_s: float) -> tuple[float, float, float]:
         """Linear interpolation at t_s, clamped to the oldest / newest sample held."""
-        if self._count == 0:
+        count = self._count
+        if count == 0:
             raise LookupError("no pose recorded yet")
         n = len(self._t)
-        order = (np.arange(self._count) + self._i - self._count) % n
-        ts = self._t[order]
-        ps = self._p[order]
-        if t_s <= ts[0]:
-            return tuple(ps[0])  # type: ignore[return-value]
-        if t_s >= ts[-1]:
-            return tuple(ps[-1])  # type: ignore[return-value]
-        k = int(np.searchsorted(ts, t_s))
-        w = (t_s - ts[k - 1]) / (ts[k] - ts[k - 1])
-        return tuple(ps[k - 1] + w * (ps[k] - ps[k - 1]))  # type: ignore[return-value]
+        t, p = self._t, self._p
+        newer = (self._i - 1) % n
+        if t_s >= t[newer]:
+            return tuple(p[newer].tolist())  # type: ignore[return-value]
+        # frames lag the robot by tens of ms: walk back from the newest sample, a few steps at most
+        for _ in range(count - 1):
+            older = (newer - 1) % n
+            t_old = t[older]
+            if t_s >= t_old:
+                w = (t_s - t_old) / (t[newer] - t_old)
+                a, b = p[older].tolist(), p[newer].tolist()
+                return (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]))
+            newer = older
+        return tuple(p[newer].tolist())  # type: ignore[return-value]
