@@ -97,6 +97,12 @@ def cmd_simulate(args) -> int:
     return 0 if done == len(operator.regions) and failures == 0 else 1
 
 
+DELEGATED = {
+    "slave": ("hardware.udp.server.slave_main", "run the slave side of the UDP master/slave link"),
+    "devices": ("hardware.discovery.main", "list the tactile sensors, masters and links this machine can see"),
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
     parser.add_argument("--config", type=Path, help="a TOML file overriding resources/config/default.toml")
@@ -114,14 +120,23 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--max-time-s", type=float, default=600.0, help="give up after this much simulated time")
     sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
     sim.set_defaults(func=cmd_simulate)
+
+    for name, (_, help_text) in DELEGATED.items():
+        sub.add_parser(name, help=help_text, add_help=False)  # listed in --help; main() hands them their argv
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in DELEGATED:  # these subcommands own their argparse
+        import importlib
+
+        module, name = DELEGATED[argv[0]][0].rsplit(".", 1)
+        return getattr(importlib.import_module(module), name)(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
-        args = parser.parse_args([*(argv or sys.argv[1:]), "run"])
+        args = parser.parse_args([*argv, "run"])
     try:
         return args.func(args)
     except (ConfigError, PhantomError, DeviceError) as err:

@@ -1,0 +1,297 @@
+"""The 1 kHz loop on real transports: a serial tactile line and the UDP master/slave link, on this machine.
+
+The slave side runs in a process of its own, as on the paper's second PC: the simulated robot behind a
+:class:`~hardware.udp.server.SlaveServer` stepping at 1 kHz, and the simulated sensor's frames served on a
+pseudo-terminal by the serial emulator. This process is the console's controller: the real tick
+(:func:`app.runtime.run_tick`) and a :class:`~control.loop.ControlLoop` on a rig of a
+:class:`~hardware.serial_tactile.SerialTactileSensor` and a :class:`~hardware.udp.link.UdpSlaveLink`, paced
+on absolute deadlines (SCHED_FIFO and a CPU of its own when permitted, the slave on the other CPU).
+After a second it switches S_z off and palpates the same spot again and again (a 1-3 N ramp, so a region
+finishes on the soft flat phantom): contact, force ramp, retract, while the link and the serial line
+carry a palpation's traffic. Should a fault latch, it is cleared and the palpation starts again, as an
+operator would.
+
+Writes ``hardware.json``:
+
+* ``late_over_0_5ms_pct`` (and the other figures of :func:`bench.loop_bench.tick_statistics`): the
+  loop's lateness while the serial line and the UDP link run;
+* ``round_trip_p99_us``: UDP round trip on loopback through the real packet code, a PING answered by
+  the slave server's step as soon as it arrives, on a frozen simulator clock (what the link itself
+  costs, process to process);
+* ``link_round_trip_p99_us``: during the run, a command out to the state echoing it back, as the loop
+  sees it (the slave answers at its next 1 kHz step and the console reads at its next tick, so up to
+  two periods on top of the network);
+* the devices' fault counters (all zero on a healthy machine) and what the palpation achieved.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import multiprocessing as mp
+import os
+import secrets
+import select
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.runtime import make_loop, run_tick
+from bench.loop_bench import WARMUP_S, tick_statistics
+from control.config import ControlConfig
+from control.messages import ClearFault, FaultRaised, Jog, LevelRecorded, Phase, RegionDone, SetSz
+from control.telemetry import TICK_DTYPE
+from hardware.rig import Rig
+from hardware.serial_tactile import SerialTactileSensor, SerialTactileSettings
+from hardware.udp import protocol as P
+from hardware.udp.link import UdpLinkSettings, UdpSlaveLink
+
+NAME = "hardware"
+SPIN_S = 2e-4  # the last stretch before a deadline is spun, not slept (sleep overshoots by ~60 µs)
+PINGS = 5000
+SZ_OFF_AT_S = 1.0
+
+
+def duration_s() -> float:
+    raw = os.environ.get("PALPATION_BENCH_SECONDS", "20")
+    try:
+        value = float(raw)
+    except ValueError:
+        raise ValueError(f"PALPATION_BENCH_SECONDS must be a number of seconds, got {raw!r}") from None
+    if value < 2 * WARMUP_S + SZ_OFF_AT_S:
+        raise ValueError(f"PALPATION_BENCH_SECONDS must be at least {2 * WARMUP_S + SZ_OFF_AT_S:g} s, got {value:g}")
+    return value
+
+
+def _pin(cpu: int) -> bool:
+    try:
+        if cpu in os.sched_getaffinity(0) and len(os.sched_getaffinity(0)) > 1:
+            os.sched_setaffinity(0, {cpu})
+            return True
+    except (AttributeError, OSError):
+        pass
+    return False
+
+
+def _slave_side(conn, serving, answering) -> None:
+    """The slave PC: serve at 1 kHz while ``serving`` is set, then answer pings on arrival while ``answering``."""
+    from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
+    from hardware.sim.rig import build_sim_rig
+    from hardware.udp.server import SlaveServer, SlaveServerSettings
+
+    _pin(1)
+    rt, _ = _claim_realtime()  # as a slave PC's control process would run
+    sim = build_sim_rig("flat")
+    server = SlaveServer(sim.slave, SlaveServerSettings(port=0, forward_tactile=False), sensor=sim.sensor)
+    server.open()
+    emulator = SerialSensorEmulator()
+    feed = SimSensorFeed(sim.sensor, emulator.device)
+    try:
+        gc.freeze()
+        conn.send((server.address, emulator.path))
+        stop = _Cleared(serving)
+        steps = server.serve(stop, on_step=feed.pump)
+        # pings are answered on a frozen clock: the simulator does no physics, so the round trip is the link's
+        frozen = time.monotonic()
+        fd = server.fileno()
+        while answering.is_set():
+            if select.select([fd], [], [], 0.05)[0]:
+                server.step(frozen)
+        conn.send({"slave_rt_priority": rt, "steps": steps, "frames_sent": emulator.device.sent, "serial_dropped_bytes": emulator.port.dropped_bytes,
+                   **{f"slave_{k}": v for k, v in server.stats.items() if isinstance(v, int)}})
+    finally:
+        server.close()
+        emulator.close()
+
+
+class _Operator:
+    """Palpates the same spot again and again: S_z off whenever the loop is idle above the tissue; after
+    a fault, clears it and lifts the TSI back to its starting height first (a region must start off the
+    tissue). Acts at most every 0.1 s, on the loop's latest tick row."""
+
+    def __init__(self):
+        self.start_z: float | None = None
+        self.lifting = False
+
+    def act(self, tick) -> list:
+        z = float(tick["x_slave_m"][2])
+        if tick["fault"]:
+            return [ClearFault()]
+        if tick["phase"] not in (Phase.APPROACH, Phase.DONE):
+            return []
+        if self.start_z is None:
+            self.start_z = z
+        if z < self.start_z - 1e-3:
+            if self.lifting:
+                return []
+            self.lifting = True
+            return [Jog((0.0, 0.0, self.start_z - z))]
+        self.lifting = False
+        return [SetSz(position_control=False)]
+
+
+class _Cleared:
+    """The inverse of an event: 'stop' once ``event`` is cleared (what SlaveServer.serve waits for)."""
+
+    def __init__(self, event):
+        self._event = event
+
+    def is_set(self) -> bool:
+        return not self._event.is_set()
+
+
+def _claim_realtime() -> tuple[bool, object]:
+    try:
+        saved = (os.sched_getscheduler(0), os.sched_getparam(0))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+        return True, saved
+    except (AttributeError, OSError):
+        return False, None
+
+
+def _release_realtime(saved) -> None:
+    if saved is not None:
+        os.sched_setscheduler(0, saved[0], saved[1])
+
+
+def _run_loop(rig: Rig, config: ControlConfig, seconds: float) -> tuple[np.ndarray, list]:
+    loop = make_loop(config, rig)
+    period = config.period_s
+    ticks = np.zeros(int(seconds / period) + 16, dtype=TICK_DTYPE)
+    events: list = []
+    monotonic = time.monotonic
+    gc.freeze()
+    t0 = monotonic()
+    k = n = missed = 0
+    next_action = round(SZ_OFF_AT_S / period)
+    retry_ticks = round(0.1 / period)
+    operator = _Operator()
+    while n < len(ticks):
+        deadline = t0 + k * period
+        if deadline - t0 >= seconds:
+            break
+        remaining = deadline - monotonic()
+        if remaining > SPIN_S:
+            time.sleep(remaining - SPIN_S)
+        now = monotonic()
+        while now < deadline:
+            now = monotonic()
+        late = now - deadline
+        if late >= period:  # resynchronise after a stall instead of replaying it
+            skipped = int(late / period)
+            missed += skipped
+            k += skipped
+        commands = []
+        if k >= next_action:
+            commands = operator.act(loop.tick)
+            next_action = k + retry_ticks
+        result = run_tick(loop, rig, now, commands)
+        ticks[n] = loop.tick
+        row = ticks[n]
+        row["late_s"] = late
+        row["compute_s"] = monotonic() - now
+        row["missed_ticks"] = missed
+        events += result.events
+        n += 1
+        k += 1
+    return ticks[:n], events
+
+
+def _ping_round_trips(address: tuple[str, int], count: int) -> tuple[np.ndarray, int]:
+    """Round trips of PINGs answered by the slave server's step as soon as they arrive."""
+    rtts = np.full(count, np.nan)
+    lost = 0
+    session = secrets.randbits(32)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        for seq in range(count):
+            sent = time.perf_counter()
+            sock.sendto(P.pack_ping(session, seq, time.monotonic()), address)
+            while True:
+                if not select.select([sock], [], [], 0.5)[0]:
+                    lost += 1
+                    break
+                header, body = P.unpack(sock.recv(P.RECV_BUFFER))
+                if header.type == P.PacketType.STATE and body.echo_seq == seq:  # type: ignore[union-attr]
+                    rtts[seq] = time.perf_counter() - sent
+                    break
+    return rtts[np.isfinite(rtts)], lost
+
+
+def run(out_dir: Path) -> dict:
+    seconds = duration_s()
+    base = ControlConfig()
+    config = base.replace(ramp=base.ramp.replace(force_max_N=3.0))
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    serving, answering = ctx.Event(), ctx.Event()
+    serving.set()
+    answering.set()
+    slave = ctx.Process(target=_slave_side, args=(child, serving, answering), name="bench-slave", daemon=True)
+    slave.start()
+    saved_affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    saved_sched = None
+    rig = None
+    try:
+        if not parent.poll(60.0):
+            raise RuntimeError("the slave process did not come up within 60 s")
+        address, pty_path = parent.recv()
+        link = UdpSlaveLink(UdpLinkSettings(host=address[0], port=address[1]))
+        sensor = SerialTactileSensor(SerialTactileSettings(port=pty_path))
+        rig = Rig(sensor=sensor, slave=link)
+        rig.open()
+        pinned = _pin(0)
+        rt, saved_sched = _claim_realtime()
+        ticks, events = _run_loop(rig, config, seconds)
+        serving.clear()  # before the console goes quiet, so the slave's watchdog has nothing to report
+        link_rtts = link.clock.round_trips_s()
+        serial_stats, link_stats = sensor.stats, link.stats
+        rig.close()
+        rig = None
+        ping_rtts, ping_lost = _ping_round_trips(address, PINGS)
+        _release_realtime(saved_sched)
+        saved_sched = None
+        answering.clear()
+        if not parent.poll(30.0):
+            raise RuntimeError("the slave process did not report back")
+        slave_stats = parent.recv()
+    finally:
+        _release_realtime(saved_sched)
+        if saved_affinity is not None:
+            os.sched_setaffinity(0, saved_affinity)
+        if rig is not None:
+            rig.close()
+        serving.clear()
+        answering.clear()
+        slave.join(10.0)
+        if slave.is_alive():
+            slave.kill()
+            slave.join()
+
+    steady = ticks[ticks["t_s"] - ticks["t_s"][0] >= WARMUP_S]
+    faults = [e.message for e in events if isinstance(e, FaultRaised)]
+    result = {
+        **tick_statistics(steady, config.period_s),
+        "round_trip_p50_us": float(np.percentile(ping_rtts, 50) * 1e6),
+        "round_trip_p99_us": float(np.percentile(ping_rtts, 99) * 1e6),
+        "round_trip_pings": int(len(ping_rtts)),
+        "round_trip_lost": int(ping_lost),
+        "link_round_trip_p50_us": float(np.percentile(link_rtts, 50) * 1e6),
+        "link_round_trip_p99_us": float(np.percentile(link_rtts, 99) * 1e6),
+        "rt_priority": rt,
+        "pinned_cpu": pinned,
+        "seconds": seconds,
+        "levels_recorded": sum(isinstance(e, LevelRecorded) for e in events),
+        "regions_done": sum(isinstance(e, RegionDone) for e in events),
+        "faults": faults,
+        "load_avg_1min": os.getloadavg()[0],
+        **{f"serial_{k}": v for k, v in serial_stats.items() if isinstance(v, (int, float)) and not isinstance(v, bool)},
+        **{f"link_{k}": v for k, v in link_stats.items()
+           if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("round_trip")},
+        **slave_stats,
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
+    (out_dir / f"{NAME}.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    return result

@@ -1,0 +1,454 @@
+"""The slave's end of the UDP link: ``palpation-console slave``, in front of a robot (simulated or real).
+
+Each :meth:`SlaveServer.step` (1 kHz in :meth:`SlaveServer.serve`) polls the robot, drains the socket
+without blocking, applies the newest command, runs the link watchdog and sends the robot's state (and a
+tactile frame when the slave-side sensor has a new one) to the master.
+
+Safety rules, all on this side so they hold whatever the master does:
+
+* Only peers on the allow-list may command or ping; the socket binds to loopback unless told otherwise,
+  and binding elsewhere requires an explicit allow-list.
+* Only a command newer than the newest applied one is applied (late and duplicate packets are dropped).
+* Link watchdog: no command for ``link_timeout_s`` latches LINK_TIMEOUT and holds the robot. The state
+  packets say so, and the console withholds the readings, so its loop holds as well.
+* After a latched hold the robot follows again only once the master sends HOLD (it has noticed), or a
+  reference within ``resume_distance_m`` of where the robot stopped; a farther one is refused
+  (JUMP_REFUSED) and the robot keeps holding, so a stale reference can never yank it away.
+* Until a master has spoken, the robot holds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import math
+import os
+import secrets
+import signal
+import socket
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from control.config import ConfigError
+from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor
+from hardware.serial_tactile.config import Settings, in_range, integer, text
+from hardware.udp import protocol as P
+from hardware.udp.protocol import is_loopback
+
+DEFAULT_PORT = 47600
+
+
+def _network(key: str, value: Any) -> ipaddress.IPv4Network | ipaddress.IPv6Network:
+    try:
+        return ipaddress.ip_network(text(key, value), strict=False)
+    except ValueError:
+        raise ConfigError(key, f"must be an IP address or network like 192.168.1.20 or 10.0.0.0/24, "
+                               f"got {value!r}") from None
+
+
+@dataclass(frozen=True)
+class SlaveServerSettings(Settings):
+    bind_host: str = "127.0.0.1"
+    port: int = DEFAULT_PORT  # 0: any free port (tests)
+    allow: tuple[str, ...] = ()  # peers that may command; empty: loopback only (refused if not bound there)
+    link_timeout_s: float = 0.02
+    resume_distance_m: float = 0.002
+    rate_hz: float = 1000.0
+    max_packets_per_step: int = 64
+    forward_tactile: bool = True
+
+    def __post_init__(self):
+        self._set("bind_host", text("bind_host", self.bind_host))
+        self._set("port", integer("port", self.port, 0, 65535))
+        if isinstance(self.allow, str):
+            raise ConfigError("allow", f"must be a list of addresses, got {self.allow!r}")
+        allow = tuple(text(f"allow[{i}]", a) for i, a in enumerate(self.allow))
+        for i, a in enumerate(allow):
+            _network(f"allow[{i}]", a)
+        if not allow:
+            if not is_loopback(self.bind_host):
+                raise ConfigError("allow", f"binding to {self.bind_host} exposes the robot to the network: "
+                                           f"list the master's address(es) to allow (e.g. --allow 192.168.1.20)")
+            allow = ("127.0.0.1",)
+        self._set("allow", allow)
+        self._set("link_timeout_s", in_range("link_timeout_s", self.link_timeout_s, 0.002, 1.0,
+                                             "the robot must stop soon after the master goes quiet"))
+        self._set("resume_distance_m", in_range("resume_distance_m", self.resume_distance_m, 0.0, 0.05))
+        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 10.0, 10e3))
+        self._set("max_packets_per_step", integer("max_packets_per_step", self.max_packets_per_step, 1, 4096))
+        if not isinstance(self.forward_tactile, bool):
+            raise ConfigError("forward_tactile", f"must be true or false, got {self.forward_tactile!r}")
+
+    def allows(self, host: str) -> bool:
+        try:
+            addr = ipaddress.ip_address(host)
+        except ValueError:
+            return False
+        return any(addr in ipaddress.ip_network(a, strict=False) for a in self.allow)
+
+
+class SlaveServer:
+    def __init__(self, robot: SlaveManipulator, settings: SlaveServerSettings | None = None,
+                 sensor: TactileSensor | None = None):
+        self.robot = robot
+        self.sensor = sensor
+        self.settings = settings if settings is not None else SlaveServerSettings()
+        self._sock: socket.socket | None = None
+        self._session = 0
+        self._state_seq = 0
+        self._tactile_seq = 0
+        self._commands = P.SequenceTracker()
+        self._master: tuple[str, int] | None = None
+        self._last_cmd_rx: float | None = None
+        self._echo = (0, 0.0, 0.0)  # seq, t_send (master clock), t_recv (ours) of the newest command
+        self._mode = P.Mode.HOLD
+        self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED while the robot holds on its own
+        self._held_at_start = False
+        self._sent_sensor_seq: int | None = None
+        self._buf = bytearray(P.RECV_BUFFER)
+        self._view = memoryview(self._buf)
+        self.counters = dict.fromkeys(("received", "rejected_peers", "oversize", "malformed", "crc_errors",
+                                       "invalid_values", "unexpected", "pings", "link_timeouts", "jumps_refused",
+                                       "master_changes", "sent", "send_errors", "socket_errors"), 0)
+        self.last_error = ""
+
+    @property
+    def address(self) -> tuple[str, int]:
+        if self._sock is None:
+            raise RuntimeError("the slave server is not open")
+        return self._sock.getsockname()
+
+    def fileno(self) -> int:
+        """The socket's descriptor (to step as soon as a packet arrives)."""
+        if self._sock is None:
+            raise RuntimeError("the slave server is not open")
+        return self._sock.fileno()
+
+    @property
+    def status(self) -> P.Status:
+        st = self._latched
+        if st or self._mode == P.Mode.HOLD:
+            st |= P.Status.HOLDING
+        if self.robot.connection != ConnectionState.CONNECTED:
+            st |= P.Status.ROBOT_FAULT
+        return st
+
+    def open(self) -> None:
+        s = self.settings
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((s.bind_host, s.port))
+        except OSError as err:
+            sock.close()
+            raise DeviceError(f"slave: cannot listen on {s.bind_host}:{s.port} ({err.strerror or err}); "
+                              f"is another slave running?") from None
+        sock.setblocking(False)
+        opened = []
+        try:
+            for device in (self.robot, self.sensor):
+                if device is not None:
+                    device.open()
+                    opened.append(device)
+        except BaseException:
+            for device in reversed(opened):
+                device.close()
+            sock.close()
+            raise
+        self._sock = sock
+        self._session = secrets.randbits(32)
+
+    def close(self, now_s: float | None = None) -> None:
+        if self._sock is None:
+            return
+        try:
+            self.robot.hold(time.monotonic() if now_s is None else now_s)
+        finally:
+            self._sock.close()
+            self._sock = None
+            if self.sensor is not None:
+                self.sensor.close()
+            self.robot.close()
+
+    # ---- one step ------------------------------------------------------------------------------------
+
+    def step(self, now_s: float) -> None:
+        sock = self._sock
+        if sock is None:
+            raise RuntimeError("the slave server is not open")
+        self.robot.poll(now_s)
+        if self.sensor is not None:
+            self.sensor.poll(now_s)
+        if not self._held_at_start:
+            self.robot.hold(now_s)  # nobody has commanded anything yet
+            self._held_at_start = True
+        newest = self._drain(sock, now_s)
+        if newest is not None:
+            self._apply(newest, now_s)
+        self._watchdog(now_s)
+        if self._master is not None:
+            self._send_state(self._master, now_s, P.Status.NONE)
+            if self.sensor is not None and self.settings.forward_tactile:
+                self._send_tactile(self._master, now_s)
+
+    def _drain(self, sock: socket.socket, now_s: float) -> P.Command | None:
+        c = self.counters
+        newest: P.Command | None = None
+        buf, view = self._buf, self._view
+        for _ in range(self.settings.max_packets_per_step):
+            try:
+                n, addr = sock.recvfrom_into(buf)
+            except BlockingIOError:
+                break
+            except OSError as err:
+                c["socket_errors"] += 1
+                self.last_error = f"socket error: {err}"
+                break
+            c["received"] += 1
+            if not self.settings.allows(addr[0]):
+                c["rejected_peers"] += 1
+                continue
+            if n >= P.RECV_BUFFER:
+                c["oversize"] += 1
+                continue
+            try:
+                header, body = P.unpack(view[:n])
+            except P.PacketError as err:
+                c[err.kind] += 1
+                self.last_error = f"bad packet from {addr[0]}:{addr[1]}: {err}"
+                continue
+            if header.type == P.PacketType.PING:
+                c["pings"] += 1
+                self._send_state(addr, now_s, P.Status.PING_REPLY, echo=(header.seq, header.t_send_s, now_s))
+            elif header.type == P.PacketType.COMMAND:
+                if self._commands.accept(header.session, header.seq):
+                    if self._master is not None and addr != self._master:
+                        c["master_changes"] += 1
+                    self._master = addr
+                    self._last_cmd_rx = now_s
+                    self._echo = (header.seq, header.t_send_s, now_s)
+                    newest = body  # type: ignore[assignment]
+            else:
+                c["unexpected"] += 1
+        return newest
+
+    def _apply(self, cmd: P.Command, now_s: float) -> None:
+        robot = self.robot
+        if cmd.mode == P.Mode.HOLD:
+            self._latched = P.Status.NONE  # the master knows the robot is holding
+            self._mode = P.Mode.HOLD
+            robot.hold(now_s)
+            return
+        if self._latched:
+            here = robot.latest()
+            if here is None or math.dist(here.position_m, cmd.position_m) > self.settings.resume_distance_m:
+                if not self._latched & P.Status.JUMP_REFUSED:
+                    self.counters["jumps_refused"] += 1
+                    dist = "unknown" if here is None else f"{math.dist(here.position_m, cmd.position_m) * 1e3:.1f} mm"
+                    self.last_error = (f"refused a reference {dist} away from the robot after a hold "
+                                       f"(limit {self.settings.resume_distance_m * 1e3:.1f} mm)")
+                self._latched |= P.Status.JUMP_REFUSED
+                robot.hold(now_s)
+                return
+            self._latched = P.Status.NONE
+        self._mode = P.Mode.TRACK
+        robot.command(cmd.position_m, cmd.velocity_m_s, now_s)
+
+    def _watchdog(self, now_s: float) -> None:
+        last = self._last_cmd_rx
+        if last is None:
+            return
+        if now_s - last > self.settings.link_timeout_s:
+            if not self._latched & P.Status.LINK_TIMEOUT:
+                self._latched |= P.Status.LINK_TIMEOUT
+                self.counters["link_timeouts"] += 1
+                self.last_error = f"no command from the master for {(now_s - last) * 1e3:.0f} ms: holding"
+            self.robot.hold(now_s)
+
+    def _send(self, data: bytes, addr: tuple[str, int]) -> None:
+        try:
+            self._sock.sendto(data, addr)  # type: ignore[union-attr]
+        except OSError as err:
+            self.counters["send_errors"] += 1
+            self.last_error = f"cannot send to {addr[0]}:{addr[1]}: {err}"
+            return
+        self.counters["sent"] += 1
+
+    def _send_state(self, addr: tuple[str, int], now_s: float, extra: P.Status,
+                    echo: tuple[int, float, float] | None = None) -> None:
+        reading = self.robot.latest()
+        if reading is None:
+            return
+        force = math.nan
+        if self.sensor is not None:
+            frame = self.sensor.latest()
+            if frame is not None:
+                force = float(frame.pressure_pa.sum()) * self.sensor.constraints.element_area_m2
+        e = self._echo if echo is None else echo
+        state = P.State(self.status | extra, reading.seq, reading.t_s, reading.position_m, reading.velocity_m_s,
+                        force, e[0], e[1], e[2])
+        self._send(P.pack_state(self._session, self._state_seq, now_s, state), addr)
+        self._state_seq += 1
+
+    def _send_tactile(self, addr: tuple[str, int], now_s: float) -> None:
+        frame = self.sensor.latest()  # type: ignore[union-attr]
+        if frame is None or frame.seq == self._sent_sensor_seq:
+            return
+        self._sent_sensor_seq = frame.seq
+        tac = P.Tactile(frame.seq, frame.t_s, frame.pressure_pa)
+        self._send(P.pack_tactile(self._session, self._tactile_seq, now_s, tac), addr)
+        self._tactile_seq += 1
+
+    # ---- running -------------------------------------------------------------------------------------
+
+    @property
+    def stats(self) -> dict[str, Any]:
+        cmd = self._commands
+        master = f"{self._master[0]}:{self._master[1]}" if self._master else ""
+        return {"device": "udp-slave-server", "master": master, "status": int(self.status),
+                "last_error": self.last_error, **self.counters, "commands": cmd.accepted, "lost": cmd.lost,
+                "late": cmd.late, "duplicates": cmd.duplicates, "master_restarts": cmd.restarts}
+
+    def serve(self, stop: threading.Event, duration_s: float | None = None, on_step=None) -> int:
+        """Step at ``rate_hz`` on absolute deadlines until ``stop`` is set (or ``duration_s`` passes).
+
+        A late step is not repeated: the next deadline after now is taken (the watchdog measures real
+        time anyway). ``on_step(now_s)`` runs after each step (a slave-side emulator's pump). Returns
+        the number of steps.
+        """
+        period = 1.0 / self.settings.rate_hz
+        t0 = time.monotonic()
+        end = math.inf if duration_s is None else t0 + duration_s
+        k = 0
+        steps = 0
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= end:
+                break
+            self.step(now)
+            if on_step is not None:
+                on_step(now)
+            steps += 1
+            k = max(k + 1, int((time.monotonic() - t0) / period) + 1)
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        return steps
+
+
+# ---- `palpation-console slave` ---------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="palpation-console slave",
+        description="Run the slave side of the master/slave UDP link in front of a robot: it applies the "
+                    "console's references at 1 kHz, streams the robot's state back, and holds the robot "
+                    "when the console goes quiet.")
+    p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default: loopback only)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"UDP port (default {DEFAULT_PORT}; 0: any free)")
+    p.add_argument("--allow", action="append", default=[], metavar="ADDRESS",
+                   help="a master address or network allowed to command (repeat; required unless bound to loopback)")
+    p.add_argument("--link-timeout-s", type=float, default=0.02, help="hold when no command came for this long")
+    p.add_argument("--resume-distance-m", type=float, default=0.002,
+                   help="after a hold, follow only references this close to the robot")
+    p.add_argument("--robot", choices=["sim"], default="sim", help="the robot behind the slave (default: simulated)")
+    p.add_argument("--phantom", default="flat", help="simulated robot: phantom name or TOML file")
+    p.add_argument("--config", type=Path, help="simulated robot: a TOML file whose [sim] table overrides the defaults")
+    p.add_argument("--seed", type=int, default=0, help="simulated robot: sensor noise seed")
+    p.add_argument("--no-forward-tactile", action="store_true",
+                   help="do not forward the slave-side tactile frames over the link")
+    p.add_argument("--serial-emulator", action="store_true",
+                   help="also serve the simulated sensor's frames on a pseudo-terminal (prints its path)")
+    p.add_argument("--no-realtime", action="store_true",
+                   help="do not ask for real-time scheduling (by default the slave asks, and says if refused)")
+    p.add_argument("--duration-s", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    return p
+
+
+def _claim_realtime() -> tuple[object, str]:
+    """SCHED_FIFO for this thread if permitted: (what to restore, a sentence for the operator)."""
+    try:
+        saved = (os.sched_getscheduler(0), os.sched_getparam(0))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+    except (AttributeError, OSError) as err:
+        return None, (f"normal priority (real-time scheduling refused: {err}); expect late steps when "
+                      f"this computer is busy, and the robot held by the watchdog when they exceed the link timeout")
+    return saved, "real-time priority"
+
+
+def _sim_settings(path: Path | None) -> dict:
+    if path is None:
+        return {}
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(str(path), "no such configuration file") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+        raise ConfigError(str(path), f"not valid TOML: {err}") from None
+    sim = data.get("sim", {})
+    if not isinstance(sim, dict):
+        raise ConfigError(f"{path}: sim", "must be a table")
+    return sim
+
+
+def slave_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``palpation-console slave``; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    # Imported here: a slave in front of a real robot never loads the simulator.
+    from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
+    from hardware.sim.phantom import PhantomError
+    from hardware.sim.rig import build_sim_rig
+
+    emulator = None
+    try:
+        settings = SlaveServerSettings(bind_host=args.bind, port=args.port, allow=tuple(args.allow),
+                                       link_timeout_s=args.link_timeout_s,
+                                       resume_distance_m=args.resume_distance_m,
+                                       forward_tactile=not args.no_forward_tactile)
+        if args.duration_s is not None and not args.duration_s > 0:
+            raise ConfigError("--duration-s", f"must be > 0, got {args.duration_s:g}")
+        rig = build_sim_rig(args.phantom, settings=_sim_settings(args.config), seed=args.seed)
+        server = SlaveServer(rig.slave, settings, sensor=rig.sensor)
+        server.open()
+    except (ConfigError, DeviceError, PhantomError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    feed = None
+    stop = threading.Event()
+    restore = {}
+    saved_sched = None
+    try:
+        if args.no_realtime:
+            priority = "normal priority (--no-realtime)"
+        else:
+            saved_sched, priority = _claim_realtime()
+        if args.serial_emulator:
+            emulator = SerialSensorEmulator()
+            feed = SimSensorFeed(rig.sensor, emulator.device)
+        host, port = server.address
+        print(f"slave: listening on {host}:{port} (allowed: {', '.join(settings.allow)}); robot: simulated, "
+              f"phantom {rig.description['phantom']!r}; tactile frames "
+              f"{'forwarded over the link' if settings.forward_tactile else 'not forwarded'}; {priority}", flush=True)
+        if emulator is not None:
+            print(f"slave: serial tactile emulator at {emulator.path}", flush=True)
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                restore[sig] = signal.signal(sig, lambda *_: stop.set())
+        steps = server.serve(stop, args.duration_s, on_step=feed.pump if feed is not None else None)
+        st = server.stats
+        print(f"slave: stopped after {steps} steps; {st['commands']} commands, {st['lost']} lost, "
+              f"{st['link_timeouts']} link timeouts, {st['rejected_peers']} packets from refused peers", flush=True)
+        return 0
+    finally:
+        for sig, handler in restore.items():
+            signal.signal(sig, handler)
+        if saved_sched is not None:
+            os.sched_setscheduler(0, *saved_sched)
+        server.close()
+        if emulator is not None:
+            emulator.close()
