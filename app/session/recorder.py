@@ -1,0 +1,846 @@
+"""Session recording: one self-describing HDF5 file per session, written by a thread of its own.
+
+Layout, format ``palpation-console-session`` version 1 (the one place it is defined; docs/session-format.md
+explains it for readers outside Python)::
+
+    /                       attrs: format, format_version (int), uuid, created_utc (ISO 8601), software,
+                            software_version, simulated (bool)
+    /meta                   group; each attr is JSON text, SI units, key names carry units:
+        config_json         the full configuration the controller ran with: {"control": ..., "rig": ..., "sim": ...}
+        calibration_json    sensor geometry {rows, cols, pitch_m, element_area_m2, full_scale_pa,
+                            frame_rate_hz} and table_height_m, the height the L0 values are measured from
+        rig_json            what was built (hardware.rig.Rig.description)
+        phantom_json        simulated sessions: the phantom definition (its TOML as a table); null otherwise
+        ground_truth_json   simulated sessions: the phantom's tumours [{x_m, y_m, z_m, depth_m, diameter_m,
+                            youngs_modulus_pa}]; [] otherwise
+    /stream/ticks           TICK_DTYPE (control.telemetry): one row per control period, oldest first. ``tick``
+                            counts the loop's periods, so a jump in it is rows lost before the file
+    /stream/frames          FRAME_DTYPE: one row per tactile frame
+    /stream/overview        OVERVIEW_DTYPE: one row per OVERVIEW_BUCKET_ROWS consecutive tick rows, their time
+                            span and the min/max of the channels a timeline draws (derived from the ticks;
+                            lets a viewer show hours at a glance without reading them)
+    /levels                 LEVEL_DTYPE: one row per recorded force level (control.messages.LevelRecord)
+    /events                 EVENT_DTYPE: one row per event, kinds in EventKind; a cleanly closed file ends
+                            with one "closed" row
+
+Text attributes are fixed-length UTF-8 strings. Every dataset is 1-D, chunked, resizable, appended in blocks,
+byte-shuffled, deflated (level 1) and Fletcher-32 checksummed, all of it built into every HDF5, so any HDF5
+tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and no real tick or frame row is
+all zero bytes, so a row whose data never reached the disk (HDF5 reads it as zeros) is recognisable.
+
+Crash safety. The file is written in HDF5's single-writer/multiple-reader (SWMR) mode: the layout above is
+created first, then SWMR is switched on, after which HDF5 orders its metadata writes so that the file on
+disk is consistent at every instant (that is what lets a reader follow a live file; it also means a file
+left by a killed process opens). The writer flushes every ``flush_interval_s``, so a ``kill -9`` loses at
+most that much plus what was still queued. Such a file carries HDF5's "open for writing" mark, which
+readers without SWMR refuse: :mod:`app.session.reader` opens it in SWMR-read mode, without modifying it.
+Metadata is checksummed throughout and there is no variable-length data (whose unchecked global heap can
+send HDF5 into an endless loop), so a damaged file gives read errors, not hangs.
+
+Full disk. After every flush the writer checks the free space on the file's disk; below ``min_free_bytes``
+it stops recording cleanly (the file is closed and complete up to that point) and reports why. A write
+that fails all the same (another program filled the disk, a quota, a file-size limit) also stops the
+recording with a message, leaving the file as a kill at that instant would (HDF5 is cut off from it
+before closing); the reader trims the tail that never landed. The chunk still filling up is rewritten at
+every flush, so such a failure can also take the rows of that chunk with it: levels therefore get a chunk
+each. Either way the producer side (:meth:`SessionRecorder.add_ticks` and friends) never blocks and never
+raises, so the control side carries on regardless.
+"""
+
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import errno as errno_codes
+import importlib.metadata
+import json
+import logging
+import math
+import os
+import queue
+import re
+import shutil
+import threading
+import time
+import uuid as uuid_module
+import weakref
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from control.messages import (CommandRefused, FaultCleared, FaultRaised, LevelRecord, LevelRecorded, LevelTimedOut,
+                              Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
+from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
+
+log = logging.getLogger(__name__)
+
+FORMAT_NAME = "palpation-console-session"
+FORMAT_VERSION = 1
+OVERVIEW_BUCKET_ROWS = 1000
+
+_GRID = (ROWS, COLS)
+LEVEL_DTYPE = np.dtype(
+    [
+        ("seq", np.int64),
+        ("region", np.int32),
+        ("level", np.int32),
+        ("t_s", np.float64),
+        ("force_desired_N", np.float64),
+        ("force_measured_N", np.float64),
+        ("rmse_N", np.float64),
+        ("settle_time_s", np.float64),
+        ("tsi_position_m", np.float64, (3,)),
+        ("indentation_m", np.float64),
+        ("pressure_pa", np.float64, _GRID),
+        ("element_force_N", np.float64, _GRID),
+        ("onset_height_m", np.float64, _GRID),
+        ("L0_m", np.float64, _GRID),
+        ("dL_m", np.float64, _GRID),
+        ("stiffness_pa", np.float64, _GRID),
+    ]
+)
+
+EVENT_TEXT_BYTES = 240
+EVENT_DTYPE = np.dtype(
+    [
+        ("seq", np.int64),
+        ("t_s", np.float64),
+        ("kind", "S16"),
+        ("region", np.int32),  # -1 when the event is not about a region
+        ("level", np.int32),  # -1 when not about a level
+        ("code", np.int32),  # kind-specific: S_z, Phase, FaultKind, notice severity (0 info, 1 warning)
+        ("value", np.float64),  # kind-specific: force of a level, rows lost, ... (NaN when unused)
+        ("text", f"S{EVENT_TEXT_BYTES}"),  # UTF-8, cut at a character boundary
+    ]
+)
+
+# Channels of the timeline overview: (name in OVERVIEW_DTYPE, tick field, index into a vector field or None)
+OVERVIEW_CHANNELS: tuple[tuple[str, str, int | None], ...] = (
+    ("force_measured_N", "force_measured_N", None),
+    ("force_desired_N", "force_desired_N", None),
+    ("indentation_m", "indentation_m", None),
+    ("tsi_z_m", "x_slave_m", 2),
+    ("late_s", "late_s", None),
+)
+OVERVIEW_DTYPE = np.dtype(
+    [("row_start", np.int64), ("n_rows", np.int32), ("t_start_s", np.float64), ("t_end_s", np.float64)]
+    + [(f"{name}_{stat}", np.float64) for name, _, _ in OVERVIEW_CHANNELS for stat in ("min", "max")]
+)
+
+
+class EventKind:
+    """Values of the ``kind`` column of /events."""
+
+    SZ = "sz"  # code = S_z, text = who switched it
+    PHASE = "phase"  # code = Phase, level, value = number of levels, text = phase name
+    LEVEL = "level"  # region, level, value = F_d; the level's data is the matching /levels row
+    LEVEL_TIMEOUT = "level_timeout"  # region, level, value = F_d, text = why
+    REGION_DONE = "region_done"  # region, code = number of levels
+    REGION_ABORTED = "region_aborted"  # region, text = why
+    FAULT = "fault"  # code = FaultKind, text = message
+    FAULT_CLEARED = "fault_cleared"  # code = FaultKind
+    REFUSED = "refused"  # text = "<command>: <reason>"
+    NOTICE = "notice"  # code = 0 info / 1 warning, text
+    NOTE = "note"  # text = the operator's note
+    ROWS_LOST = "rows_lost"  # value = rows missing from the stream before this point, text = "ticks"
+    RECORDER = "recorder"  # text = what the recorder did (stopped on a full disk, ...)
+    CLOSED = "closed"  # the last row of a cleanly closed file; text = UTC time of closing
+
+
+# A chunk that is still filling up is rewritten at every flush; if that write fails (full disk), the rows
+# it held before are lost too. Levels are the data that matter most, so each gets a chunk of its own.
+_CHUNK_ROWS = {"ticks": 1024, "frames": 128, "overview": 256, "levels": 1, "events": 16}
+
+
+class RecorderError(RuntimeError):
+    """The session file could not be created (no such folder, no permission, the file exists...)."""
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """What makes a session file self-describing; everything plain data (JSON-able), SI units."""
+
+    config: dict[str, Any]
+    calibration: dict[str, Any]
+    rig: dict[str, Any] = field(default_factory=dict)
+    phantom: dict[str, Any] | None = None
+    ground_truth: list[dict[str, Any]] = field(default_factory=list)
+    software_version: str = ""
+
+    @property
+    def simulated(self) -> bool:
+        return self.rig.get("backend") == "sim"
+
+    @classmethod
+    def from_rig(cls, config, rig, spec=None) -> SessionInfo:
+        """From an :class:`app.config.AppConfig` and the rig (built, not necessarily opened) the controller
+        drives; ``spec`` is the :class:`app.rigs.RigSpec` it was built from when not ``config.rig``."""
+        sensor = rig.sensor.constraints
+        spec = spec if spec is not None else config.rig
+        phantom = None
+        if spec.backend == "sim":
+            from hardware.sim.phantom import load_phantom
+
+            phantom = load_phantom(spec.phantom).source
+        full_config = {
+            "control": config.control.to_mapping(),
+            "rig": {k: v for k, v in dataclasses.asdict(spec).items() if k != "sim"},
+            "sim": dict(spec.sim),
+            "sources": list(config.sources),
+        }
+        return cls(
+            config=full_config,
+            calibration=calibration_of(sensor, config.control.contact.table_height_m),
+            rig=dict(rig.description),
+            phantom=phantom,
+            ground_truth=list(rig.ground_truth),
+            software_version=software_version(),
+        )
+
+
+def calibration_of(sensor, table_height_m: float) -> dict[str, Any]:
+    """The calibration block for a :class:`hardware.interfaces.TactileConstraints`."""
+    return {
+        "rows": sensor.rows,
+        "cols": sensor.cols,
+        "pitch_m": sensor.pitch_m,
+        "element_area_m2": sensor.element_area_m2,
+        "full_scale_pa": sensor.full_scale_pa,
+        "frame_rate_hz": sensor.frame_rate_hz,
+        "table_height_m": table_height_m,
+    }
+
+
+def software_version() -> str:
+    try:
+        return importlib.metadata.version("palpation-console")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def sessions_dir() -> Path:
+    """Where sessions go: ``$PALPATION_DATA_DIR/sessions``, else the platform's user data folder."""
+    base = os.environ.get("PALPATION_DATA_DIR")
+    if not base:
+        import platformdirs
+
+        base = platformdirs.user_data_dir("palpation-console")
+    return Path(base) / "sessions"
+
+
+def new_session_path(folder: Path | None = None, now: datetime | None = None) -> Path:
+    """A fresh file name in ``folder`` named by the local date and time: ``session-2024-05-01_14-03-22.h5``."""
+    folder = Path(folder) if folder is not None else sessions_dir()
+    stamp = (now or datetime.now()).strftime("%Y-%m-%d_%H-%M-%S")
+    path = folder / f"session-{stamp}.h5"
+    n = 2
+    while path.exists():
+        path = folder / f"session-{stamp}-{n}.h5"
+        n += 1
+    return path
+
+
+# ---- events and level records as rows ------------------------------------------------------------------
+
+
+def _text(value: str) -> bytes:
+    raw = value.encode("utf-8")
+    if len(raw) <= EVENT_TEXT_BYTES:
+        return raw
+    return raw[:EVENT_TEXT_BYTES].decode("utf-8", errors="ignore").encode("utf-8")
+
+
+def level_row(record: LevelRecord) -> tuple:
+    """A LEVEL_DTYPE row (without its seq) for one level record."""
+    return (0, record.region, record.level, record.t_s, record.force_desired_N, record.force_measured_N,
+            record.rmse_N, record.settle_time_s, record.tsi_position_m, record.indentation_m, record.pressure_pa,
+            record.element_force_N, record.onset_height_m, record.L0_m, record.dL_m, record.stiffness_pa)
+
+
+def event_row(t_s: float, kind: str, *, region: int = -1, level: int = -1, code: int = 0, value: float = math.nan,
+              text: str = "") -> tuple:
+    return (0, t_s, kind.encode("ascii"), region, level, code, value, _text(text))
+
+
+def rows_for_event(event) -> tuple[tuple | None, tuple | None]:
+    """(event row, level row or None) for a control.messages event; (None, None) for other objects."""
+    k = EventKind
+    if isinstance(event, LevelRecorded):
+        r = event.record
+        return (event_row(event.t_s, k.LEVEL, region=r.region, level=r.level, value=r.force_desired_N),
+                level_row(r))
+    if isinstance(event, SzChanged):
+        row = event_row(event.t_s, k.SZ, code=int(event.sz), text=event.source.name.lower())
+    elif isinstance(event, PhaseChanged):
+        row = event_row(event.t_s, k.PHASE, level=event.level, code=int(event.phase), value=float(event.n_levels),
+                        text=event.phase.name)
+    elif isinstance(event, LevelTimedOut):
+        row = event_row(event.t_s, k.LEVEL_TIMEOUT, region=event.region, level=event.level,
+                        value=event.force_desired_N, text=event.message)
+    elif isinstance(event, RegionDone):
+        row = event_row(event.t_s, k.REGION_DONE, region=event.region, code=event.n_levels)
+    elif isinstance(event, RegionAborted):
+        row = event_row(event.t_s, k.REGION_ABORTED, region=event.region, text=event.reason)
+    elif isinstance(event, FaultRaised):
+        row = event_row(event.t_s, k.FAULT, code=int(event.kind), text=event.message)
+    elif isinstance(event, FaultCleared):
+        row = event_row(event.t_s, k.FAULT_CLEARED, code=int(event.kind), text=event.kind.name)
+    elif isinstance(event, CommandRefused):
+        row = event_row(event.t_s, k.REFUSED, text=f"{event.command}: {event.reason}")
+    elif isinstance(event, Notice):
+        row = event_row(event.t_s, k.NOTICE, code=1 if event.level == "warning" else 0, text=event.message)
+    else:
+        return None, None
+    return row, None
+
+
+# ---- the writer ----------------------------------------------------------------------------------------
+
+
+class _Appender:
+    """One resizable dataset and the rows waiting to go into it."""
+
+    def __init__(self, ds: h5py.Dataset, numbered: bool = False):
+        self.ds = ds
+        self.n = ds.shape[0]
+        self.numbered = numbered
+        self.pending: list[np.ndarray] = []
+        self.pending_rows = 0
+
+    def add(self, rows: np.ndarray) -> None:
+        self.pending.append(rows)
+        self.pending_rows += len(rows)
+
+    def write(self) -> int:
+        if not self.pending_rows:
+            return 0
+        block = self.pending[0] if len(self.pending) == 1 else np.concatenate(self.pending)
+        n0 = self.n
+        if self.numbered:
+            block["seq"] = np.arange(n0 + 1, n0 + 1 + len(block))
+        self.ds.resize((n0 + len(block),))
+        self.ds[n0:] = block
+        # cleared only once written: after a failed write the rows still pending are the ones dropped
+        self.pending.clear()
+        self.pending_rows = 0
+        self.n = n0 + len(block)
+        return len(block)
+
+
+class _Overview:
+    """Folds tick rows into OVERVIEW_DTYPE buckets of OVERVIEW_BUCKET_ROWS rows."""
+
+    def __init__(self):
+        self.tail = np.empty(0, TICK_DTYPE)
+        self.rows_done = 0  # tick rows already folded into complete buckets
+
+    @staticmethod
+    def buckets(ticks: np.ndarray, row_start: int, size: int) -> np.ndarray:
+        n = len(ticks) // size if size else 0
+        out = np.zeros(n, OVERVIEW_DTYPE)
+        if n == 0:
+            return out
+        t = ticks["t_s"][: n * size].reshape(n, size)
+        out["row_start"] = row_start + np.arange(n) * size
+        out["n_rows"] = size
+        out["t_start_s"] = t[:, 0]
+        out["t_end_s"] = t[:, -1]
+        for name, source, index in OVERVIEW_CHANNELS:
+            column = ticks[source][: n * size]
+            if index is not None:
+                column = column[:, index]
+            column = column.reshape(n, size)
+            # fmin/fmax skip NaN (no contact, outside a ramp) and give NaN only for an all-NaN bucket
+            out[f"{name}_min"] = np.fmin.reduce(column, axis=1)
+            out[f"{name}_max"] = np.fmax.reduce(column, axis=1)
+        return out
+
+    def add(self, ticks: np.ndarray) -> np.ndarray:
+        rows = np.concatenate([self.tail, ticks]) if len(self.tail) else ticks
+        full = self.buckets(rows, self.rows_done, OVERVIEW_BUCKET_ROWS)
+        used = len(full) * OVERVIEW_BUCKET_ROWS
+        self.tail = rows[used:].copy()
+        self.rows_done += used
+        return full
+
+    def finish(self) -> np.ndarray:
+        if not len(self.tail):
+            return np.zeros(0, OVERVIEW_DTYPE)
+        last = self.buckets(self.tail, self.rows_done, len(self.tail))
+        self.rows_done += len(self.tail)
+        self.tail = self.tail[:0]
+        return last
+
+
+@dataclass
+class RecorderStatus:
+    path: Path
+    recording: bool  # accepting and writing data
+    problem: str | None  # why recording stopped early (full disk, write error); None if it did not
+    ticks_written: int
+    frames_written: int
+    levels_written: int
+    events_written: int
+    rows_lost: int  # tick rows missing from the stream (lost before the recorder got them)
+    rows_dropped: int  # rows the recorder was given but did not write (stopped, or its queue overflowed)
+    bytes_on_disk: int
+
+
+_STOP = object()
+
+
+class _Flush:
+    def __init__(self):
+        self.done = threading.Event()
+
+
+_ERRNO_IN_MESSAGE = re.compile(r"errno = (\d+)")
+
+
+def _describe_write_error(err: BaseException, path: Path) -> str:
+    code = getattr(err, "errno", None)
+    if not isinstance(code, int):
+        match = _ERRNO_IN_MESSAGE.search(str(err))
+        code = int(match.group(1)) if match else None
+    if code == errno_codes.ENOSPC:
+        why = "the disk is full"
+    elif code == errno_codes.EDQUOT:
+        why = "the disk quota is exceeded"
+    elif code == errno_codes.EFBIG:
+        why = "the file reached the largest size this system allows"
+    elif code == errno_codes.EIO:
+        why = "the disk reported an input/output error"
+    else:
+        first_line = str(err).splitlines()[0] if str(err) else type(err).__name__
+        why = f"writing failed ({first_line})"
+    return (f"Recording stopped: {why} while writing {path}. The session up to this point is kept in that file; "
+            "the controller is unaffected.")
+
+
+class SessionRecorder:
+    """Writes one session to ``path`` from a thread of its own; feed it from any thread.
+
+    The producer calls (:meth:`add_ticks`, :meth:`add_frames`, :meth:`add_events`, :meth:`add_note`) only
+    queue their data: they never block on the disk and never raise for a recording that has stopped.
+    Call :meth:`close` at the end of the session (it drains the queue and closes the file cleanly).
+
+    ``on_problem(message)`` is called once, from the writer thread, if recording stops early; the same
+    message stays in :attr:`problem`.
+    """
+
+    def __init__(self, path: str | Path, info: SessionInfo, *, flush_interval_s: float = 0.25,
+                 block_rows: int = 512, min_free_bytes: int = 200 * 2**20, max_queued_bytes: int = 256 * 2**20,
+                 compression: str | None = "gzip", on_problem: Callable[[str], None] | None = None):
+        if not 0 < flush_interval_s <= 1.0:
+            raise ValueError(f"flush_interval_s must be within (0, 1] s (a crash may lose that much), "
+                             f"got {flush_interval_s!r}")
+        if block_rows < 1:
+            raise ValueError(f"block_rows must be >= 1, got {block_rows!r}")
+        if compression not in (None, "lzf", "gzip"):
+            raise ValueError(f"compression must be None, 'lzf' or 'gzip', got {compression!r}")
+        self.path = Path(path)
+        self.info = info
+        self.uuid = str(uuid_module.uuid4())
+        self.flush_interval_s = float(flush_interval_s)
+        self.block_rows = int(block_rows)
+        self.min_free_bytes = int(min_free_bytes)
+        self.max_queued_bytes = int(max_queued_bytes)
+        self._on_problem = on_problem
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queued_bytes = 0
+        self._count_lock = threading.Lock()
+        self._accepting = True
+        self._closed = False
+        self.problem: str | None = None
+        self.rows_dropped = 0
+        self.rows_lost = 0
+        self._last_tick: int | None = None
+        self._overview = _Overview()
+        self._file = self._create(compression)
+        # A daemon, so a recorder nobody closed cannot keep the process from exiting; _close_all still
+        # writes it out at exit.
+        self._thread = threading.Thread(target=self._run, name=f"session-writer {self.path.name}", daemon=True)
+        self._thread.start()
+        _OPEN.add(self)
+
+    # ---- creation ------------------------------------------------------------------------------------
+
+    def _create(self, compression: str | None) -> h5py.File:
+        folder = self.path.parent
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(folder).free
+        except OSError as err:
+            raise RecorderError(f"cannot create the session folder {folder}: {err.strerror or err}") from None
+        if free < self.min_free_bytes:
+            raise RecorderError(f"cannot record to {folder}: only {free / 2**20:.0f} MB free on its disk; the "
+                                f"recorder needs at least {self.min_free_bytes / 2**20:.0f} MB")
+        try:
+            f = h5py.File(self.path, "w-", libver="latest", rdcc_nbytes=8 * 2**20)
+        except FileExistsError:
+            raise RecorderError(f"cannot record to {self.path}: the file already exists") from None
+        except OSError as err:
+            raise RecorderError(f"cannot create the session file {self.path}: {err}") from None
+        try:
+            self._write_layout(f, compression)
+            f.swmr_mode = True
+            f.flush()
+        except Exception as err:
+            f.close()
+            self.path.unlink(missing_ok=True)
+            raise RecorderError(f"cannot set up the session file {self.path}: {err}") from None
+        return f
+
+    def _write_layout(self, f: h5py.File, compression: str | None) -> None:
+        info = self.info
+        f.attrs["format"] = _fixed(FORMAT_NAME)
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["uuid"] = _fixed(self.uuid)
+        f.attrs["created_utc"] = _fixed(datetime.now(timezone.utc).isoformat(timespec="milliseconds"))
+        f.attrs["software"] = _fixed("palpation-console")
+        f.attrs["software_version"] = _fixed(info.software_version or software_version())
+        f.attrs["simulated"] = bool(info.simulated)
+        meta = f.create_group("meta")
+        for key, value in (("config_json", info.config), ("calibration_json", info.calibration),
+                           ("rig_json", info.rig), ("phantom_json", info.phantom),
+                           ("ground_truth_json", info.ground_truth)):
+            meta.attrs[key] = _fixed(json.dumps(value, sort_keys=True, allow_nan=True, default=_json_default))
+        # Fletcher-32 checksums every chunk, so a damaged chunk is an error on reading, never garbage handed
+        # to the decompressor. Deflate at level 1 after byte-shuffling: 190-255x real time and ~200 MB per
+        # hour on the 2-vCPU machine (LZF: ~300x, 220 MB/h, but outside h5py few HDF5 tools read it;
+        # no compression: ~390x, 1 GB/h). See bench/sessions_bench.py.
+        filters: dict[str, Any] = {"fletcher32": True}
+        if compression is not None:
+            filters.update(compression=compression, shuffle=True)
+            if compression == "gzip":
+                filters["compression_opts"] = 1
+
+        def table(parent: h5py.Group, name: str, dtype: np.dtype, chunk_key: str, description: str):
+            ds = parent.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype,
+                                       chunks=(_CHUNK_ROWS[chunk_key],), **filters)
+            ds.attrs["description"] = _fixed(description)
+            return ds
+
+        stream = f.create_group("stream")
+        self._ticks = _Appender(table(stream, "ticks", TICK_DTYPE, "ticks",
+                                      "one row per control period (control.telemetry.TICK_DTYPE)"))
+        self._frames = _Appender(table(stream, "frames", FRAME_DTYPE, "frames",
+                                       "one row per tactile frame (control.telemetry.FRAME_DTYPE)"))
+        self._overview_ds = _Appender(table(stream, "overview", OVERVIEW_DTYPE, "overview",
+                                            f"min/max per {OVERVIEW_BUCKET_ROWS} tick rows, for timelines"))
+        self._overview_ds.ds.attrs["bucket_rows"] = OVERVIEW_BUCKET_ROWS
+        self._levels = _Appender(table(f, "levels", LEVEL_DTYPE, "levels",
+                                       "one row per recorded force level (control.messages.LevelRecord)"),
+                                 numbered=True)
+        self._events = _Appender(table(f, "events", EVENT_DTYPE, "events",
+                                       "one row per event; see app.session.recorder.EventKind"), numbered=True)
+
+    # ---- producer side (any thread) ------------------------------------------------------------------
+
+    def _put(self, item, nbytes: int, nrows: int) -> None:
+        with self._count_lock:
+            if not self._accepting or self._queued_bytes + nbytes > self.max_queued_bytes:
+                self.rows_dropped += nrows
+                return
+            self._queued_bytes += nbytes
+        self._queue.put((item, nbytes))
+
+    def add_ticks(self, rows: np.ndarray) -> None:
+        """TICK_DTYPE rows, oldest first, as read from the controller's ring (copied: the caller keeps them)."""
+        if len(rows):
+            rows = _own_copy(rows, TICK_DTYPE, "add_ticks")
+            self._put(("ticks", rows), rows.nbytes, len(rows))
+
+    def add_frames(self, rows: np.ndarray) -> None:
+        """FRAME_DTYPE rows, oldest first."""
+        if len(rows):
+            rows = _own_copy(rows, FRAME_DTYPE, "add_frames")
+            self._put(("frames", rows), rows.nbytes, len(rows))
+
+    def add_events(self, events: Iterable) -> None:
+        """control.messages events, in order; objects of other types (health reports...) are ignored."""
+        events = list(events)
+        if events:
+            self._put(("events", events), 256 * len(events), len(events))
+
+    def add_note(self, text: str, t_s: float) -> None:
+        """An operator's note at loop time ``t_s``."""
+        self._put(("note", (float(t_s), str(text))), 256, 1)
+
+    # ---- control ---------------------------------------------------------------------------------------
+
+    @property
+    def recording(self) -> bool:
+        return self._accepting
+
+    def flush(self, timeout_s: float = 30.0) -> bool:
+        """Block until everything queued so far is on disk; False on time-out or if recording has stopped."""
+        if not self._thread.is_alive():
+            return False
+        marker = _Flush()
+        self._queue.put((marker, 0))
+        return marker.done.wait(timeout_s) and self.problem is None
+
+    def close(self, timeout_s: float = 60.0) -> RecorderStatus:
+        """Write what is queued, mark the file closed and close it; safe to call twice."""
+        if not self._closed:
+            self._closed = True
+            _OPEN.discard(self)
+            with self._count_lock:
+                self._accepting = False
+            self._queue.put((_STOP, 0))
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.error("the session writer did not finish within %.0f s; %s may lack its last rows",
+                      timeout_s, self.path)
+        return self.status()
+
+    def status(self) -> RecorderStatus:
+        try:
+            size = self.path.stat().st_size
+        except OSError:
+            size = 0
+        return RecorderStatus(
+            path=self.path, recording=self._accepting, problem=self.problem, ticks_written=self._ticks.n,
+            frames_written=self._frames.n, levels_written=self._levels.n, events_written=self._events.n,
+            rows_lost=self.rows_lost, rows_dropped=self.rows_dropped, bytes_on_disk=size)
+
+    def __enter__(self) -> SessionRecorder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- writer thread ---------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval_s
+        try:
+            while True:
+                timeout = next_flush - time.monotonic()
+                try:
+                    item, nbytes = self._queue.get(timeout=max(timeout, 0.0)) if timeout > 0 else \
+                        self._queue.get_nowait()
+                except queue.Empty:
+                    item, nbytes = None, 0
+                if nbytes:
+                    with self._count_lock:
+                        self._queued_bytes -= nbytes
+                if item is _STOP:
+                    self._finish()
+                    return
+                if isinstance(item, _Flush):
+                    self._flush()
+                    stopped = self._disk_nearly_full()
+                    item.done.set()
+                    if stopped:
+                        return
+                    next_flush = time.monotonic() + self.flush_interval_s
+                    continue
+                if item is not None:
+                    self._take(item)
+                if time.monotonic() >= next_flush:
+                    self._flush()
+                    next_flush = time.monotonic() + self.flush_interval_s
+                    if self._disk_nearly_full():
+                        return
+        except Exception as err:  # noqa: BLE001 - any failure stops the recording with a message, never silently
+            self._fail(err)
+        finally:
+            self._release_waiters()
+
+    def _take(self, item) -> None:
+        kind, payload = item
+        if kind == "ticks":
+            self._check_gaps(payload)
+            self._ticks.add(payload)
+            overview = self._overview.add(payload)
+            if len(overview):
+                self._overview_ds.add(overview)
+        elif kind == "frames":
+            self._frames.add(payload)
+        elif kind == "events":
+            for event in payload:
+                row, level = rows_for_event(event)
+                if row is not None:
+                    self._add_event(row)
+                if level is not None:
+                    self._levels.add(np.array([level], LEVEL_DTYPE))
+        elif kind == "note":
+            t_s, text = payload
+            self._add_event(event_row(t_s, EventKind.NOTE, text=text))
+        if self._ticks.pending_rows >= self.block_rows:
+            self._ticks.write()
+        if self._frames.pending_rows >= max(1, self.block_rows // 8):
+            self._frames.write()
+
+    def _add_event(self, row: tuple) -> None:
+        self._events.add(np.array([row], EVENT_DTYPE))
+
+    def _check_gaps(self, ticks: np.ndarray) -> None:
+        index = ticks["tick"]
+        previous = self._last_tick if self._last_tick is not None else int(index[0]) - 1
+        steps = np.diff(index, prepend=previous)
+        self._last_tick = int(index[-1])
+        gaps = steps > 1
+        if gaps.any():
+            lost = int((steps[gaps] - 1).sum())
+            self.rows_lost += lost
+            t = float(ticks["t_s"][np.argmax(gaps)])
+            self._add_event(event_row(t, EventKind.ROWS_LOST, value=float(lost), text="ticks"))
+        restarts = steps <= 0
+        if restarts.any():
+            t = float(ticks["t_s"][np.argmax(restarts)])
+            self._add_event(event_row(t, EventKind.RECORDER, text="the controller restarted: the tick counter "
+                                                                  "began again from 0"))
+
+    def _flush(self) -> None:
+        for appender in (self._ticks, self._frames, self._overview_ds, self._levels, self._events):
+            appender.write()
+        self._file.flush()
+
+    def _disk_nearly_full(self) -> bool:
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            return False  # cannot tell; a write that fails is still caught
+        if free >= self.min_free_bytes:
+            return False
+        message = (f"Recording stopped: only {free / 2**20:.0f} MB left on the disk holding {self.path} "
+                   f"(the recorder keeps {self.min_free_bytes / 2**20:.0f} MB free). The session up to this "
+                   "point is kept in that file; the controller is unaffected. Free some space and start a new "
+                   "session to go on recording.")
+        self._stop_accepting(message)
+        self._add_event(event_row(self._last_time(), EventKind.RECORDER, text=message))
+        self._close_file()
+        self._report(message)
+        return True
+
+    def _last_time(self) -> float:
+        if self._last_tick is not None and len(self._overview.tail):
+            return float(self._overview.tail["t_s"][-1])
+        n = self._ticks.n
+        return float(self._ticks.ds[n - 1]["t_s"]) if n else 0.0
+
+    def _finish(self) -> None:
+        overview = self._overview.finish()
+        if len(overview):
+            self._overview_ds.add(overview)
+        closed_at = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+        self._add_event(event_row(self._last_time(), EventKind.CLOSED, text=closed_at))
+        self._close_file()
+
+    def _close_file(self) -> None:
+        self._flush()
+        self._file.close()
+
+    def _stop_accepting(self, message: str) -> None:
+        with self._count_lock:
+            self._accepting = False
+        self.problem = message
+        # Whatever is still queued will not be written: count it as dropped.
+        while True:
+            try:
+                item, nbytes = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, _Flush):
+                item.done.set()
+            elif item is not _STOP and item is not None:
+                kind, payload = item
+                self.rows_dropped += 1 if kind == "note" else len(payload)
+        for appender in (self._ticks, self._frames, self._levels, self._events):
+            appender.pending.clear()
+            appender.pending_rows = 0
+
+    def _fail(self, err: BaseException) -> None:
+        if isinstance(err, (OSError, RuntimeError)):
+            message = _describe_write_error(err, self.path)
+        else:
+            message = (f"Recording stopped: the session writer failed ({type(err).__name__}: {err}). The session "
+                       f"up to this point is kept in {self.path}; the controller is unaffected.")
+            log.error("session writer failed", exc_info=err)
+        appenders = (self._ticks, self._frames, self._overview_ds, self._levels, self._events)
+        pending = sum(a.pending_rows for a in appenders)
+        self._stop_accepting(message)
+        self.rows_dropped += pending
+        self._detach_from_disk()
+        for appender in appenders:
+            appender.ds = None
+        try:
+            self._file.close()
+        except Exception:  # noqa: BLE001 - nothing more can reach the file; the reader trims what did not land
+            log.warning("closing %s after a write error failed", self.path, exc_info=True)
+        self._report(message)
+
+    def _detach_from_disk(self) -> None:
+        """Point HDF5's file descriptor at the null device, so what it still writes on closing goes nowhere.
+
+        The file then stays as the failure left it, like one whose process was killed at that instant (which
+        SWMR keeps readable), and closing cannot fail: after a failed close HDF5 2.0 crashes the process
+        when it exits.
+        """
+        try:
+            fd = self._file.id.get_vfd_handle()
+            null = os.open(os.devnull, os.O_RDWR)
+            try:
+                os.dup2(null, fd)
+            finally:
+                os.close(null)
+        except (OSError, RuntimeError, ValueError, TypeError):
+            log.warning("could not detach %s from the disk after a write error", self.path, exc_info=True)
+
+    def _report(self, message: str) -> None:
+        log.warning("%s", message)
+        if self._on_problem is not None:
+            try:
+                self._on_problem(message)
+            except Exception:  # noqa: BLE001 - a faulty callback must not take the writer down
+                log.exception("on_problem callback failed")
+
+    def _release_waiters(self) -> None:
+        with self._count_lock:
+            self._accepting = False
+        while True:
+            try:
+                item, _ = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, _Flush):
+                item.done.set()
+
+
+_OPEN: weakref.WeakSet[SessionRecorder] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    for recorder in list(_OPEN):
+        recorder.close()
+
+
+def _fixed(text: str) -> np.bytes_:
+    """Text as a fixed-length UTF-8 attribute: stored in the checksummed object header, unlike
+    variable-length strings, whose unchecked global heap can make a damaged file hang the reader."""
+    return np.bytes_(text.encode("utf-8"))
+
+
+def _own_copy(rows: np.ndarray, dtype: np.dtype, caller: str) -> np.ndarray:
+    if getattr(rows, "dtype", None) != dtype:
+        raise TypeError(f"{caller} takes rows of control.telemetry's dtype, got {getattr(rows, 'dtype', type(rows))}")
+    return np.array(rows, copy=True).reshape(-1)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot store {type(value).__name__} in the session metadata")

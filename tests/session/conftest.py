@@ -1,0 +1,38 @@
+"""A real session, recorded once for the whole package: the simulated rig palpating three areas of the
+paper's flat phantom (the first two overlap; tumours under the first and the third), ramp 0.5-1.5 N.
+
+The tissue is the Winkler model, named explicitly: it is fast, and what these tests check (recording,
+stitching, detection) must not move when the simulator's default tissue model changes."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+import tomli_w
+
+from app.config import load_config
+from app.session.simulated import record_simulation
+from hardware.interfaces import TactileConstraints
+from hardware.sim.phantom import PHANTOM_DIR, load_phantom
+from hardware.sim.rig import build_sim_rig
+from hardware.sim.winkler import WinklerTissue
+
+REGIONS_XY_M = ((0.012, 0.015), (0.018, 0.015), (0.036, 0.015))
+RAMP = {"force_min_N": 0.5, "force_max_N": 1.5, "force_step_N": 0.5}
+
+
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory):
+    """(path of the session file, the recorder's final status)."""
+    folder = tmp_path_factory.mktemp("recorded")
+    phantom = tomllib.loads((PHANTOM_DIR / "flat.toml").read_text(encoding="utf-8"))
+    phantom["phantom"]["regions"] = [{"centre_xy_m": list(xy)} for xy in REGIONS_XY_M]
+    phantom_path = folder / "three_areas.toml"
+    phantom_path.write_text(tomli_w.dumps(phantom), encoding="utf-8")
+    config = load_config(None, {"control": {"ramp": RAMP}, "rig": {"phantom": str(phantom_path)}})
+    three_areas = load_phantom(phantom_path)
+    rig = build_sim_rig(three_areas, tissue=WinklerTissue(three_areas, TactileConstraints()))
+    path = folder / "session.h5"
+    status = record_simulation(path, config, rig=rig, max_time_s=120.0)
+    return path, status

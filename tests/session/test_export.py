@@ -1,0 +1,85 @@
+"""`palpation-console stitch`: the exports, and its answers to bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from PySide6 import QtGui
+
+from app.session.cli import stitch_main
+from app.session.reader import open_session
+from app.session.stitch import StitchParams, stitch_session
+
+
+def test_every_export(recorded, tmp_path, capsys, qapp):
+    path = recorded[0]
+    out = {name: tmp_path / name for name in ("maps.png", "maps.csv", "maps.json", "tumours.json", "report.pdf",
+                                             "report.png")}
+    code = stitch_main([str(path), "-o", str(out["maps.png"]), "--csv", str(out["maps.csv"]),
+                        "--json", str(out["maps.json"]), "--tumours", str(out["tumours.json"]),
+                        "--report", str(out["report.pdf"]), "--cell-mm", "2"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "3 regions, 9 recorded levels (forces 0.5, 1, 1.5 N)" in printed
+    assert "truth 3 (60, 15) mm, 10.0 mm deep, stiffness map: not palpated" in printed
+    assert stitch_main([str(path), "--report", str(out["report.png"])]) == 0
+
+    for name in ("maps.png", "report.png"):
+        image = QtGui.QImage(str(out[name]))
+        assert not image.isNull() and image.width() > 400 and image.height() > 400
+    assert out["report.pdf"].read_bytes().startswith(b"%PDF")
+
+    with open_session(path) as s:
+        stitched = stitch_session(s, StitchParams(cell_m=2e-3))
+    with open(out["maps.csv"], newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == sum(int(np.count_nonzero(lm.coverage > 0)) for lm in stitched.levels)
+    assert sorted({float(r["force_N"]) for r in rows}) == [0.5, 1.0, 1.5]
+    first = rows[0]
+    lm = stitched.levels[0]
+    cell = stitched.grid.cell_of(float(first["x_m"]), float(first["y_m"]))
+    assert float(first["pressure_pa"]) == pytest.approx(lm.pressure_pa[cell], rel=1e-5)
+
+    maps = json.loads(out["maps.json"].read_text())
+    assert maps["format"] == "palpation-console-maps" and maps["grid"]["cell_m"] == 2e-3
+    assert len(maps["levels"]) == 3 and maps["levels"][2]["force_N"] == 1.5
+    stiffness = maps["levels"][2]["stiffness_pa"]
+    assert len(stiffness) == stitched.grid.nx and len(stiffness[0]) == stitched.grid.ny
+    gap = stitched.grid.cell_of(0.028, 0.015)  # between the second and the third area
+    assert stiffness[gap[0]][gap[1]] is None  # NaN is written as null
+
+    tumours = json.loads(out["tumours.json"].read_text())
+    assert tumours["format"] == "palpation-console-tumours"
+    assert {t["source"] for t in tumours["tumours"]} == {"stiffness", "force"}
+    for t in tumours["tumours"]:
+        assert set(t) >= {"x_m", "y_m", "depth_m", "first_level_N", "source"}
+        assert t["first_level_N"] == 0.5 and 1e-3 < t["depth_m"] < 5e-3
+    assert len(tumours["comparison"]) == 6 and tumours["false_positives"] == {"stiffness": 0, "force": 0}
+
+
+def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, capsys):
+    (tmp_path / "notes.h5").write_text("not a session")
+    assert stitch_main([str(tmp_path / "notes.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "not an HDF5 file" in err and "Traceback" not in err
+    assert stitch_main([str(recorded[0]), "--cell-mm", "0"]) == 2
+    assert "cell size must be between 0.1 and 20 mm" in capsys.readouterr().err
+    assert stitch_main([str(recorded[0]), "--l0", "fixed"]) == 2
+    assert "needs a tissue thickness" in capsys.readouterr().err
+    assert stitch_main([str(recorded[0]), "--l0", "guess"]) == 2  # argparse's own message
+    assert "invalid choice: 'guess'" in capsys.readouterr().err
+    assert stitch_main(["--help"]) == 0
+    assert "--threshold" in capsys.readouterr().out
+
+
+def test_an_unwritable_output_is_reported(recorded, tmp_path, capsys, qapp):
+    missing = tmp_path / "no" / "such" / "folder"
+    assert stitch_main([str(recorded[0]), "--tumours", str(missing / "t.json")]) == 1
+    assert f"cannot write {missing / 't.json'}" in capsys.readouterr().err
+    assert stitch_main([str(recorded[0]), "-o", str(missing / "maps.png")]) == 1
+    assert "Qt could not save the image" in capsys.readouterr().err
+    assert stitch_main([str(recorded[0]), "--report", str(missing / "r.pdf")]) == 1
+    assert "does not exist" in capsys.readouterr().err

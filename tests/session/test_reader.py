@@ -1,0 +1,151 @@
+"""Reading sessions back: the streams, and every kind of bad file giving a message instead of a traceback."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from app.session.reader import SessionFileError, open_session
+from app.session.recorder import OVERVIEW_BUCKET_ROWS, SessionRecorder
+from app.session.stitch import stitch_session
+from app.session.synthetic import tick_rows
+
+from tests.session.test_recorder import INFO
+
+
+def sha256(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_streams_read_back_at_full_and_overview_resolution(recorded):
+    path, status = recorded
+    before = sha256(path)
+    with open_session(path) as s:
+        assert not s.recovered and s.closed_cleanly and s.warnings == []
+        assert (s.n_ticks, s.n_frames) == (status.ticks_written, status.frames_written)
+        t0, t1 = s.time_span_s()
+        assert t0 == 0.0 and t1 == pytest.approx((s.n_ticks - 1) * 1e-3)
+        window = s.ticks_between(10.0, 12.5, ["force_measured_N", "x_slave_m"])
+        assert window.dtype.names == ("force_measured_N", "x_slave_m")
+        assert len(window) == 2501  # every tick of the window, both ends included
+        every = s.tick_rows(10000, 12501)
+        assert np.array_equal(window["force_measured_N"], every["force_measured_N"])
+        overview = s.overview()
+        assert overview["n_rows"].sum() == s.n_ticks and len(overview) == -(-s.n_ticks // OVERVIEW_BUCKET_ROWS)
+        assert np.nanmax(overview["force_measured_N_max"]) == np.nanmax(s.tick_rows(0, s.n_ticks)["force_measured_N"])
+        assert [(r.region, r.outcome, len(r.rows)) for r in s.regions()] == [(0, "done", 3), (1, "done", 3),
+                                                                            (2, "done", 3)]
+        assert s.phantom_name == "flat" and s.simulated and len(s.ground_truth) == 3
+        assert s.pitch_m == 2e-3 and s.element_area_m2 == pytest.approx(4e-6)
+        assert len(s.frames(0, 10)) == 10
+    assert sha256(path) == before  # read-only
+
+
+def test_an_overview_missing_its_tail_is_completed_from_the_ticks(tmp_path):
+    rec = SessionRecorder(tmp_path / "s.h5", INFO)
+    rec.add_ticks(tick_rows(0, 2500))
+    rec.close()
+    with h5py.File(tmp_path / "s.h5", "r+") as f:  # as if the last buckets never reached the disk
+        f["stream/overview"].resize((1,))
+    with open_session(tmp_path / "s.h5") as s:
+        overview = s.overview()
+        assert list(overview["row_start"]) == [0, 1000, 2000] and list(overview["n_rows"]) == [1000, 1000, 500]
+        assert overview["t_end_s"][-1] == pytest.approx(2.499)
+
+
+# ---- bad input ---------------------------------------------------------------------------------------
+
+
+def expect_problem(path, *fragments):
+    with pytest.raises(SessionFileError) as info:
+        open_session(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ")
+    for fragment in fragments:
+        assert fragment in message, message
+    return message
+
+
+def test_missing_empty_and_folder(tmp_path):
+    expect_problem(tmp_path / "nope.h5", "no such file")
+    (tmp_path / "empty.h5").write_bytes(b"")
+    expect_problem(tmp_path / "empty.h5", "empty (0 bytes)")
+    expect_problem(tmp_path, "folder, not a session file")
+
+
+def test_foreign_files(tmp_path):
+    (tmp_path / "notes.h5").write_text("Region 1: suspicious lump\n")
+    expect_problem(tmp_path / "notes.h5", "not an HDF5 file at all", "b'Region 1'")
+    with h5py.File(tmp_path / "other.h5", "w") as f:
+        f["images"] = np.zeros((4, 4))
+    expect_problem(tmp_path / "other.h5", "not a Palpation Console session", "no 'format' attribute", "images")
+    with h5py.File(tmp_path / "tagged.h5", "w") as f:
+        f.attrs["format"] = "some-other-format"
+    expect_problem(tmp_path / "tagged.h5", "its format is 'some-other-format'")
+
+
+def test_newer_format_version(recorded, tmp_path):
+    path = tmp_path / "newer.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 2
+    expect_problem(path, "newer Palpation Console", "format version 2", "reads up to 1", "Update")
+
+
+def test_missing_parts(recorded, tmp_path):
+    path = tmp_path / "parts.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        del f["levels"]
+    expect_problem(path, "damaged", "/levels is missing")
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        f["meta"].attrs["config_json"] = np.bytes_(b"{not json")
+    expect_problem(path, "damaged", "config_json", "not valid JSON")
+    with h5py.File(path, "r+") as f:
+        f["meta"].attrs["config_json"] = np.bytes_(b"[1, 2]")
+    expect_problem(path, "damaged", "'config_json' is not a JSON object")
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        f["meta"].attrs["ground_truth_json"] = np.bytes_(b'[{"x_m": "twelve"}]')
+    expect_problem(path, "damaged", "'ground_truth_json' is not a list of tumours")
+
+
+@pytest.mark.parametrize("fraction", [0.002, 0.3, 0.9, 0.99, 0.999])
+def test_truncated_files(recorded, tmp_path, fraction):
+    source = recorded[0]
+    path = tmp_path / "cut.h5"
+    data = source.read_bytes()
+    path.write_bytes(data[:int(len(data) * fraction)])
+    try:
+        with open_session(path) as s:  # whatever it shows, it says the file was cut short
+            assert s.recovered and "truncated" in s.warnings[0]
+            stitch_session(s)
+    except SessionFileError as err:
+        assert "truncated" in err.problem
+
+
+@pytest.mark.parametrize("fraction", [0.0003, 0.05, 0.3, 0.5, 0.8, 0.97])
+@pytest.mark.parametrize("kind", ["zeros", "noise"])
+def test_corrupt_files_never_raise_anything_else(recorded, tmp_path, fraction, kind):
+    path = tmp_path / "bad.h5"
+    shutil.copy(recorded[0], path)
+    size = path.stat().st_size
+    junk = bytes(2048) if kind == "zeros" else np.random.default_rng(int(fraction * 1e4)).bytes(2048)
+    with open(path, "r+b") as fh:
+        fh.seek(int(size * fraction))
+        fh.write(junk)
+    try:
+        with open_session(path) as s:
+            stitch_session(s)
+            s.overview()
+            t0, t1 = s.time_span_s()
+            for a in np.linspace(t0, t1, 8):
+                s.ticks_between(a, a + 2.0, ["force_measured_N"])
+            s.frames()
+    except SessionFileError as err:
+        assert err.problem.startswith("the file is")

@@ -1,0 +1,225 @@
+"""The reviewer window: browse, stitch, re-analyse, timeline resolution, bad files, recent files. Read-only."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from app.session.cli import review_main
+from app.session.detect import DetectParams
+from app.session.reader import open_session
+from app.session.recorder import SessionRecorder
+from app.session.stitch import L0Source, StitchParams
+from app.session.synthetic import level_record, tick_rows
+from control.messages import LevelRecorded
+from widgets.review import RecentSessions, ReviewWindow
+from widgets.tactile_map import TactileMapWidget
+
+from tests.session.test_reader import sha256
+from tests.session.test_recorder import INFO
+
+
+@pytest.fixture
+def settings(tmp_path):
+    return QtCore.QSettings(str(tmp_path / "review.ini"), QtCore.QSettings.Format.IniFormat)
+
+
+@pytest.fixture
+def window(qtbot, settings):
+    w = ReviewWindow(settings=settings)
+    qtbot.addWidget(w)
+    w.resize(1200, 800)
+    w.show()
+    return w
+
+
+def child(w, cls, name):
+    found = w.findChild(cls, name)
+    assert found is not None, name
+    return found
+
+
+def open_in(qtbot, w, path):
+    with qtbot.waitSignal(w.session_opened, timeout=10000):
+        assert w.open_file(path)
+
+
+def test_browse_regions_and_levels(qtbot, window, recorded):
+    path = recorded[0]
+    before = sha256(path)
+    open_in(qtbot, window, path)
+    table = child(window, QtWidgets.QTableWidget, "regionTable")
+    assert (table.rowCount(), table.columnCount()) == (3, 3)
+    assert [table.horizontalHeaderItem(c).text() for c in range(3)] == ["0.5 N", "1 N", "1.5 N"]
+    assert table.verticalHeaderItem(0).text().startswith("R1 (12, 15) done")
+    levels = window.session.levels
+    pressure = child(window, TactileMapWidget, "pressureMap")
+    assert np.allclose(pressure.data_pa(), levels["pressure_pa"][0], rtol=1e-6)  # the first map, shown at once
+    table.setCurrentCell(2, 1)  # third area, second level
+    assert np.allclose(pressure.data_pa(), levels["pressure_pa"][7], rtol=1e-6)
+    stiffness = child(window, TactileMapWidget, "stiffnessMap")
+    assert np.allclose(stiffness.data_pa(), levels["stiffness_pa"][7], rtol=1e-6, equal_nan=True)
+    assert "Region 3, level 2" in child(window, QtWidgets.QLabel, "recordInfo").text()
+    indentation = window.findChild(QtWidgets.QWidget, "indentationMap")
+    assert np.array_equal(indentation.values(), levels["dL_m"][7], equal_nan=True)
+    window.close_session()
+    assert sha256(path) == before
+
+
+def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded):
+    path = recorded[0]
+    before = sha256(path)
+    open_in(qtbot, window, path)
+    window.findChild(QtWidgets.QTabWidget, "tabs").setCurrentIndex(1)
+    combo = child(window, QtWidgets.QComboBox, "levelCombo")
+    assert [combo.itemText(i) for i in range(combo.count())] == ["0.5 N", "1 N", "1.5 N"]
+    assert combo.currentIndex() == 2  # the highest force, where most shows
+    stitched_map = window.findChild(QtWidgets.QWidget, "stitchedMap")
+    assert np.array_equal(stitched_map.values(), window.stitched.levels[2].stiffness_pa, equal_nan=True)
+    assert stitched_map.marker_counts() == (2, 3)  # two found by the stiffness map; the phantom's three
+    window.set_quantity("pressure_pa")
+    assert np.array_equal(stitched_map.values(), window.stitched.levels[2].pressure_pa, equal_nan=True)
+    window.set_quantity("stiffness_pa")
+    tumours = child(window, QtWidgets.QTableWidget, "tumourTable")
+    assert tumours.rowCount() == 4
+    assert [tumours.item(r, 0).text() for r in range(4)] == ["stiffness", "stiffness", "force", "force"]
+    assert tumours.item(0, 6).text().startswith("#1, 2.0 mm deep")
+    assert "of the 2 palpated tumours (of 3)" in child(window, QtWidgets.QLabel, "analysisSummary").text()
+    tumours.setCurrentCell(2, 0)  # the first tumour of the force map: shown where it first appears
+    assert combo.currentIndex() == 0
+    assert child(window, QtWidgets.QComboBox, "quantityCombo").currentText() == "Force (pressure)"
+    assert stitched_map.marker_counts() == (2, 3)
+    combo.setCurrentIndex(2)
+
+    # re-analysis from the panel, without re-recording
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        child(window, QtWidgets.QDoubleSpinBox, "thresholdSpin").setValue(300.0)
+    assert tumours.rowCount() == 0 and window.tumours == []
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        child(window, QtWidgets.QDoubleSpinBox, "cellSpin").setValue(2.0)
+    assert window.stitched.grid.cell_m == pytest.approx(2e-3)
+    stiffness_element = window.stitched.stiffness_pa.copy()
+    l0 = child(window, QtWidgets.QComboBox, "l0Combo")
+    fixed = child(window, QtWidgets.QDoubleSpinBox, "l0FixedSpin")
+    assert not fixed.isEnabled()
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        l0.setCurrentIndex(l0.findData("fixed"))
+    assert fixed.isEnabled()
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        fixed.setValue(50.0)
+    ratio = window.stitched.stiffness_pa / stiffness_element
+    assert np.nanmin(ratio) > 1.8 and np.nanmax(ratio) < 2.3  # L0 doubled from about 25 mm to 50 mm
+    window.set_analysis(StitchParams(cell_m=1e-3, l0_source=L0Source.ELEMENT), DetectParams())
+    assert len(window.tumours) == 4 and child(window, QtWidgets.QComboBox, "l0Combo").currentData() == "element"
+    window.close_session()
+    assert sha256(path) == before
+
+
+def test_the_timeline_reads_every_tick_only_when_zoomed_in(qtbot, window, recorded):
+    open_in(qtbot, window, recorded[0])
+    timeline = window.findChild(QtWidgets.QWidget, "timeline")
+    assert timeline.mode() == "overview"
+    assert timeline.points_drawn() == 2 * len(window.session.overview())
+    with qtbot.waitSignal(timeline.range_loaded, timeout=5000, check_params_cb=lambda mode: mode == "full"):
+        timeline.show_range(10.0, 15.0)
+    assert timeline.mode() == "full"
+    assert timeline.points_drawn() >= 5001  # every tick of the visible 5 s, and some either side
+    with qtbot.waitSignal(timeline.range_loaded, timeout=5000, check_params_cb=lambda mode: mode == "overview"):
+        timeline.show_range(0.0, 35.0)
+    assert timeline.mode() == "overview"
+
+
+def test_clicking_a_level_on_the_timeline_opens_it(qtbot, window, recorded):
+    open_in(qtbot, window, recorded[0])
+    window.findChild(QtWidgets.QTabWidget, "tabs").setCurrentIndex(1)
+    timeline = window.findChild(QtWidgets.QWidget, "timeline")
+    timeline.level_clicked.emit(4)
+    table = child(window, QtWidgets.QTableWidget, "regionTable")
+    assert (table.currentRow(), table.currentColumn()) == (1, 1)
+    assert window.findChild(QtWidgets.QTabWidget, "tabs").currentIndex() == 0
+
+
+def test_a_bad_file_is_explained_and_the_open_session_stays(qtbot, window, recorded, tmp_path):
+    open_in(qtbot, window, recorded[0])
+    bad = tmp_path / "notes.h5"
+    bad.write_text("nothing to see")
+    with qtbot.waitSignal(window.open_failed, timeout=5000) as blocker:
+        assert not window.open_file(bad)
+    assert "not an HDF5 file" in blocker.args[0]
+    banner = child(window, QtWidgets.QLabel, "banner")
+    assert banner.isVisible() and "Cannot open the session" in banner.text()
+    assert window.session is not None and window.session.path == recorded[0]
+
+
+def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window, tmp_path):
+    live = tmp_path / "live.h5"
+    rec = SessionRecorder(live, INFO)
+    rec.add_ticks(tick_rows(0, 3000))
+    rec.add_events([LevelRecorded(1.0, level_record(0, 0, 1.0, (0.01, 0.015)))])
+    assert rec.flush()
+    crashed = tmp_path / "crashed.h5"
+    shutil.copy(live, crashed)  # the file as a kill -9 at this instant would leave it
+    rec.close()
+    open_in(qtbot, window, crashed)
+    banner = child(window, QtWidgets.QLabel, "banner")
+    assert banner.isVisible() and "did not end cleanly" in banner.text()
+    assert window.session.recovered and window.session.n_ticks == 3000 and len(window.session.levels) == 1
+
+
+def test_recent_files(qtbot, window, recorded, settings, tmp_path):
+    open_in(qtbot, window, recorded[0])
+    recent = RecentSessions(settings)
+    assert recent.paths() == [recorded[0].resolve()]
+    menu = QtWidgets.QMenu()
+    opened = []
+    recent.fill_menu(menu, opened.append)
+    actions = [a for a in menu.actions() if a.data()]
+    assert [a.data() for a in actions] == [str(recorded[0].resolve())]
+    actions[0].trigger()
+    assert opened == [recorded[0].resolve()]
+    gone = tmp_path / "gone.h5"
+    recent.add(gone)  # a file deleted since is not offered
+    assert recent.paths() == [recorded[0].resolve()]
+    recent.clear()
+    assert recent.paths() == []
+
+
+def test_exports_from_the_window(qtbot, window, recorded, tmp_path):
+    open_in(qtbot, window, recorded[0])
+    window.export_maps(tmp_path / "maps.png")
+    window.export_report(tmp_path / "report.pdf")
+    assert not QtGui.QImage(str(tmp_path / "maps.png")).isNull()
+    assert (tmp_path / "report.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_review_command(recorded, tmp_path, capsys, qapp):
+    (tmp_path / "bad.h5").write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(100))
+    assert review_main([str(tmp_path / "bad.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err
+    shot = tmp_path / "review.png"
+    assert review_main([str(recorded[0]), "--screenshot", str(shot)]) == 0
+    assert not QtGui.QImage(str(shot)).isNull()
+    with open_session(recorded[0]) as s:
+        assert s.closed_cleanly  # still untouched
+
+
+def test_a_damaged_stretch_of_the_stream_is_reported_not_raised(qtbot, window, recorded, tmp_path):
+    path = tmp_path / "damaged.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r") as f:
+        chunk = f["stream/ticks"].id.get_chunk_info(10)  # rows 10240-11263, t = 10.24-11.26 s
+    with open(path, "r+b") as fh:
+        fh.seek(chunk.byte_offset + 16)
+        fh.write(bytes(64))
+    open_in(qtbot, window, path)
+    timeline = window.findChild(QtWidgets.QWidget, "timeline")
+    with qtbot.waitSignal(timeline.range_loaded, timeout=5000):
+        timeline.show_range(10.5, 11.0)
+    info = child(window, QtWidgets.QLabel, "timelineInfo").text()
+    assert info.startswith("Cannot show every tick here: the file is corrupt")
+    assert "rows" in info and "/stream/ticks" in info

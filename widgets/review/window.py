@@ -1,0 +1,544 @@
+"""The reviewer: reopen a recorded session, browse what was recorded, stitch it and find the tumours.
+
+Top, the timeline over the whole stream. Below, two tabs:
+
+* **Regions × levels**: one row per palpated area, one column per force level; selecting a cell shows that
+  record's pressure, stiffness (Eq. 1) and per-element indentation maps and its numbers.
+* **Whole tissue**: the stitched map of the chosen force level and quantity, with the tumours found and,
+  for a simulated session, the phantom's real ones; the analysis parameters (cell size, threshold, source
+  of L0), applied as they are edited, without touching the recording; the tumour table.
+
+Read-only: the file is opened read-only and never written (exports go to other files).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from app.session.detect import DetectError, DetectParams, Tumour, detect_session, match_ground_truth
+from app.session.export import colour_range
+from app.session.reader import Session, SessionFileError, open_session
+from app.session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups, stitch_session
+from widgets.review.map_view import GridMapView
+from widgets.review.recent import RecentSessions
+from widgets.review.timeline import TimelineWidget
+from widgets.tactile_map import TactileMapWidget
+
+# (label, LevelMap attribute, unit, display scale, detection source whose markers it shows)
+QUANTITIES = (
+    ("Force (pressure)", "pressure_pa", "kPa", 1e-3, "force"),
+    ("Stiffness (Eq. 1)", "stiffness_pa", "kPa", 1e-3, "stiffness"),
+    ("Indentation dL", "indentation_m", "mm", 1e3, "stiffness"),
+    ("Coverage", "coverage", "x", 1.0, "stiffness"),
+)
+_L0_LABELS = {L0Source.ELEMENT: "each element's onset", L0Source.REGION: "one per region",
+              L0Source.FIXED: "fixed thickness"}
+_BANNER_STYLE = {"error": "background: #c01c28; color: white; padding: 6px; font-weight: bold;",
+                 "warning": "background: #e5a50a; color: black; padding: 6px;"}
+
+
+def _mm(value: float, decimals: int = 1) -> str:
+    return f"{value * 1e3:.{decimals}f}" if math.isfinite(value) else "—"
+
+
+class ReviewWindow(QtWidgets.QMainWindow):
+    """Signals: ``session_opened(path)``, ``open_failed(message)``, ``analysis_done()``.
+
+    Child objectNames: ``banner``, ``timeline``, ``tabs``, ``regionTable``, ``recordInfo``, ``pressureMap``,
+    ``stiffnessMap``, ``indentationMap``, ``levelCombo``, ``quantityCombo``, ``stitchedMap``, ``cellSpin``,
+    ``thresholdSpin``, ``minAreaSpin``, ``l0Combo``, ``l0FixedSpin``, ``analysisSummary``, ``tumourTable``.
+    """
+
+    session_opened = QtCore.Signal(str)
+    open_failed = QtCore.Signal(str)
+    analysis_done = QtCore.Signal()
+
+    def __init__(self, path: str | Path | None = None, *, start_folder: str | Path | None = None,
+                 settings: QtCore.QSettings | None = None, parent: QtWidgets.QWidget | None = None):
+        super().__init__(parent)
+        self.setWindowTitle("Palpation Console — session review")
+        self.recent = RecentSessions(settings)
+        self._start_folder = Path(start_folder) if start_folder else Path.home()
+        self._session: Session | None = None
+        self._stitched: StitchResult | None = None
+        self._tumours: list[Tumour] = []
+        self._detect_params = DetectParams()
+        self._record: int | None = None  # the /levels row shown in the browser
+        self._analysis_timer = QtCore.QTimer(self)
+        self._analysis_timer.setSingleShot(True)
+        self._analysis_timer.setInterval(150)
+        self._analysis_timer.timeout.connect(self.reanalyse)
+        self._build()
+        self._build_menu()
+        if path is not None:
+            self.open_file(path)
+
+    # ---- construction --------------------------------------------------------------------------------
+
+    def _build(self) -> None:
+        self._banner = QtWidgets.QLabel("", objectName="banner", wordWrap=True)
+        self._banner.hide()
+        self._timeline = TimelineWidget()
+        self._timeline.setObjectName("timeline")
+        self._timeline.setMinimumHeight(200)
+        self._timeline.level_clicked.connect(self.select_record)
+
+        self._tabs = QtWidgets.QTabWidget(objectName="tabs")
+        self._tabs.addTab(self._build_browser(), "Regions × levels")
+        self._tabs.addTab(self._build_stitched(), "Whole tissue")
+
+        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        split.addWidget(self._timeline)
+        split.addWidget(self._tabs)
+        split.setStretchFactor(0, 1)
+        split.setStretchFactor(1, 3)
+        split.setSizes([260, 640])
+        central = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(central)
+        layout.setContentsMargins(4, 4, 4, 4)
+        layout.addWidget(self._banner)
+        layout.addWidget(split, 1)
+        self.setCentralWidget(central)
+        self.statusBar().showMessage("File > Open a session (.h5)")
+
+    def _build_browser(self) -> QtWidgets.QWidget:
+        self._region_table = QtWidgets.QTableWidget(objectName="regionTable")
+        self._region_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self._region_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
+        self._region_table.currentCellChanged.connect(lambda r, c, *_: self._cell_selected(r, c))
+        self._record_info = QtWidgets.QLabel("", objectName="recordInfo", wordWrap=True)
+        self._pressure_map = TactileMapWidget("Pressure", auto_floor_pa=1e3)
+        self._pressure_map.setObjectName("pressureMap")
+        self._stiffness_map = TactileMapWidget("Stiffness (Eq. 1)")
+        self._stiffness_map.setObjectName("stiffnessMap")
+        self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, x_horizontal=False)
+        self._indentation_map.setObjectName("indentationMap")
+
+        maps = QtWidgets.QWidget()
+        grid = QtWidgets.QVBoxLayout(maps)
+        grid.setContentsMargins(0, 0, 0, 0)
+        grid.addWidget(self._record_info)
+        grid.addWidget(self._pressure_map, 1)
+        grid.addWidget(self._stiffness_map, 1)
+        grid.addWidget(self._indentation_map, 1)
+        table_box = QtWidgets.QWidget()
+        table_layout = QtWidgets.QVBoxLayout(table_box)
+        table_layout.setContentsMargins(0, 0, 0, 0)
+        table_layout.addWidget(QtWidgets.QLabel("TSI indentation (mm) per region and force level"))
+        table_layout.addWidget(self._region_table, 1)
+        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
+        split.addWidget(table_box)
+        split.addWidget(maps)
+        split.setStretchFactor(1, 2)
+        split.setSizes([440, 900])
+        return split
+
+    def _build_stitched(self) -> QtWidgets.QWidget:
+        self._level_combo = QtWidgets.QComboBox(objectName="levelCombo")
+        self._level_combo.currentIndexChanged.connect(lambda _: self._show_stitched())
+        self._quantity_combo = QtWidgets.QComboBox(objectName="quantityCombo")
+        for label, *_ in QUANTITIES:
+            self._quantity_combo.addItem(label)
+        self._quantity_combo.setCurrentIndex(1)
+        self._quantity_combo.currentIndexChanged.connect(lambda _: self._show_stitched())
+        self._stitched_map = GridMapView("Whole tissue")
+        self._stitched_map.setObjectName("stitchedMap")
+
+        def spin(name: str, lo: float, hi: float, value: float, step: float, suffix: str, decimals: int = 2):
+            box = QtWidgets.QDoubleSpinBox(objectName=name)
+            box.setRange(lo, hi)
+            box.setDecimals(decimals)
+            box.setSingleStep(step)
+            box.setValue(value)
+            box.setSuffix(suffix)
+            box.setKeyboardTracking(False)
+            box.valueChanged.connect(lambda _: self._analysis_timer.start())
+            return box
+
+        self._cell_spin = spin("cellSpin", 0.1, 20.0, 1.0, 0.25, " mm")
+        self._threshold_spin = spin("thresholdSpin", 1.0, 1000.0, self._detect_params.threshold * 100, 5.0, " %", 0)
+        self._min_area_spin = spin("minAreaSpin", 0.0, 400.0, self._detect_params.min_area_m2 * 1e6, 1.0, " mm²", 1)
+        self._l0_combo = QtWidgets.QComboBox(objectName="l0Combo")
+        for source in L0Source:
+            self._l0_combo.addItem(_L0_LABELS[source], source.value)
+        self._l0_fixed_spin = spin("l0FixedSpin", 0.5, 200.0, 25.0, 0.5, " mm")
+        self._l0_fixed_spin.setEnabled(False)
+        self._l0_combo.currentIndexChanged.connect(self._l0_changed)
+        form = QtWidgets.QFormLayout()
+        form.addRow("Grid cell", self._cell_spin)
+        form.addRow("Suspicious above median by", self._threshold_spin)
+        form.addRow("Smallest spot", self._min_area_spin)
+        form.addRow("L0 (Eq. 1) from", self._l0_combo)
+        form.addRow("Fixed L0", self._l0_fixed_spin)
+        analysis = QtWidgets.QGroupBox("Analysis (the recording is not changed)", objectName="analysis")
+        analysis.setLayout(form)
+        self._summary = QtWidgets.QLabel("", objectName="analysisSummary", wordWrap=True)
+        self._tumour_table = QtWidgets.QTableWidget(objectName="tumourTable")
+        self._tumour_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self._tumour_table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
+        self._tumour_table.verticalHeader().hide()
+        self._tumour_table.setToolTip("Select a tumour to see its map at the level where it first shows")
+        self._tumour_table.currentCellChanged.connect(lambda r, *_: self._tumour_selected(r))
+
+        side = QtWidgets.QWidget()
+        side_layout = QtWidgets.QVBoxLayout(side)
+        side_layout.setContentsMargins(0, 0, 0, 0)
+        side_layout.addWidget(analysis)
+        side_layout.addWidget(self._summary)
+        side_layout.addWidget(QtWidgets.QLabel("Tumours (depth = TSI indentation at the first level)"))
+        side_layout.addWidget(self._tumour_table, 1)
+
+        bar = QtWidgets.QHBoxLayout()
+        bar.addWidget(QtWidgets.QLabel("Force level"))
+        bar.addWidget(self._level_combo)
+        bar.addSpacing(12)
+        bar.addWidget(QtWidgets.QLabel("Map"))
+        bar.addWidget(self._quantity_combo)
+        bar.addStretch(1)
+        left = QtWidgets.QWidget()
+        left_layout = QtWidgets.QVBoxLayout(left)
+        left_layout.setContentsMargins(0, 0, 0, 0)
+        left_layout.addLayout(bar)
+        left_layout.addWidget(self._stitched_map, 1)
+        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
+        split.addWidget(left)
+        split.addWidget(side)
+        split.setStretchFactor(0, 3)
+        split.setStretchFactor(1, 2)
+        return split
+
+    def _build_menu(self) -> None:
+        menu = self.menuBar().addMenu("&File")
+        menu.addAction("&Open…", QtGui.QKeySequence.StandardKey.Open, self._open_dialog)
+        self._recent_menu = menu.addMenu("Open &Recent")
+        self._recent_menu.aboutToShow.connect(lambda: self.recent.fill_menu(self._recent_menu, self.open_file))
+        menu.addSeparator()
+        self._export_maps_action = menu.addAction("Export &maps (PNG)…", self._export_maps_dialog)
+        self._export_report_action = menu.addAction("Export &report (PDF)…", self._export_report_dialog)
+        menu.addSeparator()
+        menu.addAction("&Close session", QtGui.QKeySequence.StandardKey.Close, self.close_session)
+        self._set_exports_enabled(False)
+
+    def _set_exports_enabled(self, on: bool) -> None:
+        self._export_maps_action.setEnabled(on)
+        self._export_report_action.setEnabled(on)
+
+    # ---- public API ----------------------------------------------------------------------------------
+
+    @property
+    def session(self) -> Session | None:
+        return self._session
+
+    @property
+    def stitched(self) -> StitchResult | None:
+        return self._stitched
+
+    @property
+    def tumours(self) -> list[Tumour]:
+        return list(self._tumours)
+
+    def open_file(self, path: str | Path) -> bool:
+        """Open a session (closing the one shown); on a bad file, say why and keep the current one."""
+        try:
+            session = open_session(path)
+            try:
+                session.overview()  # the timeline's data: damage there is found before anything is replaced
+            except SessionFileError:
+                session.close()
+                raise
+        except SessionFileError as err:
+            self._show_banner(f"Cannot open the session: {err}", "error")
+            self.open_failed.emit(str(err))
+            return False
+        self.close_session()
+        self._session = session
+        self._show_session()
+        self.session_opened.emit(str(session.path))
+        return True
+
+    def _show_session(self) -> None:
+        session = self._session
+        self.recent.add(session.path)
+        self.setWindowTitle(f"{session.path.name} — session review")
+        self.statusBar().showMessage(f"{session.path}  ·  {session.created_utc}  ·  format v{session.format_version}"
+                                     f"  ·  Palpation Console {session.software_version}")
+        if session.warnings:
+            self._show_banner("  ".join(session.warnings), "warning")
+        else:
+            self._banner.hide()
+        self._fill_region_table()
+        if len(session.levels):
+            self.select_record(0)
+        else:
+            self._record_info.setText("No force level was recorded in this session.")
+        self._timeline.set_session(session)
+        self.reanalyse()
+        self._set_exports_enabled(True)
+
+    def close_session(self) -> None:
+        self._analysis_timer.stop()
+        if self._session is not None:
+            self._session.close()
+        self._session = None
+        self._stitched = None
+        self._tumours = []
+        self._record = None
+        self._timeline.clear()
+        self._region_table.clear()
+        self._region_table.setRowCount(0)
+        self._region_table.setColumnCount(0)
+        self._tumour_table.setRowCount(0)
+        self._level_combo.clear()
+        self._stitched_map.clear()
+        self._summary.setText("")
+        self._record_info.setText("")
+        self._set_exports_enabled(False)
+        self.setWindowTitle("Palpation Console — session review")
+
+    def analysis_params(self) -> tuple[StitchParams, DetectParams]:
+        """The parameters in the analysis panel; raises StitchError / DetectError naming a bad one."""
+        source = L0Source(self._l0_combo.currentData())
+        stitch = StitchParams(cell_m=self._cell_spin.value() * 1e-3, l0_source=source,
+                              l0_fixed_m=self._l0_fixed_spin.value() * 1e-3 if source is L0Source.FIXED else None)
+        detect = DetectParams(threshold=self._threshold_spin.value() / 100.0,
+                              min_area_m2=self._min_area_spin.value() * 1e-6)
+        return stitch, detect
+
+    def set_analysis(self, stitch: StitchParams, detect: DetectParams) -> None:
+        """Put parameters into the panel and re-analyse now."""
+        widgets = (self._cell_spin, self._threshold_spin, self._min_area_spin, self._l0_combo, self._l0_fixed_spin)
+        blocked = [w.blockSignals(True) for w in widgets]
+        self._cell_spin.setValue(stitch.cell_m * 1e3)
+        self._threshold_spin.setValue(detect.threshold * 100)
+        self._min_area_spin.setValue(detect.min_area_m2 * 1e6)
+        self._l0_combo.setCurrentIndex(self._l0_combo.findData(stitch.l0_source.value))
+        if stitch.l0_fixed_m is not None:
+            self._l0_fixed_spin.setValue(stitch.l0_fixed_m * 1e3)
+        self._l0_fixed_spin.setEnabled(stitch.l0_source is L0Source.FIXED)
+        for w, b in zip(widgets, blocked):
+            w.blockSignals(b)
+        self.reanalyse()
+
+    def reanalyse(self) -> None:
+        """Stitch and detect again with the panel's parameters (the file is only read)."""
+        self._analysis_timer.stop()
+        session = self._session
+        if session is None:
+            return
+        try:
+            stitch_params, detect_params = self.analysis_params()
+        except (StitchError, DetectError) as err:
+            self._summary.setText(f"<b>Not applied:</b> {err}")
+            return
+        self._detect_params = detect_params
+        self._stitched = stitch_session(session, stitch_params)
+        self._tumours = detect_session(session, self._stitched, detect_params)
+        keep = self._level_combo.currentIndex()
+        blocked = self._level_combo.blockSignals(True)
+        self._level_combo.clear()
+        for lm in self._stitched.levels:
+            self._level_combo.addItem(f"{lm.force_N:g} N", lm.index)
+        if self._stitched.levels:
+            last = len(self._stitched.levels) - 1
+            self._level_combo.setCurrentIndex(keep if 0 <= keep <= last else last)
+        self._level_combo.blockSignals(blocked)
+        self._fill_tumour_table()
+        self._show_stitched()
+        if self._record is not None:
+            self._show_record(self._record)  # its stiffness depends on the L0 source
+        self.analysis_done.emit()
+
+    def select_record(self, row: int) -> None:
+        """Show /levels row ``row`` in the regions × levels browser."""
+        session = self._session
+        if session is None or not 0 <= row < len(session.levels):
+            return
+        for r in range(self._region_table.rowCount()):
+            for c in range(self._region_table.columnCount()):
+                item = self._region_table.item(r, c)
+                if item is not None and item.data(QtCore.Qt.ItemDataRole.UserRole) == row:
+                    if (self._region_table.currentRow(), self._region_table.currentColumn()) != (r, c):
+                        self._region_table.setCurrentCell(r, c)
+                    self._tabs.setCurrentIndex(0)
+                    break
+        self._show_record(row)
+
+    def select_level(self, index: int) -> None:
+        self._level_combo.setCurrentIndex(index)
+
+    def set_quantity(self, attribute: str) -> None:
+        names = [q[1] for q in QUANTITIES]
+        if attribute not in names:
+            raise ValueError(f"unknown map {attribute!r} (known: {', '.join(names)})")
+        self._quantity_combo.setCurrentIndex(names.index(attribute))
+
+    def export_maps(self, path: str | Path) -> None:
+        from app.session.export import render_maps_png
+
+        if self._stitched is not None and self._session is not None:
+            render_maps_png(path, self._stitched, self._tumours, self._session.ground_truth)
+
+    def export_report(self, path: str | Path) -> None:
+        from app.session.export import write_report
+
+        if self._stitched is not None and self._session is not None:
+            write_report(path, self._session, self._stitched, self._tumours, self._detect_params)
+
+    # ---- internals -----------------------------------------------------------------------------------
+
+    def _show_banner(self, text: str, kind: str) -> None:
+        self._banner.setText(text)
+        self._banner.setStyleSheet(_BANNER_STYLE[kind])
+        self._banner.show()
+
+    def _open_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open a session", str(self._start_folder),
+                                                        "Sessions (*.h5 *.hdf5);;All files (*)")
+        if path:
+            self.open_file(path)
+
+    def _export_maps_dialog(self) -> None:
+        self._export_dialog("Export maps", "maps.png", "PNG images (*.png)", self.export_maps)
+
+    def _export_report_dialog(self) -> None:
+        self._export_dialog("Export report", "report.pdf", "PDF (*.pdf);;PNG images (*.png)", self.export_report)
+
+    def _export_dialog(self, title: str, name: str, filters: str, write) -> None:
+        from app.session.export import ExportError
+
+        base = self._session.path.with_suffix("") if self._session else self._start_folder / "session"
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, title, f"{base}-{name}", filters)
+        if not path:
+            return
+        try:
+            write(path)
+        except ExportError as err:
+            self._show_banner(str(err), "error")
+            return
+        self.statusBar().showMessage(f"Wrote {path}", 8000)
+
+    def _l0_changed(self) -> None:
+        self._l0_fixed_spin.setEnabled(self._l0_combo.currentData() == L0Source.FIXED.value)
+        self._analysis_timer.start()
+
+    def _fill_region_table(self) -> None:
+        session = self._session
+        table = self._region_table
+        groups = level_groups(session.levels)
+        column_of = {}
+        for c, (_force, rows) in enumerate(groups):
+            for row in rows:
+                column_of[int(row)] = c
+        regions = session.regions()
+        table.setRowCount(len(regions))
+        table.setColumnCount(len(groups))
+        table.setHorizontalHeaderLabels([f"{force:g} N" for force, _ in groups])
+        table.setVerticalHeaderLabels([f"R{e.region + 1} ({e.centre_xy_m[0] * 1e3:.0f}, "
+                                       f"{e.centre_xy_m[1] * 1e3:.0f}) {e.outcome}" for e in regions])
+        depth = session.levels["indentation_m"]
+        for r, entry in enumerate(regions):
+            for row in entry.rows:
+                item = QtWidgets.QTableWidgetItem(_mm(float(depth[row]), 2))
+                item.setData(QtCore.Qt.ItemDataRole.UserRole, int(row))
+                item.setToolTip("TSI indentation at this level; select to see the maps")
+                table.setItem(r, column_of[int(row)], item)
+        table.resizeColumnsToContents()
+
+    def _cell_selected(self, r: int, c: int) -> None:
+        item = self._region_table.item(r, c) if r >= 0 and c >= 0 else None
+        if item is not None:
+            self._show_record(int(item.data(QtCore.Qt.ItemDataRole.UserRole)))
+
+    def _show_record(self, row: int) -> None:
+        session = self._session
+        self._record = row
+        rec = session.levels[row]
+        stiffness_all = self._stitched.stiffness_pa if self._stitched is not None else session.levels["stiffness_pa"]
+        # One colour range for every record at this force (pressure) or in the session (stiffness), so
+        # records compare at a glance; the operator can still unlock it.
+        same_force = np.isclose(session.levels["force_desired_N"], rec["force_desired_N"], atol=5e-4)
+        pressures = session.levels["pressure_pa"][same_force]
+        for widget, values, pool in ((self._pressure_map, rec["pressure_pa"], pressures),
+                                     (self._stiffness_map, stiffness_all[row], stiffness_all)):
+            lo, hi = colour_range(pool)
+            widget.lock_levels(lo, hi)
+            widget.set_data(values)
+        x, y, z = (float(v) for v in rec["tsi_position_m"])
+        rows, cols = rec["dL_m"].shape
+        half_x, half_y = rows * session.pitch_m / 2, cols * session.pitch_m / 2
+        self._indentation_map.set_map(rec["dL_m"], (x - half_x, x + half_x, y - half_y, y + half_y))
+        n_levels = int(np.count_nonzero(session.levels["region"] == rec["region"]))
+        self._record_info.setText(
+            f"<b>Region {int(rec['region']) + 1}, level {int(rec['level']) + 1}</b> ({n_levels} recorded): "
+            f"F_d {rec['force_desired_N']:.2f} N, F_ts {rec['force_measured_N']:.3f} N, RMSE {rec['rmse_N']:.3f} N, "
+            f"settled in {rec['settle_time_s']:.2f} s at t = {rec['t_s']:.2f} s; TSI at ({x * 1e3:.1f}, {y * 1e3:.1f}, "
+            f"{z * 1e3:.1f}) mm; TSI indentation {_mm(float(rec['indentation_m']), 2)} mm")
+
+    def _show_stitched(self) -> None:
+        stitched = self._stitched
+        if stitched is None or not stitched.levels:
+            self._stitched_map.clear()
+            return
+        index = max(0, self._level_combo.currentIndex())
+        lm = stitched.levels[index]
+        label, attribute, unit, scale, source = QUANTITIES[self._quantity_combo.currentIndex()]
+        self._stitched_map.set_unit(unit, scale)
+        self._stitched_map.set_map(lm.quantity(attribute), stitched.grid.extent_m)
+        covered = float(np.count_nonzero(lm.coverage > 0.5)) / lm.coverage.size
+        self._stitched_map.set_title(f"{label} at {lm.force_N:g} N — {len(lm.records)} regions, TSI indentation "
+                                     f"{_mm(lm.tsi_indentation_m, 2)} mm, {covered * 100:.0f} % of the grid covered")
+        found = [(t.x_m, t.y_m) for t in self._tumours
+                 if t.source == source and lm.force_N >= t.first_level_N - 1e-9]
+        truth = [(float(g["x_m"]), float(g["y_m"]), float(g.get("diameter_m", 8e-3)))
+                 for g in (self._session.ground_truth if self._session else [])]
+        self._stitched_map.set_markers(found, truth)
+
+    def _fill_tumour_table(self) -> None:
+        session, tumours = self._session, self._tumours
+        headers = ["Map", "x (mm)", "y (mm)", "Depth (mm)", "First level (N)", "Rise (%)"]
+        truth_of: dict[int, str] = {}
+        if session.ground_truth:
+            headers.append("True tumour")
+            matches, false_positives = match_ground_truth(tumours, session.ground_truth, stitched=self._stitched)
+            for m in matches:
+                if m.found:
+                    truth_of[m.detection] = (f"#{m.truth_index + 1}, {m.depth_m * 1e3:.1f} mm deep, "
+                                             f"{m.error_xy_m * 1e3:.1f} mm off")
+            found = {s: sum(1 for m in matches if m.source == s and m.found) for s in ("stiffness", "force")}
+            palpated = sum(1 for m in matches if m.source == "stiffness" and m.palpated)
+            truth_text = (f" Ground truth: of the {palpated} palpated tumours (of {len(session.ground_truth)}), the "
+                          f"stiffness map found {found['stiffness']} and the force map {found['force']}; false "
+                          f"positives {false_positives['stiffness']} and {false_positives['force']}.")
+        else:
+            truth_text = ""
+        table = self._tumour_table
+        table.setColumnCount(len(headers))
+        table.setHorizontalHeaderLabels(headers)
+        table.setRowCount(len(tumours))
+        for k, t in enumerate(tumours):
+            cells = [t.source, _mm(t.x_m), _mm(t.y_m), _mm(t.depth_m, 2), f"{t.first_level_N:g}",
+                     f"{t.peak_rise * 100:.0f}"]
+            if session.ground_truth:
+                cells.append(truth_of.get(k, "none (false positive)"))
+            for c, text in enumerate(cells):
+                table.setItem(k, c, QtWidgets.QTableWidgetItem(text))
+        table.resizeColumnsToContents()
+        counts = {s: sum(1 for t in tumours if t.source == s) for s in ("stiffness", "force")}
+        self._summary.setText(f"{counts['stiffness']} tumour(s) in the stiffness map, {counts['force']} in the force "
+                              f"map, over {len(self._stitched.levels)} force levels.{truth_text}")
+
+    def _tumour_selected(self, row: int) -> None:
+        if not 0 <= row < len(self._tumours) or self._stitched is None:
+            return
+        tumour = self._tumours[row]
+        self.set_quantity("pressure_pa" if tumour.source == "force" else "stiffness_pa")
+        forces = self._stitched.level_forces_N()
+        self.select_level(int(np.argmin(np.abs(np.asarray(forces) - tumour.first_level_N))))
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:
+        self.close_session()
+        super().closeEvent(event)
