@@ -13,6 +13,10 @@ from typing import Any
 from control.config import ConfigError
 from hardware.rig import Rig
 
+# Who moves the simulated rig's master side: the scripted operator of Section IV-A (``palpation-console
+# simulate``, demos), or nobody, so X_d comes from the console's jog and autopilot (the interactive console).
+SIM_MASTERS = ("scripted", "none")
+
 
 @dataclass(frozen=True)
 class RigSpec:
@@ -20,13 +24,22 @@ class RigSpec:
     phantom: str = "flat"  # simulated rigs: a phantom name from resources/phantoms or a path to a TOML file
     sim: dict[str, Any] = field(default_factory=dict)  # simulated rigs: SimSettings overrides
     seed: int = 0
+    master: str = "scripted"  # simulated rigs: one of SIM_MASTERS
+
+    def __post_init__(self):
+        if self.master not in SIM_MASTERS:
+            raise ConfigError("rig.master", f"unknown master {self.master!r} (known: {', '.join(SIM_MASTERS)})")
 
 
 def _build_sim(spec: RigSpec) -> Rig:
     # Imported here so a process driving real hardware never loads the simulator.
     from hardware.sim.rig import build_sim_rig
 
-    return build_sim_rig(spec.phantom, settings=dict(spec.sim), seed=spec.seed)
+    rig = build_sim_rig(spec.phantom, settings=dict(spec.sim), seed=spec.seed)
+    if spec.master == "none":
+        rig.master = None
+    rig.description["master"] = spec.master
+    return rig
 
 
 BACKENDS: dict[str, Callable[[RigSpec], Rig]] = {"sim": _build_sim}
