@@ -14,6 +14,7 @@ from control.config import ConfigError
 from control.messages import (CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice, RegionAborted,
                               RegionDone)
 from hardware.interfaces import DeviceError
+from hardware.sim.mechanics.progress import TextProgressBar
 from hardware.sim.phantom import PhantomError
 
 
@@ -28,8 +29,11 @@ def _config(args) -> AppConfig:
 
 def cmd_run(args) -> int:
     from app.gui import run_gui
+    from app.rigs import prepare_rig
 
-    return run_gui(_config(args), screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
+    config = _config(args)
+    prepare_rig(config.rig, TextProgressBar())  # first use of a phantom: precompute its tissue model here
+    return run_gui(config, screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
 
 
 def _level_line(r) -> str:
@@ -51,7 +55,7 @@ def cmd_simulate(args) -> int:
     from app.rigs import build_rig
 
     config = _config(args)
-    rig = build_rig(config.rig)
+    rig = build_rig(config.rig, progress=TextProgressBar())
     operator = rig.master
     if operator is None or not hasattr(operator, "finished"):
         raise ConfigError("rig.backend", "simulate needs the simulated rig's scripted operator")

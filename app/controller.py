@@ -22,6 +22,7 @@ moves on to the current period, and the loop clamps its integration step (``Cont
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import contextlib
 import gc
 import logging
@@ -38,7 +39,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
-from app.rigs import RigSpec, build_rig
+from app.rigs import RigSpec, build_rig, prepare_rig
 from app.ring import RingHandle, SharedRing
 from app.runtime import make_loop, run_tick
 from control.config import ControlConfig
@@ -127,12 +128,14 @@ class ControllerProcess:
         options: PacingOptions | None = None,
         tick_capacity: int = 16384,
         frame_capacity: int = 1024,
+        progress: Callable[[float, str], None] | None = None,
     ):
         if not isinstance(config, ControlConfig):
             raise TypeError(f"config must be a ControlConfig, got {type(config).__name__}")
         if not isinstance(rig_spec, RigSpec):
             raise TypeError(f"rig_spec must be a RigSpec, got {type(rig_spec).__name__}")
         self.config = config
+        self._progress = progress  # reports of the rig's one-off preparation (tissue precompute)
         self.rig_spec = rig_spec
         self.options = options or PacingOptions()
         self._capacities = (tick_capacity, frame_capacity)
@@ -156,6 +159,10 @@ class ControllerProcess:
         if self._started:
             raise RuntimeError("this ControllerProcess was already started; create a new one")
         self._started = True
+        try:
+            prepare_rig(self.rig_spec, self._progress)
+        except Exception as err:  # noqa: BLE001 - reported like any other start-up failure
+            raise ControllerStartError(f"could not prepare the rig: {_describe(err)}") from err
         ctx = mp.get_context("spawn")
         child_end = None
         try:

@@ -13,6 +13,8 @@ from typing import Any
 from control.config import ConfigError
 from hardware.rig import Rig
 
+Progress = Callable[[float, str], None]  # (fraction done, what is being done)
+
 # Who moves the simulated rig's master side: the scripted operator of Section IV-A (``palpation-console
 # simulate``, demos), or nobody, so X_d comes from the console's jog and autopilot (the interactive console).
 SIM_MASTERS = ("scripted", "none")
@@ -31,23 +33,32 @@ class RigSpec:
             raise ConfigError("rig.master", f"unknown master {self.master!r} (known: {', '.join(SIM_MASTERS)})")
 
 
-def _build_sim(spec: RigSpec) -> Rig:
+def _build_sim(spec: RigSpec, progress: Progress | None = None) -> Rig:
     # Imported here so a process driving real hardware never loads the simulator.
     from hardware.sim.rig import build_sim_rig
 
-    rig = build_sim_rig(spec.phantom, settings=dict(spec.sim), seed=spec.seed)
+    rig = build_sim_rig(spec.phantom, settings=dict(spec.sim), seed=spec.seed, progress=progress)
     if spec.master == "none":
         rig.master = None
     rig.description["master"] = spec.master
     return rig
 
 
-BACKENDS: dict[str, Callable[[RigSpec], Rig]] = {"sim": _build_sim}
+BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim}  # (spec, progress=None) -> Rig
 
 
-def build_rig(spec: RigSpec) -> Rig:
-    """Build (but do not open) the rig ``spec`` describes."""
+def prepare_rig(spec: RigSpec, progress: Progress | None = None) -> None:
+    """Do a rig's slow one-off work before the controller process starts, so that process starts in
+    milliseconds: for the simulated rig, precompute (or load from the disk cache) the tissue model."""
+    if spec.backend == "sim":
+        from hardware.sim.rig import build_tissue
+
+        build_tissue(spec.phantom, dict(spec.sim), progress)
+
+
+def build_rig(spec: RigSpec, progress: Progress | None = None) -> Rig:
+    """Build (but do not open) the rig ``spec`` describes; ``progress`` hears about slow one-off work."""
     builder = BACKENDS.get(spec.backend)
     if builder is None:
         raise ConfigError("rig.backend", f"unknown backend {spec.backend!r} (known: {', '.join(sorted(BACKENDS))})")
-    return builder(spec)
+    return builder(spec, progress=progress)

@@ -3,16 +3,20 @@
 import multiprocessing
 import os
 import threading
+from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+TEST_CACHE = Path(__file__).resolve().parents[1] / "build" / "test-cache"
+
 
 @pytest.fixture(autouse=True)
 def _sandbox(tmp_path_factory, monkeypatch):
     base = tmp_path_factory.mktemp("sandbox")
-    monkeypatch.setenv("PALPATION_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
+    # tissue models are precomputed once per machine (seconds per phantom) and shared by every test run
+    monkeypatch.setenv("PALPATION_CACHE_DIR", str(TEST_CACHE))
     monkeypatch.setenv("PALPATION_DATA_DIR", str(base / "data"))
     monkeypatch.setenv("XDG_CONFIG_HOME", str(base / "config"))
     yield

@@ -23,7 +23,7 @@ Schema (all lengths in m, moduli in Pa)::
     origin_m = [0.0, 0.0]
     x_range_m = [0.0, 0.072]
 
-    [[phantom.inclusions]]    # spheres
+    [[phantom.inclusions]]    # spheres, inside the phantom and apart from each other
     centre_xy_m = [0.012, 0.015]
     diameter_m = 0.008
     youngs_modulus_pa = 160e3
@@ -33,7 +33,8 @@ Schema (all lengths in m, moduli in Pa)::
     [[phantom.regions]]       # palpation areas (TSI centre x, y); default: 8 mm strips along x
     centre_xy_m = [0.004, 0.015]
 
-A bad file raises :class:`PhantomError` whose message names the key and the problem.
+A bad file raises :class:`PhantomError` whose message names the key and the problem. The schema, the
+shipped phantoms and every assumption behind them are documented in docs/phantoms.md.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from typing import Any
 import numpy as np
 
 PHANTOM_DIR = Path(__file__).resolve().parents[2] / "resources" / "phantoms"
+MIN_SURFACE_HEIGHT_M = 1e-3  # a thinner layer is no phantom, and the mesh needs room
 
 
 class PhantomError(ValueError):
@@ -179,11 +181,29 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
         poisson_ratio=nu,
         surface=surface,
     )
-    inclusions = tuple(_inclusion(r, base) for r in p.list_of_tables("inclusions"))
+    lowest = float(base.surface_height_m(*_footprint_grid(base)).min())
+    if lowest < MIN_SURFACE_HEIGHT_M:
+        p.fail("surface", f"the surface comes down to {lowest * 1e3:.2f} mm above the table; it must stay at "
+                          f"least {MIN_SURFACE_HEIGHT_M * 1e3:g} mm above it everywhere")
+    inclusions = []
+    for r in p.list_of_tables("inclusions"):
+        inc = _inclusion(r, base)
+        for j, other in enumerate(inclusions):
+            gap = math.dist((inc.x_m, inc.y_m, inc.z_m), (other.x_m, other.y_m, other.z_m))
+            if gap < inc.radius_m + other.radius_m:
+                r.fail("centre_xy_m", f"overlaps inclusions[{j}] (centres {gap * 1e3:.1f} mm apart)")
+        inclusions.append(inc)
+    inclusions = tuple(inclusions)
     regions = tuple(_region(r, base) for r in p.list_of_tables("regions"))
     p.no_unknown({"name", "description", "length_m", "width_m", "thickness_m", "youngs_modulus_pa",
                   "poisson_ratio", "surface", "inclusions", "regions"})
     return Phantom(**{**base.__dict__, "inclusions": inclusions, "regions": regions, "source": data})
+
+
+def _footprint_grid(phantom: Phantom, step_m: float = 0.25e-3) -> tuple[np.ndarray, np.ndarray]:
+    x = np.linspace(0.0, phantom.length_m, max(2, int(round(phantom.length_m / step_m)) + 1))
+    y = np.linspace(0.0, phantom.width_m, max(2, int(round(phantom.width_m / step_m)) + 1))
+    return np.meshgrid(x, y, indexing="ij")
 
 
 def _feature(r: "_Reader") -> SurfaceFeature:
@@ -205,17 +225,32 @@ def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
     r.no_unknown({"centre_xy_m", "diameter_m", "youngs_modulus_pa", "depth_m", "height_m"})
     x, y = r.pair("centre_xy_m")
     if not (0 <= x <= phantom.length_m and 0 <= y <= phantom.width_m):
-        r.fail("centre_xy_m", f"({x:g}, {y:g}) m lies outside the phantom's {phantom.length_m:g} x {phantom.width_m:g} m")
+        r.fail("centre_xy_m",
+               f"({x:g}, {y:g}) m lies outside the phantom's {phantom.length_m:g} x {phantom.width_m:g} m")
     d = r.positive("diameter_m")
+    radius = d / 2
+    if not (radius <= x <= phantom.length_m - radius and radius <= y <= phantom.width_m - radius):
+        r.fail("centre_xy_m", f"a {d * 1e3:g} mm sphere at ({x * 1e3:g}, {y * 1e3:g}) mm pokes out of the "
+                              f"phantom's sides")
     has_depth, has_height = "depth_m" in r.data, "height_m" in r.data
     if has_depth == has_height:
         r.fail("depth_m", "give exactly one of depth_m (below the local surface) or height_m (above the table)")
     surface = float(phantom.surface_height_m(x, y))
-    z = surface - r.positive("depth_m") - d / 2 if has_depth else r.positive("height_m")
-    if z - d / 2 < 0 or z + d / 2 > surface:
-        key = "depth_m" if has_depth else "height_m"
-        r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) does not fit "
-                    f"between the table and the surface at {surface * 1e3:.1f} mm")
+    z = surface - r.positive("depth_m") - radius if has_depth else r.positive("height_m")
+    key = "depth_m" if has_depth else "height_m"
+    if z - radius < 0:
+        r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) goes through "
+                    f"the table")
+    # The sphere must stay under the surface everywhere over it, not only at its centre.
+    ang = np.linspace(0.0, 2.0 * np.pi, 33)
+    rad = np.linspace(0.0, radius, 9)
+    px = x + np.outer(rad, np.cos(ang))
+    py = y + np.outer(rad, np.sin(ang))
+    top = z + np.sqrt(np.clip(radius**2 - (px - x) ** 2 - (py - y) ** 2, 0.0, None))
+    clearance = float((phantom.surface_height_m(px, py) - top).min())
+    if clearance < 0:
+        r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) breaks "
+                    f"through the surface by {-clearance * 1e3:.2f} mm")
     return Inclusion(x, y, z, d, r.positive("youngs_modulus_pa"))
 
 
@@ -273,7 +308,8 @@ class _Reader:
         if value is None:
             self.fail(key, "missing")
         if (not isinstance(value, (list, tuple)) or len(value) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for v in value)):
             self.fail(key, f"must be two finite numbers, got {value!r}")
         return (float(value[0]), float(value[1]))
 

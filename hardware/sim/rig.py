@@ -6,6 +6,8 @@ from typing import Any
 
 from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
+from hardware.sim.mechanics import ContinuumTissue, MeshSettings
+from hardware.sim.mechanics.progress import Progress
 from hardware.sim.operator import ScriptedOperator
 from hardware.sim.phantom import Phantom, load_phantom
 from hardware.sim.robot import SimSlave
@@ -16,19 +18,7 @@ from hardware.sim.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
 
 
-def build_sim_rig(
-    phantom: Phantom | str,
-    settings: SimSettings | dict[str, Any] | None = None,
-    tissue: TissueModel | None = None,
-    seed: int = 0,
-) -> Rig:
-    """The simulated rig for ``phantom`` (a loaded phantom or a shipped phantom's name / a TOML path).
-
-    ``settings`` may be the ``[sim]`` table of a config file; ``tissue`` defaults to the Winkler model
-    of the phantom; ``seed`` drives the run's sensor noise (the sensor as manufactured is fixed by
-    ``settings.sensor.seed``). Raises :class:`~hardware.sim.phantom.PhantomError` or
-    :class:`~control.config.ConfigError` naming the bad key, or ValueError for a mismatched tissue.
-    """
+def _resolve(phantom: Phantom | str, settings: SimSettings | dict[str, Any] | None) -> tuple[Phantom, SimSettings]:
     if isinstance(phantom, str):
         phantom = load_phantom(phantom)
     elif not isinstance(phantom, Phantom):
@@ -39,12 +29,47 @@ def build_sim_rig(
         settings = SimSettings.from_mapping(settings)
     elif not isinstance(settings, SimSettings):
         raise TypeError(f"settings must be SimSettings or a mapping, got {type(settings).__name__}")
+    return phantom, settings
+
+
+def build_tissue(
+    phantom: Phantom | str,
+    settings: SimSettings | dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> TissueModel:
+    """The tissue model ``settings.tissue`` names; the continuum model is precomputed on first use of a
+    phantom (seconds to a minute, with ``progress`` reports) and loaded from the disk cache after that."""
+    phantom, settings = _resolve(phantom, settings)
+    sensor_geometry = TactileConstraints(full_scale_pa=settings.sensor.full_scale_pa,
+                                         frame_rate_hz=settings.sensor.frame_rate_hz)
+    if settings.tissue == "winkler":
+        return WinklerTissue(phantom, sensor_geometry)
+    return ContinuumTissue.load(phantom, progress=progress, sensor=sensor_geometry,
+                                settings=MeshSettings(finite_strain=settings.finite_strain))
+
+
+def build_sim_rig(
+    phantom: Phantom | str,
+    settings: SimSettings | dict[str, Any] | None = None,
+    tissue: TissueModel | None = None,
+    seed: int = 0,
+    progress: Progress | None = None,
+) -> Rig:
+    """The simulated rig for ``phantom`` (a loaded phantom or a shipped phantom's name / a TOML path).
+
+    ``settings`` may be the ``[sim]`` table of a config file; ``tissue`` defaults to the model
+    ``settings.tissue`` names (see :func:`build_tissue`); ``seed`` drives the run's sensor noise (the
+    sensor as manufactured is fixed by ``settings.sensor.seed``). Raises
+    :class:`~hardware.sim.phantom.PhantomError` or :class:`~control.config.ConfigError` naming the bad
+    key, or ValueError for a mismatched tissue.
+    """
+    phantom, settings = _resolve(phantom, settings)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     sensor_geometry = TactileConstraints(full_scale_pa=settings.sensor.full_scale_pa,
                                          frame_rate_hz=settings.sensor.frame_rate_hz)
     if tissue is None:
-        tissue = WinklerTissue(phantom, sensor_geometry)
+        tissue = build_tissue(phantom, settings, progress)
     elif tissue.phantom.content_hash() != phantom.content_hash():
         raise ValueError(f"the tissue model was built for phantom {tissue.phantom.name!r} "
                          f"({tissue.phantom.content_hash()}), not for {phantom.name!r} ({phantom.content_hash()})")

@@ -60,6 +60,9 @@ def _vec3(key: str, value: Any) -> Vec3:
     return tuple(_number(f"{key}[{i}]", v) for i, v in enumerate(items))  # type: ignore[return-value]
 
 
+TISSUE_MODELS = ("continuum", "winkler")
+
+
 class _Section:
     """Build from a mapping with unknown keys refused, nested sections included, and dump back."""
 
@@ -197,6 +200,8 @@ class SimSettings(_Section):
     operator: OperatorSimSettings = field(default_factory=OperatorSimSettings)
     substep_s: float = 2.5e-4  # fixed integration step of the robot dynamics
     max_catchup_s: float = 0.1  # longest host stall integrated step by step; the rest is skipped
+    tissue: str = "continuum"  # continuum (finite elements, hardware/sim/mechanics) | winkler (spring baseline)
+    finite_strain: bool = True  # continuum: stiffen element forces as the block does at finite strain
 
     _nested: ClassVar[dict[str, type[_Section]]] = {
         "sensor": SensorSimSettings,
@@ -216,6 +221,10 @@ class SimSettings(_Section):
         if velocity_gain * substep > 0.2:
             raise ConfigError("substep_s", f"{substep:g} s is too coarse for a {self.robot.bandwidth_hz:g} Hz inner "
                                            f"loop; use at most {0.2 / velocity_gain:.3g} s")
+        if self.tissue not in TISSUE_MODELS:
+            raise ConfigError("tissue", f"unknown tissue model {self.tissue!r} (known: {', '.join(TISSUE_MODELS)})")
+        if not isinstance(self.finite_strain, bool):
+            raise ConfigError("finite_strain", f"must be true or false, got {self.finite_strain!r}")
         catchup = _positive("max_catchup_s", self.max_catchup_s)
         if catchup < substep:
             raise ConfigError("max_catchup_s", f"must be at least one substep ({substep:g} s)")

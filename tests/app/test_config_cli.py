@@ -48,3 +48,10 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     assert err.startswith("error: ") and "rmse_threshold_N: must be > 0" in err and "Traceback" not in err
     assert main(["simulate", "--phantom", "no-such-phantom"]) == 2
     assert "no such phantom" in capsys.readouterr().err
+
+
+def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done(capsys):
+    assert main(["simulate"]) == 0
+    out = capsys.readouterr().out
+    assert "9 of 9 regions done, 0 problems" in out
+    assert out.count("done (7 levels)") == 9

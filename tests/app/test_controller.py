@@ -107,11 +107,12 @@ def test_sigterm_makes_the_child_hold_and_exit_cleanly(controller, qtbot):
         (RigSpec(sim={"sensor": {"noise_std_pa": -1}}), "noise_std_pa"),
     ],
 )
-def test_start_up_failures_surface_with_the_childs_message(spec, message):
+def test_start_up_failures_surface_with_the_message(spec, message):
     proc = ControllerProcess(ControlConfig(), spec, PLAIN)
     with pytest.raises(ControllerStartError, match=message):
         proc.start()
-    assert not proc.is_alive and proc.exitcode == 1
+    # refused either while preparing the rig in this process or by the child, which then exits with 1
+    assert not proc.is_alive and proc.exitcode in (None, 1)
     proc.stop()
 
 

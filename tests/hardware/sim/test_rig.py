@@ -30,7 +30,7 @@ def test_builds_the_three_devices_on_one_world_with_a_description():
     assert [g["depth_m"] for g in rig.ground_truth] == pytest.approx([0.002, 0.007, 0.010])
     d = rig.description
     assert (d["backend"], d["phantom"], d["phantom_hash"], d["tissue_model"], d["seed"]) == (
-        "sim", "flat", flat.content_hash(), "WinklerTissue", 4)
+        "sim", "flat", flat.content_hash(), "ContinuumTissue", 4)
     assert SimSettings.from_mapping(d["settings"]) == SimSettings()
 
 
@@ -78,7 +78,7 @@ def test_a_given_tissue_model_is_the_one_simulated():
 
 def test_the_devices_run_together_on_a_virtual_clock():
     """A pass-through stand-in for the loop: X_r = the operator's position, then a press into the tissue."""
-    rig = build_sim_rig("flat", {"sensor": {"gain_spread": 0.0, "creep_fraction": 0.0}})
+    rig = build_sim_rig("flat", {"tissue": "winkler", "sensor": {"gain_spread": 0.0, "creep_fraction": 0.0}})
     rig.open()
     assert all(d.connection == ConnectionState.CONNECTED for d in rig.devices())
     lag = []
@@ -118,7 +118,8 @@ def test_the_control_loop_palpates_an_area_of_the_simulated_rig():
     layer = parse_phantom({"phantom": {"name": "layer", "length_m": 0.030, "width_m": 0.030, "thickness_m": 0.025,
                                        "youngs_modulus_pa": 20e3, "poisson_ratio": 0.49,
                                        "regions": [{"centre_xy_m": [0.015, 0.015]}]}})
-    rig = build_sim_rig(layer, {"operator": {"lateral_speed_m_s": 0.05, "vertical_speed_m_s": 0.05}})
+    rig = build_sim_rig(layer, {"tissue": "winkler",
+                                "operator": {"lateral_speed_m_s": 0.05, "vertical_speed_m_s": 0.05}})
     loop = ControlLoop(ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=2.0, force_step_N=0.5)),
                        rig.sensor.constraints)
     rig.open()
@@ -143,3 +144,9 @@ def test_the_control_loop_palpates_an_area_of_the_simulated_rig():
     assert np.nanmedian(last.L0_m) == pytest.approx(0.025, abs=0.3e-3)
     assert np.nanmedian(last.stiffness_pa) == pytest.approx(20e3, rel=0.08)  # gain spread and creep: a few %
     assert last.indentation_m == pytest.approx(last.force_measured_N / (20e3 * 240e-6 / 0.025), rel=0.08)
+
+
+def test_the_tissue_model_is_chosen_in_the_settings():
+    assert build_sim_rig("flat", {"tissue": "winkler"}).description["tissue_model"] == "WinklerTissue"
+    with pytest.raises(ConfigError, match="tissue: unknown tissue model 'springs'"):
+        build_sim_rig("flat", {"tissue": "springs"})

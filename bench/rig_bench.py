@@ -1,0 +1,149 @@
+"""The continuum tissue model: precompute time, per-tick cost, and what it predicts for the paper's bench.
+
+Writes ``rig.json``:
+
+* ``precompute_s`` - building the flat phantom's model from nothing (empty cache), and
+  ``uneven_precompute_s`` the same for the uneven one;
+* ``contact_eval_p50_us`` / ``contact_eval_p99_us`` - one ``element_forces_N`` call, at poses a
+  palpation visits (region centres with up to 0.5 mm of drift, depths between the 1 N and 7 N levels);
+* ``flat_7N_indentation_mm`` - the TSI indentation (mean dL over elements in contact) at 7 N, averaged
+  over the flat phantom's regions; the paper measured 9.29 mm;
+* per phantom, the TSI indentation at 1..7 N in every region (``*_indentation_mm``), the paper's
+  measured points beside them, the same for the Winkler spring model and for the continuum model with
+  its finite-strain correction, and each tumour's contrast in the force and the stiffness (Eq. 1) maps
+  at every level against the same phantom without tumours (see hardware/sim/mechanics/study.py).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hardware.sim.mechanics.model import ContinuumTissue, MeshSettings
+from hardware.sim.mechanics.progress import TextProgressBar
+from hardware.sim.mechanics.study import (height_for_force, palpate, tumour_contrast, tumour_standout,
+                                          without_inclusions)
+from hardware.sim.phantom import load_phantom
+from hardware.sim.winkler import WinklerTissue
+
+LEVELS_N = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0)
+PAPER = {"flat": {2.0: 2.26, 5.0: 7.40, 7.0: 9.29}, "uneven": {7.0: 10.54}}
+# A tumour "shows" in a map when its patch reads 10 % above the tumour-free phantom's: over three
+# standard deviations of the simulated array's element-to-element gain spread (3 %).
+CONTRAST_VISIBLE = 0.10
+
+
+def _timed_load(phantom, cache_dir: str | None, finite_strain: bool = False) -> tuple[ContinuumTissue, float]:
+    started = time.perf_counter()
+    tissue = ContinuumTissue.load(phantom, cache_dir=cache_dir, progress=TextProgressBar(interval_s=1.0),
+                                  settings=MeshSettings(finite_strain=finite_strain))
+    return tissue, time.perf_counter() - started
+
+
+def _per_call_us(tissue: ContinuumTissue, calls: int = 20000) -> np.ndarray:
+    rng = np.random.default_rng(7)
+    regions = tissue.phantom.palpation_regions()
+    poses = []
+    for x, y in regions:
+        lo, hi = height_for_force(tissue, x, y, 7.0), height_for_force(tissue, x, y, 1.0)
+        poses.append((x, y, lo, hi))
+    samples = np.empty(calls)
+    for i in range(calls):
+        x, y, lo, hi = poses[i % len(poses)]
+        args = (x + rng.uniform(-5e-4, 5e-4), y + rng.uniform(-5e-4, 5e-4), rng.uniform(lo, hi))
+        started = time.perf_counter_ns()
+        tissue.element_forces_N(*args)
+        samples[i] = time.perf_counter_ns() - started
+    return samples / 1e3
+
+
+def _phantom_report(name: str, tissue: ContinuumTissue, stiffened: ContinuumTissue) -> dict:
+    phantom = tissue.phantom
+    study = palpate(tissue, LEVELS_N)
+    finite = palpate(stiffened, LEVELS_N)
+    clean, _ = _timed_load(without_inclusions(phantom), None)
+    reference = palpate(clean, LEVELS_N)
+    winkler = palpate(WinklerTissue(phantom), LEVELS_N)
+    report: dict = {
+        f"{name}_levels_N": list(LEVELS_N),
+        f"{name}_indentation_mm": [[r.tsi_indentation_m * 1e3 for r in region] for region in study],
+        f"{name}_mean_indentation_mm": [float(np.mean([region[k].tsi_indentation_m for region in study]) * 1e3)
+                                        for k in range(len(LEVELS_N))],
+        # NaN where the springs cannot push that hard before the face reaches the table.
+        f"{name}_winkler_mean_indentation_mm": [
+            float(np.mean([region[k].tsi_indentation_m for region in winkler]) * 1e3) for k in range(len(LEVELS_N))],
+        f"{name}_finite_strain_mean_indentation_mm": [
+            float(np.mean([region[k].tsi_indentation_m for region in finite]) * 1e3) for k in range(len(LEVELS_N))],
+        f"{name}_paper_indentation_mm": {f"{f:g}N": v for f, v in PAPER[name].items()},
+    }
+    a, b = stiffened.stiffening
+    s10 = 0.010 / phantom.thickness_m
+    report[f"{name}_finite_strain_force_ratio_at_10mm"] = 1.0 + a * s10 + b * s10 * s10
+    truths = phantom.ground_truth()
+    for field, label, unit in (("forces_N", "force", 1e3), ("stiffness_pa", "stiffness", 1e-3)):
+        rel, excess, standout = {}, {}, {}
+        for which, truth in enumerate(truths):
+            key = f"tumour_{truth['depth_m'] * 1e3:.0f}mm_at_x{truth['x_m'] * 1e3:.0f}mm"
+            pairs = [tumour_contrast(study, reference, k, truth, field) for k in range(len(LEVELS_N))]
+            rel[key] = [p[0] for p in pairs]
+            excess[key] = [p[1] * unit for p in pairs]
+            standout[key] = [tumour_standout(study, k, truths, which, field) for k in range(len(LEVELS_N))]
+        report[f"{name}_{label}_map_contrast"] = rel
+        report[f"{name}_{label}_map_excess_{'mN' if label == 'force' else 'kPa'}"] = excess
+        report[f"{name}_{label}_map_standout"] = standout
+    return report
+
+
+def _print_summary(result: dict) -> None:
+    print(f"precompute: flat {result['precompute_s']:.1f} s, uneven {result['uneven_precompute_s']:.1f} s; "
+          f"per call p50 {result['contact_eval_p50_us']:.1f} us, p99 {result['contact_eval_p99_us']:.1f} us")
+    for name in ("flat", "uneven"):
+        levels = result[f"{name}_levels_N"]
+        print(f"{name}: mean TSI indentation (mm) at " + ", ".join(f"{f:g}" for f in levels) + " N")
+        print("  continuum " + " ".join(f"{v:6.2f}" for v in result[f"{name}_mean_indentation_mm"]))
+        print("  winkler   " + " ".join(f"{v:6.2f}" for v in result[f"{name}_winkler_mean_indentation_mm"]))
+        print("  finite-e  " + " ".join(f"{v:6.2f}" for v in result[f"{name}_finite_strain_mean_indentation_mm"])
+              + f"   (force x{result[f'{name}_finite_strain_force_ratio_at_10mm']:.2f} at 10 mm)")
+        print("  paper     " + ", ".join(f"{k}: {v} mm" for k, v in result[f"{name}_paper_indentation_mm"].items()))
+        for label in ("force", "stiffness"):
+            for tumour, contrast in result[f"{name}_{label}_map_contrast"].items():
+                shown = [f"{f:g}" for f, c in zip(levels, contrast) if c > CONTRAST_VISIBLE]
+                print(f"  {label:9s} map, {tumour}: contrast " + " ".join(f"{c:+.2f}" for c in contrast)
+                      + f"  (shows at {', '.join(shown) or 'no'} N)")
+                standout = result[f"{name}_{label}_map_standout"][tumour]
+                print(f"  {'':9s}      {'':{len(tumour)}s}  standout " + " ".join(f"{v:5.2f}" for v in standout))
+
+
+def run(out_dir: Path) -> dict:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="tissue-cache-") as fresh:
+        flat, precompute_s = _timed_load(load_phantom("flat"), fresh)
+        uneven, uneven_precompute_s = _timed_load(load_phantom("uneven"), fresh)
+        flat_fs, flat_fs_s = _timed_load(load_phantom("flat"), fresh, finite_strain=True)
+        uneven_fs, _ = _timed_load(load_phantom("uneven"), fresh, finite_strain=True)
+    calls = np.concatenate([_per_call_us(flat), _per_call_us(uneven)])
+    result = {
+        "precompute_s": precompute_s,
+        "uneven_precompute_s": uneven_precompute_s,
+        "contact_eval_p50_us": float(np.percentile(calls, 50)),
+        "contact_eval_p99_us": float(np.percentile(calls, 99)),
+        "contact_eval_calls": int(len(calls)),
+        "flat_mesh_elements": list(flat.mesh_shape),
+        "finite_strain_precompute_s": flat_fs_s,  # on top of the tables, which it shares
+    }
+    result.update(_phantom_report("flat", flat, flat_fs))
+    result.update(_phantom_report("uneven", uneven, uneven_fs))
+    result["flat_7N_indentation_mm"] = result["flat_mean_indentation_mm"][LEVELS_N.index(7.0)]
+    result["contrast_visible_threshold"] = CONTRAST_VISIBLE
+    (out_dir / "rig.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+    _print_summary(result)
+    return result
+
+
+if __name__ == "__main__":
+    run(Path(__file__).resolve().parents[1] / "build" / "bench")

@@ -1,0 +1,80 @@
+"""On-disk cache of precomputed tissue tables, keyed by what they were computed from.
+
+One file per key. The file is a short JSON header line (format, key, payload length and SHA-256)
+followed by an ``.npz`` payload; it is written to a temporary file in the same directory and renamed
+into place, so a reader never sees a half-written file. A file that is truncated, corrupt, from
+another key or another format version is reported as a miss (and the caller recomputes and
+overwrites it): cached numbers are never trusted without their checksum.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "palpation-console/tissue-tables"
+ENV_VAR = "PALPATION_CACHE_DIR"
+
+
+def default_cache_dir() -> Path:
+    """``$PALPATION_CACHE_DIR`` if set, else the user cache directory of the application."""
+    override = os.environ.get(ENV_VAR)
+    if override:
+        return Path(override)
+    from platformdirs import user_cache_dir
+
+    return Path(user_cache_dir("palpation-console"))
+
+
+def cache_path(cache_dir: Path, key: str) -> Path:
+    return Path(cache_dir) / f"tissue-{key}.bin"
+
+
+def load(path: Path, key: str) -> dict[str, np.ndarray] | None:
+    """The arrays stored under ``key`` at ``path``, or None if absent or not trustworthy."""
+    try:
+        blob = Path(path).read_bytes()
+    except OSError:
+        return None
+    head, sep, body = blob.partition(b"\n")
+    if not sep:
+        return None
+    try:
+        header = json.loads(head.decode("utf-8"))
+        if (header.get("format") != FORMAT or header.get("key") != key or header.get("length") != len(body)
+                or header.get("sha256") != hashlib.sha256(body).hexdigest()):
+            return None
+        with np.load(io.BytesIO(body), allow_pickle=False) as npz:
+            return {name: npz[name] for name in npz.files}
+    except (ValueError, OSError, KeyError, UnicodeDecodeError, EOFError):
+        return None
+
+
+def store(path: Path, key: str, arrays: dict[str, np.ndarray]) -> None:
+    """Write atomically (temporary file + rename); a failure leaves any previous file untouched."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    body = buf.getvalue()
+    header = {"format": FORMAT, "key": key, "length": len(body), "sha256": hashlib.sha256(body).hexdigest()}
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(json.dumps(header).encode("utf-8") + b"\n")
+            fh.write(body)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise

@@ -1,0 +1,370 @@
+"""The continuum tissue model the simulated rig presses on: precomputed once per phantom, cheap per tick.
+
+Precomputation (once per phantom content, then cached on disk):
+
+1. Mesh the phantom (:func:`phantom_grid`): a hexahedral block on the table, node lines every
+   ``spacing_m`` in the plane (so every 2 mm sensor element spans whole cells), graded layers through
+   the depth, each node column stretched to the surface height above it; the inclusions are assigned
+   per Gauss point.
+2. Condense it onto the vertical displacements of the whole top surface (:mod:`.fem`), and invert to
+   the surface compliance ``C``.
+3. For every TSI pose on a lattice (x every ``spacing_m`` along the whole phantom, y within
+   ``drift_y_m`` of its mid-line), follow the exact contact path of the face descending onto the
+   nodes under it (:mod:`.contact`) and integrate the nodal forces over each 2 x 2 mm element. The
+   result is, per pose, a short table of depths at which a node touches down or lifts off and the
+   element forces and their slopes there; between those depths the response is exactly linear.
+
+Per tick, :meth:`ContinuumTissue.element_forces_N` looks up the four lattice poses around (x, y),
+evaluates each one's piecewise-linear table at the face height z, and blends them bilinearly. At the
+lattice poses the answer is the full linear-elastic contact solution; between them (the lattice is
+1 mm) it is interpolated. A TSI further than ``drift_y_m`` off the phantom's mid-line is evaluated at
+the nearest tabulated y offset (the TSI covers the phantom's whole width, so palpation never needs
+more); along x every position on or beside the phantom is tabulated.
+
+Finite strain (``MeshSettings(finite_strain=True)``, off by default): the linear model is exact only
+for small strains, and 10 mm into 25 mm is not. :mod:`.finite_strain` solves the punch on the
+phantom's homogeneous base block at finite strain (neo-Hookean) once per phantom; the ratio of its
+force to the linear force, fitted as ``1 + a s + b s^2`` in the nominal strain ``s = d / L0``, then
+scales each element's force by its own strain (its indentation since its contact onset over its
+onset height). It is a correction, not a nonlinear model: it stiffens the response as the block
+does, but it does not move the contact pattern.
+"""
+
+from __future__ import annotations
+
+import bisect
+import hashlib
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hardware.interfaces import TactileConstraints
+from hardware.sim.mechanics import cache as cache_mod
+from hardware.sim.mechanics.contact import contact_path, tributary_weights
+from hardware.sim.mechanics.fem import HexGrid, condensed_surface_stiffness, graded_levels
+from hardware.sim.mechanics.progress import Progress, stage
+from hardware.sim.phantom import Phantom
+
+log = logging.getLogger(__name__)
+
+# Bump whenever a change alters the tables computed for the same phantom and settings.
+MODEL_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MeshSettings:
+    """Discretisation of the continuum model (part of the cache key)."""
+
+    spacing_m: float = 1e-3  # in-plane node spacing; must divide the sensor pitch
+    layers: int = 11  # element layers from the table to the surface
+    top_layer_m: float = 0.5e-3  # thickness of the top layer where the surface is at the base thickness
+    drift_y_m: float = 1e-3  # y offsets of the TSI from the phantom's mid-line that are tabulated
+    finite_strain: bool = False  # scale element forces by the finite-strain stiffening (see below)
+
+    def validate(self, sensor: TactileConstraints) -> None:
+        ratio = sensor.pitch_m / self.spacing_m
+        if self.spacing_m <= 0 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(f"MeshSettings.spacing_m: {self.spacing_m:g} m must divide the sensor pitch "
+                             f"{sensor.pitch_m:g} m a whole number of times")
+        if self.layers < 2:
+            raise ValueError(f"MeshSettings.layers: need at least 2, got {self.layers}")
+        if self.top_layer_m <= 0:
+            raise ValueError(f"MeshSettings.top_layer_m: must be > 0, got {self.top_layer_m:g}")
+        if self.drift_y_m < 0:
+            raise ValueError(f"MeshSettings.drift_y_m: must be >= 0, got {self.drift_y_m:g}")
+
+
+def _line(length_m: float, spacing_m: float) -> np.ndarray:
+    n = int(math.floor(length_m / spacing_m + 1e-9))
+    pts = np.round(np.arange(n + 1) * spacing_m, 12)
+    if length_m - pts[-1] > 1e-9:
+        pts = np.append(pts, length_m)
+    return pts
+
+
+def phantom_grid(phantom: Phantom, settings: MeshSettings) -> HexGrid:
+    """The hexahedral mesh of a phantom (see the module docstring)."""
+    x = _line(phantom.length_m, settings.spacing_m)
+    y = _line(phantom.width_m, settings.spacing_m)
+    gx, gy = np.meshgrid(x, y, indexing="ij")
+    height = phantom.surface_height_m(gx, gy)
+    if np.any(height <= 0):
+        raise ValueError(f"phantom {phantom.name!r}: the surface height must be positive everywhere")
+    top_fraction = min(settings.top_layer_m / phantom.thickness_m, 1.0 / settings.layers)
+    return HexGrid(x, y, graded_levels(settings.layers, top_fraction), height)
+
+
+def phantom_material(phantom: Phantom):
+    """(E, nu) at points: the tissue's, or an inclusion's modulus inside its sphere."""
+
+    def material(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        young = np.full(points.shape[:-1], phantom.youngs_modulus_pa)
+        for inc in phantom.inclusions:
+            d2 = ((points[..., 0] - inc.x_m) ** 2 + (points[..., 1] - inc.y_m) ** 2
+                  + (points[..., 2] - inc.z_m) ** 2)
+            young = np.where(d2 <= inc.radius_m**2, inc.youngs_modulus_pa, young)
+        return young, np.full(points.shape[:-1], phantom.poisson_ratio)
+
+    return material
+
+
+def cache_key(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints, what: str = "tables") -> str:
+    """Key of the contact tables (``what="tables"``) or of the finite-strain stiffening (``"stiffening"``,
+    which depends on the phantom only)."""
+    mesh = asdict(settings)
+    mesh.pop("finite_strain")  # applied on top of the tables, not part of them
+    blob = json.dumps({
+        "what": what,
+        "phantom": phantom.content_hash(),
+        "model_version": MODEL_VERSION,
+        "mesh": mesh if what == "tables" else None,
+        "sensor": [sensor.rows, sensor.cols, sensor.pitch_m],
+    }, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:24]
+
+
+@dataclass(frozen=True)
+class _Lattice:
+    x0_m: float
+    y0_m: float
+    step_m: float
+    nx: int
+    ny: int
+
+    def centre(self, ix: int, iy: int) -> tuple[float, float]:
+        return self.x0_m + ix * self.step_m, self.y0_m + iy * self.step_m
+
+
+def _lattice(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints) -> _Lattice:
+    step = settings.spacing_m
+    half_x = sensor.size_m[0] / 2.0
+    first = math.floor((-half_x) / step + 1e-9) + 1
+    last = math.ceil((phantom.length_m + half_x) / step - 1e-9) - 1
+    mid = round(phantom.width_m / 2.0 / step)
+    span = int(math.floor(settings.drift_y_m / step + 1e-9))
+    return _Lattice(first * step, (mid - span) * step, step, last - first + 1, 2 * span + 1)
+
+
+def precompute(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints,
+               progress: Progress | None = None) -> dict[str, np.ndarray]:
+    """Every table the per-tick model needs, as plain arrays (what the cache stores)."""
+    settings.validate(sensor)
+    started = time.perf_counter()
+    if progress:
+        progress(0.0, "meshing the phantom")
+    grid = phantom_grid(phantom, settings)
+    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(phantom), progress=stage(progress, 0.0, 0.8))
+    if progress:
+        progress(0.8, "inverting the surface stiffness")
+    compliance = _spd_inverse(stiffness)
+    del stiffness
+    xs, ys = grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]
+    hs = grid.height_m[ij[:, 0], ij[:, 1]]
+    extent = (0.0, phantom.length_m, 0.0, phantom.width_m)
+    lat = _lattice(phantom, settings, sensor)
+    size_x, size_y = sensor.size_m
+    eps = 1e-9
+    t_all, f_all, g_all, onsets, offsets = [], [], [], [], [0]
+    report = stage(progress, 0.85, 0.99)
+    for ix in range(lat.nx):
+        for iy in range(lat.ny):
+            cx, cy = lat.centre(ix, iy)
+            lo = (cx - size_x / 2.0, cy - size_y / 2.0)
+            under = np.flatnonzero((xs >= lo[0] - eps) & (xs <= lo[0] + size_x + eps)
+                                   & (ys >= lo[1] - eps) & (ys <= lo[1] + size_y + eps))
+            weights = tributary_weights(xs[under], ys[under], extent, lo, sensor.pitch_m, sensor.shape)
+            carried = weights.sum(axis=0) > 0
+            under, weights = under[carried], weights[:, carried]
+            path = contact_path(compliance[np.ix_(under, under)], hs[under]).mapped(weights)
+            t_all.append(path.t)
+            f_all.append(path.f0)
+            g_all.append(path.df)
+            onsets.append(_onsets(path.t, path.f0, path.df, sensor.rows * sensor.cols))
+            offsets.append(offsets[-1] + len(path.t))
+        if report:
+            report((ix + 1) / lat.nx, "tabulating contact along the phantom")
+    n_el = sensor.rows * sensor.cols
+    return {
+        "lattice": np.array([lat.x0_m, lat.y0_m, lat.step_m, lat.nx, lat.ny], dtype=float),
+        "onset_z": np.array(onsets).reshape(-1, n_el),
+        "offsets": np.array(offsets, dtype=np.int64),
+        "t": np.concatenate(t_all) if t_all else np.zeros(0),
+        "f0": np.concatenate([f.reshape(-1, n_el) for f in f_all]),
+        "df": np.concatenate([g.reshape(-1, n_el) for g in g_all]),
+        "mesh_shape": np.array(grid.shape, dtype=np.int64),
+        "precompute_s": np.array(time.perf_counter() - started),
+    }
+
+
+def _onsets(t: np.ndarray, f0: np.ndarray, df: np.ndarray, n_el: int) -> np.ndarray:
+    """Face height at which each element first carries force along one pose's path (NaN: never)."""
+    out = np.full(n_el, np.nan)
+    if len(t) == 0:
+        return out
+    loaded = (f0 > 1e-12 * np.abs(f0).max(initial=0.0)) | (df > 1e-12 * np.abs(df).max(initial=0.0))
+    first = np.argmax(loaded, axis=0)
+    hit = loaded[first, np.arange(n_el)]
+    out[hit] = -t[first[hit]]
+    return out
+
+
+def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress | None) -> np.ndarray:
+    """[a, b, s_max]: nonlinear/linear force = 1 + a s + b s^2 fitted up to the strain s_max solved."""
+    from hardware.sim.mechanics.finite_strain import punch_on_block
+
+    # A 2 mm mesh: the force ratio differs from a 1 mm mesh's by 0.3 %, and it gets further (the face's
+    # sharp edge stops the solution where its elements shear too far).
+    curve = punch_on_block(phantom.length_m, phantom.width_m, phantom.thickness_m, phantom.youngs_modulus_pa,
+                           phantom.poisson_ratio, face_x_m=sensor.size_m[0],
+                           max_indentation_m=0.4 * phantom.thickness_m, step_m=0.04 * phantom.thickness_m,
+                           spacing_m=2e-3, layers=6, progress=progress)
+    s = curve.indentation_m[1:] / phantom.thickness_m
+    excess = curve.ratio()[1:] - 1.0
+    if len(s) < 2:
+        raise RuntimeError("the finite-strain solution did not get past its first step")
+    (a, b), *_ = np.linalg.lstsq(np.stack([s, s * s], axis=1), excess, rcond=None)
+    return np.array([a, b, s.max()])
+
+
+def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
+    if np.asarray(arrays["stiffening"]).shape != (3,):
+        raise ValueError("inconsistent cache entry")
+
+
+def _cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
+    """The arrays under ``key``: from the cache if they load and pass ``check``, else computed and stored.
+
+    An unwritable cache is logged and otherwise ignored: the model still works, it is just recomputed
+    next time."""
+    path = cache_mod.cache_path(folder, key)
+    arrays = cache_mod.load(path, key)
+    if arrays is not None:
+        try:
+            check(arrays)
+            return arrays
+        except (KeyError, ValueError, TypeError):
+            log.warning("ignoring inconsistent tissue cache %s; recomputing", path)
+    arrays = compute()
+    try:
+        cache_mod.store(path, key, arrays)
+    except OSError as err:
+        log.warning("could not write the tissue cache %s: %s", path, err)
+    return arrays
+
+
+def _spd_inverse(a: np.ndarray) -> np.ndarray:
+    import scipy.linalg as sla
+
+    chol, info = sla.lapack.dpotrf(np.asfortranarray(a), lower=1, overwrite_a=1, clean=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("the condensed surface stiffness is not positive definite")
+    inv, info = sla.lapack.dpotri(chol, lower=1, overwrite_c=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("could not invert the condensed surface stiffness")
+    return np.tril(inv) + np.tril(inv, -1).T
+
+
+class ContinuumTissue:
+    """Linear-elastic continuum phantom on a rigid table under a rigid, level TSI face.
+
+    Implements :class:`hardware.sim.tissue.TissueModel`. Build it with :meth:`load`.
+    """
+
+    def __init__(self, phantom: Phantom, sensor: TactileConstraints, tables: dict[str, np.ndarray],
+                 stiffening: np.ndarray | None = None):
+        self.phantom = phantom
+        self.sensor = sensor
+        x0, y0, step, nx, ny = (float(v) for v in tables["lattice"])
+        self._x0, self._y0, self._step = x0, y0, step
+        self._nx, self._ny = int(nx), int(ny)
+        offsets = np.asarray(tables["offsets"], dtype=np.int64)
+        t = np.asarray(tables["t"], dtype=float)
+        n_el = sensor.rows * sensor.cols
+        f0 = np.asarray(tables["f0"], dtype=float)
+        df = np.asarray(tables["df"], dtype=float)
+        if (len(offsets) != self._nx * self._ny + 1 or offsets[0] != 0 or np.any(np.diff(offsets) < 0)
+                or offsets[-1] != len(t) or f0.shape != (len(t), n_el) or df.shape != (len(t), n_el)):
+            raise ValueError("inconsistent tissue tables")
+        self._offsets = offsets.tolist()
+        self._t = [t[a:b].tolist() for a, b in zip(self._offsets[:-1], self._offsets[1:])]
+        self._f0, self._df = f0, df
+        self._onset = np.asarray(tables["onset_z"], dtype=float)
+        if self._onset.shape != (self._nx * self._ny, n_el):
+            raise ValueError("inconsistent tissue tables")
+        # (a, b) of the finite-strain factor 1 + a s + b s^2, or None for the purely linear model
+        self.stiffening = None if stiffening is None else (float(stiffening[0]), float(stiffening[1]))
+        self.precompute_s = float(tables["precompute_s"])
+        self.mesh_shape = tuple(int(v) for v in tables["mesh_shape"])
+        self._shape = sensor.shape
+
+    @classmethod
+    def load(cls, phantom: Phantom, cache_dir: str | Path | None = None, progress: Progress | None = None,
+             settings: MeshSettings | None = None, sensor: TactileConstraints | None = None) -> "ContinuumTissue":
+        """The model of ``phantom``: from the cache if a trustworthy entry exists, else computed and cached.
+
+        ``cache_dir`` defaults to ``$PALPATION_CACHE_DIR`` or the user cache directory. An unwritable
+        cache is logged and otherwise ignored: the model still works, it is just recomputed next time.
+        """
+        settings = settings or MeshSettings()
+        sensor = sensor or TactileConstraints()
+        settings.validate(sensor)
+        folder = Path(cache_dir) if cache_dir is not None else cache_mod.default_cache_dir()
+        first = stage(progress, 0.0, 0.8 if settings.finite_strain else 1.0)
+        tables = _cached(folder, cache_key(phantom, settings, sensor),
+                         lambda: precompute(phantom, settings, sensor, first), lambda t: cls(phantom, sensor, t))
+        stiffening = None
+        if settings.finite_strain:
+            second = stage(progress, 0.8, 1.0)
+            stiffening = _cached(folder, cache_key(phantom, settings, sensor, "stiffening"),
+                                 lambda: {"stiffening": _stiffening(phantom, sensor, second)},
+                                 _check_stiffening)["stiffening"]
+        if progress:
+            progress(1.0, f"tissue model of {phantom.name!r} ready")
+        return cls(phantom, sensor, tables, stiffening)
+
+    def element_forces_N(self, x_m: float, y_m: float, z_m: float) -> np.ndarray:
+        """Normal force on each TSI element, (rows, cols), for the face centred at (x, y) at height z."""
+        fx = (x_m - self._x0) / self._step
+        fy = min(max((y_m - self._y0) / self._step, 0.0), self._ny - 1.0)
+        ix = math.floor(fx)
+        iy = min(int(fy), self._ny - 2) if self._ny > 1 else 0
+        wx = fx - ix
+        wy = fy - iy if self._ny > 1 else 0.0
+        t = -z_m
+        rows, weights, steps, poses = [], [], [], []
+        for px, w_x in ((ix, 1.0 - wx), (ix + 1, wx)):
+            if w_x <= 0.0 or px < 0 or px >= self._nx:
+                continue
+            for py, w_y in ((iy, 1.0 - wy), (iy + 1, wy)):
+                if w_y <= 0.0:
+                    continue
+                pose = px * self._ny + py
+                tb = self._t[pose]
+                k = bisect.bisect_right(tb, t) - 1
+                if k >= 0:
+                    rows.append(self._offsets[pose] + k)
+                    weights.append(w_x * w_y)
+                    steps.append(t - tb[k])
+                    poses.append(pose)
+        if not rows:
+            return np.zeros(self._shape)
+        w = np.array(weights)
+        forces = np.maximum(w @ self._f0[rows] + (w * np.array(steps)) @ self._df[rows], 0.0)
+        if self.stiffening is not None:
+            onset = np.fmax.reduce(self._onset[poses], axis=0)  # neighbouring poses' onsets barely differ
+            strain = np.divide(onset - z_m, onset, out=np.zeros_like(forces), where=forces > 0)
+            a, b = self.stiffening
+            forces *= 1.0 + strain * (a + b * strain)
+        return forces.reshape(self._shape)
+
+    def total_force_N(self, x_m: float, y_m: float, z_m: float) -> float:
+        return float(self.element_forces_N(x_m, y_m, z_m).sum())
+
+    def ground_truth(self) -> list[dict[str, float]]:
+        """The phantom's inclusions (position, depth below the local surface, diameter, modulus)."""
+        return self.phantom.ground_truth()
