@@ -9,14 +9,23 @@ import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+# Tissue models are precomputed once per machine (seconds to a minute per phantom) and shared by every
+# test run; spawned controller processes inherit the variable.
 TEST_CACHE = Path(__file__).resolve().parents[1] / "build" / "test-cache"
+os.environ["PALPATION_CACHE_DIR"] = str(TEST_CACHE)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _default_tissue_model():
+    """Precompute the default phantom's tissue model up front, not inside some test's signal timeout."""
+    from app.rigs import RigSpec, prepare_rig
+
+    prepare_rig(RigSpec())
 
 
 @pytest.fixture(autouse=True)
 def _sandbox(tmp_path_factory, monkeypatch):
     base = tmp_path_factory.mktemp("sandbox")
-    # tissue models are precomputed once per machine (seconds per phantom) and shared by every test run
-    monkeypatch.setenv("PALPATION_CACHE_DIR", str(TEST_CACHE))
     monkeypatch.setenv("PALPATION_DATA_DIR", str(base / "data"))
     monkeypatch.setenv("XDG_CONFIG_HOME", str(base / "config"))
     yield
