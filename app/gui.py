@@ -1,40 +1,52 @@
-"""The console's composition root: a QApplication, the controller bridge and the live window."""
+"""The console's composition root: a QApplication, the controller bridge and the console window."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 from app.config import AppConfig
 
 
+def console_rig(config: AppConfig):
+    """The rig the interactive console drives: a simulated rig without its scripted operator, so the TSI is
+    moved by the console's jog and autopilot (real rigs are taken as configured)."""
+    if config.rig.backend == "sim":
+        return dataclasses.replace(config.rig, master="none")
+    return config.rig
+
+
 def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | None = None,
-            screenshot_after_s: float = 10.0) -> int:
+            screenshot_after_s: float = 10.0, autopilot: bool | None = None) -> int:
     """Run the console until its window closes. With ``screenshot``, save the window to that PNG after
-    ``screenshot_after_s`` seconds and quit (for docs and for looking at the GUI on a headless machine)."""
+    ``screenshot_after_s`` seconds and quit (for docs and for looking at the GUI on a headless machine).
+    ``autopilot`` starts the autopilot with the controller; by default it does so only for a screenshot,
+    so the picture shows a palpation under way. The layout and last settings are kept in the user's
+    configuration directory (:func:`widgets.live_window.console_settings`)."""
     from PySide6 import QtCore, QtWidgets
 
+    from app.autopilot import plan_for_rig
     from app.bridge import ControllerBridge
     from widgets.live_window import LiveWindow
 
+    rig = console_rig(config)
+    plan = plan_for_rig(rig, config.control)  # first: a bad phantom is a configuration error, not a crash
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(argv or sys.argv[:1])
     app.setApplicationName("Palpation Console")
     app.setOrganizationName("palpation-console")
-    bridge = ControllerBridge.for_process(config.control, config.rig)
-    window = LiveWindow(bridge, ramp=config.control.ramp)
-    window.setWindowTitle(f"Palpation Console — {config.rig.backend} rig, phantom {config.rig.phantom}")
+    bridge = ControllerBridge.for_process(config.control, rig)
+    window = LiveWindow(bridge, config=config.control, plan=plan)
+    window.setWindowTitle(f"Palpation Console — {rig.backend} rig, phantom {rig.phantom}")
+    if autopilot is None:
+        autopilot = screenshot is not None
+    if autopilot and plan is not None:
+        bridge.started.connect(lambda: window.start_autopilot(0))
 
     def failed(message: str) -> None:
         QtWidgets.QMessageBox.critical(window, "The controller could not start", message)
         app.quit()
 
-    def crashed(message: str) -> None:
-        QtWidgets.QMessageBox.critical(
-            window, "The controller stopped",
-            f"{message}\n\nThe robot was left holding (or was never commanded). Restart the console to go on.")
-
     bridge.start_failed.connect(failed)
-    bridge.crashed.connect(crashed)
-    window.resize(1280, 720)
     window.show()
     _quit_on_signals(app)
     if screenshot:
@@ -47,6 +59,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     try:
         return app.exec()
     finally:
+        window.save_settings()  # quitting does not close the window, so its closeEvent never saved them
         bridge.shutdown()
 
 

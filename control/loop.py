@@ -141,7 +141,7 @@ class ControlLoop:
                 events.append(Notice(now_s, "Impedance gains changed."))
             else:
                 sm.region = cmd.index - 1
-                events.append(Notice(now_s, f"Next region is number {cmd.index}."))
+                events.append(Notice(now_s, f"Next region is number {cmd.index + 1}."))
         elif isinstance(cmd, Jog):
             if not sm.idle:
                 self._refuse(now_s, cmd, "jog only while the operator holds position control", events)
@@ -344,6 +344,7 @@ class ControlLoop:
             if sm.phase == Phase.RETRACT and finished and abs(law.x_r[Z] - z) < 2e-4:
                 sm.retract_finished(now_s)
                 self._clutch((Z,))
+                self._xd = (self._xd[0], self._xd[1], self._x_d(Z))  # this tick's row shows the handed-back X_d
         else:
             law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), (0.0, 0.0, -self._force_N), (0.0, 0.0, f_d_z))
         result.position_ref_m = (law.x_r[0], law.x_r[1], law.x_r[2])

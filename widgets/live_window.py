@@ -1,61 +1,82 @@
-"""The minimal live window: what the operator glances at between movements.
+"""The operator console: everything the surgeon sees and touches while palpating.
 
-Left, the live pressure and stiffness maps of the TSI. Right, from top to bottom in the order of the
-Fig. 4 flowchart: the S_z switch, the phase with its level and settling error, the "region done" flag, the
-forces and the indentation, and the emergency stop. A red banner across the top carries any fault; the
-status bar carries the loop's timing health and transient messages (refused commands, timeouts).
+Layout. A red banner across the top carries any fault (and a controller that stopped). The centre holds
+the live pressure and stiffness maps of the TSI, the figures a surgeon glances at between movements. The
+right column is fixed (it cannot be closed or moved): the S_z switch, where the Fig. 4 flowchart stands
+(phase, ladder of force levels, settling error against ε, "region done"), F_d, F_ts and the TSI
+indentation depth in large figures, the contact area, centre of pressure and peak pressure, tare and the
+emergency stop. Around them, dockable panels that can be rearranged and are restored on the next run: the
+whole-tissue view, jog and autopilot, ramp settings and gains, F_d and F_ts over time with the indentation
+history, the messages pane and the loop's health. The status bar keeps one line of loop health in view.
 
-The window only talks to a controller object with ``send(command)`` and a ``snapshot(object)`` signal
-delivering :class:`control.telemetry.LiveSnapshot` at display rate; it never touches hardware.
+Data flow. The window talks to a controller object (:class:`app.bridge.ControllerBridge` or a test double)
+through ``send(command)`` and the signals ``snapshot(LiveSnapshot)`` (display rate, never per tick),
+``started()``, ``stopped()`` and ``crashed(str)``. It never touches hardware. Each snapshot updates every
+view once; views redraw only what changed. Commands are the typed dataclasses of
+:mod:`control.messages`; the window shows the state the controller reports, never the one it asked for.
+
+Settings. Dock layout and geometry, the maps' view mode and colour locks, the jog step, the whole-tissue
+choices, the autopilot's start area and the last ramp the controller accepted are stored in the given
+QSettings and restored on the next run. The restored ramp is sent to the controller when it starts, unless
+the configuration's own ramp changed since it was stored (then the configuration wins, and the messages
+pane says so). Gains are never restored: they come from the configuration.
 """
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from control.config import RampSettings
-from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised,
-                              LevelTimedOut, Notice, Phase, RegionAborted, SetSz)
+from app.autopilot import Autopilot, AutopilotError, AutopilotPlan, AutopilotState
+from control.config import ConfigError, ControlConfig, RampSettings
+from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised, Jog,
+                              LevelRecorded, LevelTimedOut, Notice, Phase, RegionAborted, SetGains, SetRamp, SetSz,
+                              Tare)
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import TactileConstraints
+from widgets.contact import ContactPanel, contact_metrics
+from widgets.flowchart import FlowchartPanel
+from widgets.health import HealthPanel, health_degraded, health_summary
+from widgets.history_plots import HistoryPlots
+from widgets.jog import AutopilotPanel, JogPanel
+from widgets.messages import MessagesPane, Severity, fault_name
+from widgets.settings_panel import GainsEditor, RampEditor
 from widgets.sz_switch import SzSwitch
-from widgets.tactile_map import TactileMapWidget
+from widgets.tactile_map import TactileMapWidget, ViewMode
+from widgets.tissue_view import WholeTissueView
 
 STATUS_MESSAGE_MS = 8000
+DEFAULT_SIZE = (1600, 1000)
+SETTINGS_VERSION = 1  # of the saved dock layout; a layout saved by another version is ignored
 # Following colour ranges start at [0, floor] (see tactile_map.auto_levels). Pressure: uniform contact at
 # F_max fills two thirds of the scale, so at low levels the map stays blue and a harder spot still has
 # colours to climb to (the paper's figures: the tumour turns dark red as the force rises). Stiffness: soft
 # tissue (1-50 kPa) reads blue to cyan, tumour-like stiffness (>= ~100 kPa) red.
 PRESSURE_FLOOR_FACTOR = 1.5
 STIFFNESS_FLOOR_PA = 100e3
+# The TSI may only be sent to a double-clicked point while it carries less than this (off the tissue).
+MOVE_TO_MAX_FORCE_N = 0.05
+_IDLE = (Phase.APPROACH, Phase.DONE)
 
-# Phase -> (headline, colour, what the operator should do now)
-_PHASES: dict[Phase, tuple[str, str, str]] = {
-    Phase.APPROACH: ("APPROACH", "#8cc0ff", "Position the TSI over the area, then switch S_z to FORCE"),
-    Phase.SEEK_CONTACT: ("SEEKING CONTACT", "#ffc37a", "Force control: lowering the TSI onto the tissue"),
-    Phase.SETTLING: ("SETTLING", "#ffc37a", "Force control: hold still while the level settles"),
-    Phase.RETRACT: ("RETRACTING", "#c8c8c8", "Lifting the TSI off the tissue"),
-    Phase.DONE: ("DONE", "#5fd35f", "Switch S_z to POSITION and move to the next area"),
-    Phase.HOLD: ("HOLD", "#ff6b6b", "A fault holds the robot: read the banner, clear it when safe"),
-}
-
-# Styled per panel, not on the window: a window-wide style sheet would stop the dark palette from reaching
-# the maps, whose plots follow the Qt palette.
-_PANEL_STYLE = """
+_SIDE_STYLE = """
 QLabel { color: #ececec; }
-QLabel#phaseLabel { font-size: 22pt; font-weight: bold; }
-QLabel#phaseHint { color: #c8c8c8; }
-QLabel#levelLabel, QLabel#rmseLabel { font-size: 14pt; }
 QLabel[class="caption"] { color: #b0b0b0; font-size: 12pt; }
 QLabel[class="readout"] { font-size: 22pt; font-weight: bold; color: #f4f4f4; }
-QLabel#regionDone { font-size: 18pt; font-weight: bold; border-radius: 6px; padding: 10px;
-                    border: 2px solid #4a4a4a; color: #707070; background: #262626; }
-QLabel#regionDone[done="true"] { color: white; background: #1f9d3a; border-color: #8ff0a4; }
-QPushButton#estopButton { font-size: 20pt; font-weight: bold; color: white; background: #c01c28;
-                          border: 3px solid #ff8a8a; border-radius: 8px; padding: 14px; }
+QLabel#indentation { font-size: 34pt; font-weight: bold; color: #e68cff; }
+QLabel[class="metric"] { font-size: 12pt; font-weight: bold; }
+QLabel#indentation[contact="false"] { font-size: 16pt; color: #808080; }
+QLabel#healthChip { border-radius: 4px; padding: 4px 6px; font-size: 10pt; }
+QLabel#healthChip[level="good"] { color: #6ee07a; border: 1px solid #2e6b36; }
+QLabel#healthChip[level="watch"] { color: #ffc37a; border: 1px solid #8a6a2e; }
+QLabel#healthChip[level="bad"] { color: white; background: #a01c28; font-weight: bold; }
+QPushButton#tareButton { font-size: 12pt; padding: 6px; color: #ececec; background: #3a3a3a;
+                         border: 1px solid #5a5a5a; border-radius: 4px; }
+QPushButton#tareButton:disabled { color: #707070; background: #2a2a2a; }
+QPushButton#estopButton { font-size: 22pt; font-weight: bold; color: white; background: #c01c28;
+                          border: 3px solid #ff8a8a; border-radius: 8px; padding: 16px; }
 QPushButton#estopButton:pressed { background: #8a0f18; }
 """
 _BANNER_STYLE = """
@@ -74,7 +95,7 @@ def _fmt(value: float, unit: str, decimals: int = 2, scale: float = 1.0) -> str:
     return f"{v * scale:.{decimals}f} {unit}" if math.isfinite(v) else "—"
 
 
-def _dark_palette() -> QtGui.QPalette:
+def dark_palette() -> QtGui.QPalette:
     palette = QtGui.QPalette()
     role, group = QtGui.QPalette.ColorRole, QtGui.QPalette.ColorGroup
     for r, colour in ((role.Window, "#1e1e1e"), (role.WindowText, "#ececec"), (role.Base, "#2a2a2a"),
@@ -87,33 +108,61 @@ def _dark_palette() -> QtGui.QPalette:
     return palette
 
 
-class LiveWindow(QtWidgets.QMainWindow):
-    """Live maps, S_z switch, phase, region-done flag, forces, indentation, e-stop and faults.
+def console_settings() -> QtCore.QSettings:
+    """Where the console keeps its settings between runs (the user's configuration directory)."""
+    return QtCore.QSettings(QtCore.QSettings.Format.IniFormat, QtCore.QSettings.Scope.UserScope,
+                            "palpation-console", "console")
 
-    ``controller`` needs ``send(command)`` and a ``snapshot`` signal carrying ``LiveSnapshot``. Child
-    objectNames: ``pressureMap``, ``stiffnessMap``, ``szSwitch``, ``phaseLabel``, ``phaseHint``,
-    ``levelLabel``, ``rmseLabel``, ``regionDone``, ``forceDesired``, ``forceMeasured``, ``indentation``,
-    ``estopButton``, ``faultBanner``, ``faultText``, ``clearFault``, ``loopHealth``.
+
+class LiveWindow(QtWidgets.QMainWindow):
+    """The console's main window (see the module docstring).
+
+    Child objectNames, besides those of the panels it is built from (``pressureMap``, ``stiffnessMap``,
+    ``szSwitch``, :class:`~widgets.flowchart.FlowchartPanel`, :class:`~widgets.settings_panel.RampEditor`,
+    :class:`~widgets.settings_panel.GainsEditor`, :class:`~widgets.jog.JogPanel`,
+    :class:`~widgets.jog.AutopilotPanel`, :class:`~widgets.tissue_view.WholeTissueView`,
+    :class:`~widgets.history_plots.HistoryPlots`, :class:`~widgets.contact.ContactPanel`,
+    :class:`~widgets.messages.MessagesPane`, :class:`~widgets.health.HealthPanel`): ``forceDesired``,
+    ``forceMeasured``, ``indentation``, ``healthChip``, ``tareButton``, ``estopButton``, ``faultBanner``, ``faultText``,
+    ``clearFault``, ``loopHealth``; docks ``controlDock``, ``tissueDock``, ``jogDock``, ``settingsDock``,
+    ``historyDock``, ``messagesDock``, ``healthDock``.
     """
 
-    def __init__(self, controller, *, ramp: RampSettings | None = None, sensor: TactileConstraints | None = None,
+    def __init__(self, controller, *, config: ControlConfig | None = None, sensor: TactileConstraints | None = None,
+                 plan: AutopilotPlan | None = None, settings: QtCore.QSettings | None = None,
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._controller = controller
+        self._config = config or ControlConfig()
         self._sensor = sensor or TactileConstraints()
-        ramp = ramp or RampSettings()
-        self._eps_N = ramp.rmse_threshold_N
+        self._settings = settings if settings is not None else console_settings()
+        self.autopilot = Autopilot(plan) if plan is not None else None
         self._texts: dict[QtWidgets.QLabel, str] = {}
         self._frame_seq: int | None = None
         self._fault_messages: dict[int, str] = {}
-        self._fault_shown: int | None = None
-        self._region_done: bool | None = None
+        self._fault_shown: tuple[int, str] | None = None
+        self._controller_failure: str | None = None
         self._health_degraded: bool | None = None
+        self._tick: np.ndarray | None = None
+        self._ramp_to_restore: RampSettings | None = None
+        self._controller_running = False
 
-        self.setWindowTitle("Palpation Console — live")
-        self.setPalette(_dark_palette())
+        self.setWindowTitle("Palpation Console")
+        screen = QtGui.QGuiApplication.primaryScreen()
+        room = screen.availableGeometry().size() if screen is not None else QtCore.QSize(*DEFAULT_SIZE)
+        # until a saved geometry says otherwise
+        self.resize(min(DEFAULT_SIZE[0], room.width()), min(DEFAULT_SIZE[1], room.height()))
+        self.setPalette(dark_palette())
         self.setAutoFillBackground(True)
+        self.setDockOptions(QtWidgets.QMainWindow.DockOption.AnimatedDocks
+                            | QtWidgets.QMainWindow.DockOption.AllowTabbedDocks)
+        for corner, area in ((QtCore.Qt.Corner.TopRightCorner, QtCore.Qt.DockWidgetArea.RightDockWidgetArea),
+                             (QtCore.Qt.Corner.BottomRightCorner, QtCore.Qt.DockWidgetArea.RightDockWidgetArea),
+                             (QtCore.Qt.Corner.TopLeftCorner, QtCore.Qt.DockWidgetArea.LeftDockWidgetArea),
+                             (QtCore.Qt.Corner.BottomLeftCorner, QtCore.Qt.DockWidgetArea.LeftDockWidgetArea)):
+            self.setCorner(corner, area)
 
+        ramp = self._config.ramp
         pitch_m = self._sensor.pitch_m
         self._pressure = TactileMapWidget("Pressure", pitch_m=pitch_m, auto_floor_pa=self._pressure_floor_pa(ramp),
                                           no_data_text="no sensor frame yet")
@@ -121,84 +170,110 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._stiffness = TactileMapWidget("Stiffness (Eq. 1)", pitch_m=pitch_m, auto_floor_pa=STIFFNESS_FLOOR_PA,
                                            no_data_text="no contact")
         self._stiffness.setObjectName("stiffnessMap")
-        maps = QtWidgets.QVBoxLayout()
+        central = QtWidgets.QWidget(objectName="maps")
+        maps = QtWidgets.QVBoxLayout(central)
+        maps.setContentsMargins(2, 2, 2, 2)
         maps.addWidget(self._pressure, 1)
         maps.addWidget(self._stiffness, 1)
-
-        central = QtWidgets.QWidget()
-        outer = QtWidgets.QVBoxLayout(central)
-        outer.addWidget(self._build_fault_banner())
-        body = QtWidgets.QHBoxLayout()
-        body.addLayout(maps, 1)
-        body.addWidget(self._build_side_panel())
-        outer.addLayout(body, 1)
         self.setCentralWidget(central)
+
+        self._build_banner()
+        self._build_control_dock()
+        self._build_docks()
+        self._build_menu()
 
         self._health = QtWidgets.QLabel("loop: waiting for the controller's first report", objectName="loopHealth")
         self._health.setStyleSheet(_HEALTH_STYLE)
         self.statusBar().addPermanentWidget(self._health)
-
-        # Window context: an application-wide Esc would become ambiguous (and fire nowhere) as soon as a
-        # second window registers the same key.
-        estop = QtGui.QShortcut(QtGui.QKeySequence(QtCore.Qt.Key.Key_Escape), self)
-        estop.setContext(QtCore.Qt.ShortcutContext.WindowShortcut)
-        estop.activated.connect(self._estop)
+        self._build_shortcuts()
+        self._default_state = self.saveState(SETTINGS_VERSION)
+        self._restore_settings()
 
         controller.snapshot.connect(self.show_snapshot)
+        controller.started.connect(self._on_started)
+        controller.stopped.connect(self._on_stopped)
+        controller.crashed.connect(self._on_crashed)
+        self._messages.add("Console ready; waiting for the controller to start.")
+        self._update_controls()
 
     # ---- construction --------------------------------------------------------------------------------
 
-    def _build_fault_banner(self) -> QtWidgets.QFrame:
+    def _build_banner(self) -> None:
+        # A toolbar spans the whole window above every dock: the banner cannot be covered or missed.
+        self._banner_bar = QtWidgets.QToolBar("Fault", objectName="faultBar")
+        self._banner_bar.setMovable(False)
+        self._banner_bar.setFloatable(False)
+        self._banner_bar.toggleViewAction().setVisible(False)
         self._fault_banner = QtWidgets.QFrame(objectName="faultBanner")
         self._fault_banner.setStyleSheet(_BANNER_STYLE)
+        self._fault_banner.setSizePolicy(QtWidgets.QSizePolicy.Policy.Expanding,
+                                         QtWidgets.QSizePolicy.Policy.Preferred)
         self._fault_text = QtWidgets.QLabel("", objectName="faultText", wordWrap=True)
-        clear = QtWidgets.QPushButton("Clear fault", objectName="clearFault")
-        clear.setToolTip("Release the hold once the cause is gone")
-        clear.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)  # a deliberate click, never a stray Space
-        clear.clicked.connect(lambda: self._controller.send(ClearFault()))
+        self._clear_fault = QtWidgets.QPushButton("Clear fault", objectName="clearFault")
+        self._clear_fault.setToolTip("Release the hold once the cause is gone")
+        self._clear_fault.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)  # a deliberate click, never a stray Space
+        self._clear_fault.clicked.connect(lambda: self._send(ClearFault()))
         row = QtWidgets.QHBoxLayout(self._fault_banner)
         row.addWidget(self._fault_text, 1)
-        row.addWidget(clear)
-        self._fault_banner.hide()
-        return self._fault_banner
+        row.addWidget(self._clear_fault)
+        self._banner_bar.addWidget(self._fault_banner)
+        self.addToolBar(QtCore.Qt.ToolBarArea.TopToolBarArea, self._banner_bar)
+        self._banner_bar.hide()
 
-    def _build_side_panel(self) -> QtWidgets.QWidget:
+    def _build_control_dock(self) -> None:
         panel = QtWidgets.QWidget(objectName="sidePanel")
-        panel.setStyleSheet(_PANEL_STYLE)
-        panel.setFixedWidth(340)
+        panel.setStyleSheet(_SIDE_STYLE)
         col = QtWidgets.QVBoxLayout(panel)
-        col.setContentsMargins(8, 0, 0, 0)
+        col.setContentsMargins(8, 4, 8, 8)
+        col.setSpacing(6)
 
         self._sz = SzSwitch()
-        self._sz.toggled.connect(lambda position_control: self._controller.send(SetSz(position_control)))
+        self._sz.toggled.connect(lambda position_control: self._send(SetSz(position_control)))
         col.addWidget(self._sz)
-        col.addSpacing(14)
-
-        self._phase = QtWidgets.QLabel("—", objectName="phaseLabel")
-        self._phase_hint = QtWidgets.QLabel("waiting for the controller", objectName="phaseHint", wordWrap=True)
-        self._level = QtWidgets.QLabel("", objectName="levelLabel")
-        self._rmse = QtWidgets.QLabel("", objectName="rmseLabel")
-        for w in (self._phase, self._phase_hint, self._level, self._rmse):
-            col.addWidget(w)
-        col.addSpacing(10)
-
-        self._region_done_label = QtWidgets.QLabel("region not done", objectName="regionDone")
-        self._region_done_label.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
-        col.addWidget(self._region_done_label)
-        col.addSpacing(10)
+        col.addSpacing(8)
+        self._flow = FlowchartPanel(self._config.ramp)
+        col.addWidget(self._flow)
+        col.addSpacing(8)
 
         grid = QtWidgets.QGridLayout()
+        grid.setVerticalSpacing(2)
         self._force_desired = self._readout(grid, 0, "F_d (desired)", "forceDesired")
         self._force_measured = self._readout(grid, 1, "F_ts (measured)", "forceMeasured")
-        self._indentation = self._readout(grid, 2, "TSI indentation", "indentation")
         col.addLayout(grid)
+        caption = QtWidgets.QLabel("TSI indentation depth")
+        caption.setProperty("class", "caption")
+        self._indentation = QtWidgets.QLabel("—", objectName="indentation")
+        self._indentation.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
+        col.addWidget(caption)
+        col.addWidget(self._indentation)
+        col.addSpacing(6)
+        self._contact = ContactPanel()
+        col.addWidget(self._contact)
         col.addStretch(1)
+        self._health_chip = QtWidgets.QLabel("loop: no report yet", objectName="healthChip")
+        self._health_chip.setToolTip("Loop health and the age of each device's newest reading; details in the "
+                                     "Loop health panel")
+        self._health_chip.setProperty("level", "watch")
+        col.addWidget(self._health_chip)
 
+        self._tare = QtWidgets.QPushButton("Tare sensor", objectName="tareButton")
+        self._tare.setToolTip("Take the current reading as zero (only with the TSI off the tissue)")
+        self._tare.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)
+        self._tare.setEnabled(False)
+        self._tare.clicked.connect(lambda: self._send(Tare()))
+        col.addWidget(self._tare)
         estop = QtWidgets.QPushButton("STOP   (Esc)", objectName="estopButton")
         estop.setToolTip("Emergency stop: hold the robot where it is")
+        estop.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)
         estop.clicked.connect(self._estop)
         col.addWidget(estop)
-        return panel
+
+        dock = QtWidgets.QDockWidget("Control", objectName="controlDock")
+        dock.setWidget(panel)
+        dock.setFeatures(QtWidgets.QDockWidget.DockWidgetFeature.NoDockWidgetFeatures)
+        dock.setTitleBarWidget(QtWidgets.QWidget())  # nothing to drag, nothing to close
+        dock.setFixedWidth(350)
+        self.addDockWidget(QtCore.Qt.DockWidgetArea.RightDockWidgetArea, dock)
 
     @staticmethod
     def _readout(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str) -> QtWidgets.QLabel:
@@ -211,136 +286,454 @@ class LiveWindow(QtWidgets.QMainWindow):
         grid.addWidget(value, row, 1)
         return value
 
+    def _dock(self, title: str, name: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea
+              ) -> QtWidgets.QDockWidget:
+        dock = QtWidgets.QDockWidget(title, objectName=name)
+        dock.setWidget(widget)
+        dock.setFeatures(QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetClosable
+                         | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
+                         | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+        self.addDockWidget(area, dock)
+        self._docks.append(dock)
+        return dock
+
+    def _build_docks(self) -> None:
+        cfg = self._config
+        left, bottom = QtCore.Qt.DockWidgetArea.LeftDockWidgetArea, QtCore.Qt.DockWidgetArea.BottomDockWidgetArea
+        self._docks: list[QtWidgets.QDockWidget] = []
+        plan = self.autopilot.plan if self.autopilot is not None else None
+
+        self._tissue = WholeTissueView(
+            self._sensor, min_indentation_m=cfg.contact.min_indentation_m,
+            pressure_floor_pa=self._pressure_floor_pa(cfg.ramp), stiffness_floor_pa=STIFFNESS_FLOOR_PA,
+            extent_m=plan.phantom_extent_m if plan is not None else None,
+            areas=tuple((a.x_m, a.y_m) for a in plan.areas) if plan is not None else ())
+        self._tissue.move_requested.connect(self._move_to)
+        tissue_dock = self._dock("Whole tissue", "tissueDock", self._tissue, left)
+
+        self._jog = JogPanel(cfg.master.jog_speed_m_s)
+        self._jog.jog_requested.connect(lambda dx, dy, dz: self._send(Jog((dx, dy, dz))))
+        self._autopilot_panel = AutopilotPanel(len(plan.areas) if plan is not None else 0)
+        self._autopilot_panel.start_requested.connect(self.start_autopilot)
+        self._autopilot_panel.stop_requested.connect(self._stop_autopilot)
+        jog_page = QtWidgets.QWidget()
+        jog_layout = QtWidgets.QVBoxLayout(jog_page)
+        jog_layout.setContentsMargins(0, 0, 0, 0)
+        jog_layout.addWidget(self._jog)
+        jog_layout.addWidget(self._autopilot_panel)
+        jog_layout.addStretch(1)
+        jog_dock = self._dock("Jog and autopilot", "jogDock", jog_page, left)
+
+        self._ramp_editor = RampEditor(cfg.ramp)
+        self._ramp_editor.apply_requested.connect(lambda ramp: self._send(SetRamp(ramp)))
+        self._gains_editor = GainsEditor(cfg.gains)
+        self._gains_editor.apply_requested.connect(lambda gains: self._send(SetGains(gains)))
+        settings_page = QtWidgets.QWidget()
+        settings_layout = QtWidgets.QVBoxLayout(settings_page)
+        settings_layout.setContentsMargins(0, 0, 0, 0)
+        for title, editor in (("Ramp (Fig. 4)", self._ramp_editor), ("Impedance gains (Eq. 2)", self._gains_editor)):
+            box = QtWidgets.QGroupBox(title)
+            QtWidgets.QVBoxLayout(box).addWidget(editor)
+            settings_layout.addWidget(box)
+        settings_layout.addStretch(1)
+        scroll = QtWidgets.QScrollArea()
+        scroll.setWidgetResizable(True)
+        scroll.setWidget(settings_page)
+        settings_dock = self._dock("Ramp and gains", "settingsDock", scroll, left)
+
+        self._history = HistoryPlots(force_max_N=cfg.ramp.force_max_N,
+                                     depth_limit_m=cfg.safety.indentation_ceiling_m)
+        history_dock = self._dock("Force and depth history", "historyDock", self._history, bottom)
+        self._messages = MessagesPane()
+        messages_dock = self._dock("Messages", "messagesDock", self._messages, bottom)
+        self._health_panel = HealthPanel(cfg.safety, cfg.rate_hz)
+        health_dock = self._dock("Loop health", "healthDock", self._health_panel, bottom)
+
+        self.tabifyDockWidget(jog_dock, settings_dock)
+        jog_dock.raise_()
+        self.splitDockWidget(history_dock, messages_dock, QtCore.Qt.Orientation.Horizontal)
+        self.tabifyDockWidget(messages_dock, health_dock)
+        messages_dock.raise_()
+        self.resizeDocks([tissue_dock, jog_dock], [470, 360], QtCore.Qt.Orientation.Vertical)
+        self.resizeDocks([tissue_dock], [400], QtCore.Qt.Orientation.Horizontal)
+        self.resizeDocks([history_dock, messages_dock], [560, 420], QtCore.Qt.Orientation.Horizontal)
+        self.resizeDocks([history_dock], [320], QtCore.Qt.Orientation.Vertical)
+
+    def _build_menu(self) -> None:
+        view = self.menuBar().addMenu("&View")
+        for dock in self._docks:
+            view.addAction(dock.toggleViewAction())
+        view.addSeparator()
+        reset = view.addAction("Restore the default layout")
+        reset.setObjectName("resetLayout")
+        reset.triggered.connect(self.reset_layout)
+
+    def _build_shortcuts(self) -> None:
+        # Window context: an application-wide key would become ambiguous (and fire nowhere) as soon as a
+        # second window registers it.
+        def shortcut(key, slot) -> None:
+            s = QtGui.QShortcut(QtGui.QKeySequence(key), self)
+            s.setContext(QtCore.Qt.ShortcutContext.WindowShortcut)
+            s.activated.connect(slot)
+
+        Key = QtCore.Qt.Key
+        shortcut(Key.Key_Escape, self._estop)
+        for key, name in ((Key.Key_Up, "jogXPlus"), (Key.Key_Down, "jogXMinus"), (Key.Key_Left, "jogYMinus"),
+                          (Key.Key_Right, "jogYPlus"), (Key.Key_PageUp, "jogZPlus"), (Key.Key_PageDown, "jogZMinus")):
+            shortcut(key, lambda n=name: self._jog.step(n))
+
+    # ---- settings ------------------------------------------------------------------------------------
+
+    def _restore_settings(self) -> None:
+        s = self._settings
+        geometry = s.value("window/geometry")
+        if isinstance(geometry, QtCore.QByteArray):
+            self.restoreGeometry(geometry)
+        state = s.value("window/state")
+        if isinstance(state, QtCore.QByteArray):
+            self.restoreState(state, SETTINGS_VERSION)
+        for key, tmap in (("pressure", self._pressure), ("stiffness", self._stiffness)):
+            mode = s.value(f"maps/{key}/mode")
+            if mode in (m.value for m in ViewMode):
+                tmap.set_view_mode(ViewMode(mode))
+            tmap.set_iso_lines(_bool(s.value(f"maps/{key}/iso"), tmap.iso_lines()))
+            locked = s.value(f"maps/{key}/locked_pa")
+            if locked:
+                try:
+                    low, high = (float(v) for v in json.loads(locked))
+                    tmap.lock_levels(low, high)
+                except (TypeError, ValueError):
+                    self._messages.add(f"Ignored the saved colour range of the {key} map: {locked!r}",
+                                       Severity.WARNING)
+        step = s.value("jog/step_mm")
+        if step is not None:
+            try:
+                self._jog.set_step_mm(float(step))
+            except (TypeError, ValueError):
+                pass  # a step size this version does not offer: keep the default
+        quantity = s.value("tissue/quantity")
+        if quantity is not None:
+            try:
+                self._tissue.set_quantity(str(quantity))
+            except ValueError:
+                pass
+        first = s.value("autopilot/first_area")
+        if first is not None and self.autopilot is not None:
+            try:
+                self._autopilot_panel.set_first_area(int(first))
+            except (TypeError, ValueError):
+                pass
+        self._restore_ramp()
+        self._banner_bar.hide()  # a layout saved while a fault showed must not bring back its banner
+
+    def _restore_ramp(self) -> None:
+        s = self._settings
+        saved, base = s.value("ramp/applied"), s.value("ramp/config")
+        if not saved:
+            return
+        try:
+            ramp = RampSettings.from_mapping(json.loads(saved))
+            config_then = RampSettings.from_mapping(json.loads(base)) if base else None
+        except (ConfigError, TypeError, ValueError) as err:
+            self._messages.add(f"The ramp saved by the last run was ignored: {err}", Severity.WARNING)
+            return
+        if ramp == self._config.ramp:
+            return
+        if config_then != self._config.ramp:
+            self._messages.add("The configuration's ramp changed since the last run, so the ramp applied then "
+                               "is not restored.", Severity.INFO)
+            return
+        self._ramp_to_restore = ramp
+        self._ramp_editor.show_ramp(ramp)
+
+    def save_settings(self) -> None:
+        s = self._settings
+        s.setValue("window/geometry", self.saveGeometry())
+        s.setValue("window/state", self.saveState(SETTINGS_VERSION))
+        for key, tmap in (("pressure", self._pressure), ("stiffness", self._stiffness)):
+            s.setValue(f"maps/{key}/mode", tmap.view_mode().value)
+            s.setValue(f"maps/{key}/iso", tmap.iso_lines())
+            s.setValue(f"maps/{key}/locked_pa", json.dumps(list(tmap.levels_pa())) if tmap.is_locked() else "")
+        s.setValue("jog/step_mm", self._jog.step_m() * 1e3)
+        s.setValue("tissue/quantity", self._tissue.quantity())
+        if self.autopilot is not None:
+            s.setValue("autopilot/first_area", self._autopilot_panel.first_area())
+        applied = self._ramp_editor.applied()
+        if applied != self._config.ramp:
+            s.setValue("ramp/applied", json.dumps(applied.to_mapping()))
+            s.setValue("ramp/config", json.dumps(self._config.ramp.to_mapping()))
+        else:
+            s.remove("ramp")
+        s.sync()
+
+    def reset_layout(self) -> None:
+        self.restoreState(self._default_state, SETTINGS_VERSION)
+        self._banner_bar.setVisible(self._fault_shown is not None and self._fault_shown[0] != 0)
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:
+        self.save_settings()
+        super().closeEvent(event)
+
     # ---- public API ----------------------------------------------------------------------------------
 
     def set_ramp(self, ramp: RampSettings) -> None:
-        """The ramp now in force: eps for the RMSE readout, F_max for the pressure map's colour range."""
-        self._eps_N = ramp.rmse_threshold_N
+        """The ramp now in force: ε for the flowchart, F_max for the force plot and the pressure colour range."""
+        self._flow.set_ramp(ramp)
+        self._history.set_force_max_N(ramp.force_max_N)
         self._pressure.set_auto_floor_pa(self._pressure_floor_pa(ramp))
 
     @QtCore.Slot(object)
     def show_snapshot(self, snapshot: LiveSnapshot) -> None:
         """Update every view from one snapshot; only what changed is redrawn (called at ~60 Hz)."""
+        if self._ramp_to_restore is not None and self._controller_running:
+            ramp, self._ramp_to_restore = self._ramp_to_restore, None
+            self._messages.add(f"Restoring the ramp applied in the last run: {ramp.force_min_N:g} to "
+                               f"{ramp.force_max_N:g} N in {ramp.force_step_N:g} N steps.")
+            self._ramp_editor.request(ramp)
         for event in snapshot.events:
             self._handle_event(event)
         tick = snapshot.tick
-        self._show_phase(tick)
-        self._sz.set_state(int(tick["sz"]) == 1)
-        self._show_region_done(bool(tick["region_done"]))
-        self._set_text(self._force_desired, _fmt(tick["force_desired_N"], "N"))
-        self._set_text(self._force_measured, _fmt(tick["force_measured_N"], "N"))
-        self._set_text(self._indentation, _fmt(tick["indentation_m"], "mm", decimals=1, scale=1e3))
-        self._show_fault(int(tick["fault"]))
-        if snapshot.health is not None:
-            self._show_health(snapshot.health)
+        if self._tick is None:  # the first tick is t = 0 for the operator
+            self._messages.set_time_origin(float(snapshot.ticks[0]["t_s"]) if len(snapshot.ticks)
+                                           else float(tick["t_s"]))
+        self._tick = tick
+        if self.autopilot is not None:
+            for command in self.autopilot.update(tick, snapshot.events):
+                self._send(command)
+        self._show_tick(tick)
+        self._history.add_ticks(snapshot.ticks)
+        self._history.refresh()
         frame = snapshot.frame
         if frame is not None and int(frame["sensor_seq"]) != self._frame_seq:
             self._frame_seq = int(frame["sensor_seq"])
-            self._pressure.set_data(frame["pressure_pa"])
-            self._stiffness.set_data(frame["stiffness_pa"])
+            self._show_frame(frame)
+        if snapshot.health is not None:
+            self._show_health(snapshot.health)
+        self._tissue.refresh()
 
-    # ---- internals -----------------------------------------------------------------------------------
+    def messages(self) -> MessagesPane:
+        return self._messages
 
-    def _pressure_floor_pa(self, ramp: RampSettings) -> float:
-        face_m2 = self._sensor.rows * self._sensor.cols * self._sensor.element_area_m2
-        return PRESSURE_FLOOR_FACTOR * ramp.force_max_N / face_m2
+    def latest_tick(self) -> np.ndarray | None:
+        """The newest tick row shown (None before the first snapshot)."""
+        return self._tick
+
+    # ---- controller ----------------------------------------------------------------------------------
+
+    def _send(self, command) -> None:
+        self._controller.send(command)
 
     def _estop(self) -> None:
-        self._controller.send(EStop())
+        self._send(EStop())
+        if self.autopilot is not None and self.autopilot.running:
+            # Its move-cancelling jog is not sent: the loop refuses jogs in HOLD, and clearing the fault
+            # drops whatever jog was left.
+            self.autopilot.stop("emergency stop")
 
-    def _set_text(self, label: QtWidgets.QLabel, text: str) -> None:
-        if self._texts.get(label) != text:
-            self._texts[label] = text
-            label.setText(text)
+    @QtCore.Slot()
+    def _on_started(self) -> None:
+        self._controller_running = True
+        self._controller_failure = None
+        self._messages.add("Controller running.", Severity.OK)
+
+    @QtCore.Slot()
+    def _on_stopped(self) -> None:
+        self._controller_running = False
+        self._messages.add("Controller stopped.")
+
+    @QtCore.Slot(str)
+    def _on_crashed(self, message: str) -> None:
+        self._controller_running = False
+        self._controller_failure = message
+        if self.autopilot is not None and self.autopilot.running:
+            self.autopilot.stop("the controller stopped")
+        self._messages.add(f"CONTROLLER STOPPED: {message}", Severity.ERROR)
+        self._show_fault(int(FaultKind.CONTROLLER))
+        self._update_controls()
+
+    def start_autopilot(self, first_area: int = 0) -> None:
+        """Start the autopilot at area ``first_area`` (0-based); why it cannot goes to the messages pane."""
+        if self.autopilot is None:
+            self._messages.add("Autopilot not started: this rig has no phantom file to plan the areas from",
+                               Severity.WARNING)
+            return
+        try:
+            self._send_all(self.autopilot.start(first_area))
+        except AutopilotError as err:
+            self._messages.add(f"Autopilot not started: {err}", Severity.WARNING)
+            return
+        self._messages.add(f"Autopilot started at area {first_area + 1} of {len(self.autopilot.plan.areas)}.")
+        self._update_controls()
+
+    def _stop_autopilot(self) -> None:
+        if self.autopilot is not None and self.autopilot.running:
+            self._send_all(self.autopilot.stop())
+            self._update_controls()
+
+    def _send_all(self, commands) -> None:
+        for command in commands:
+            self._send(command)
+
+    def _move_to(self, x_m: float, y_m: float) -> None:
+        """Double-click on the whole-tissue view: move the TSI there at its current height."""
+        tick = self._tick
+        if not self._jog.available() or tick is None:
+            self.statusBar().showMessage("The TSI cannot be moved from here now: "
+                                         f"{self._jog_unavailable(tick) or 'no reading yet'}", STATUS_MESSAGE_MS)
+            return
+        if float(tick["force_measured_N"]) > MOVE_TO_MAX_FORCE_N:
+            self.statusBar().showMessage("Lift the TSI off the tissue before moving it across", STATUS_MESSAGE_MS)
+            return
+        x_des = tick["x_des_m"]
+        self._send(Jog((x_m - float(x_des[0]), y_m - float(x_des[1]), 0.0)))
+        self._messages.add(f"Moving the TSI to x {x_m * 1e3:.1f} mm, y {y_m * 1e3:.1f} mm.")
+
+    # ---- events --------------------------------------------------------------------------------------
 
     def _handle_event(self, event) -> None:
+        self._messages.add_event(event)
         if isinstance(event, FaultRaised):
             self._fault_messages[int(event.kind)] = event.message
             self._fault_shown = None  # re-render the banner with the new text
         elif isinstance(event, FaultCleared):
             self._fault_messages.pop(int(event.kind), None)
+        elif isinstance(event, LevelRecorded):
+            self._history.mark_recorded(event.record.t_s, event.record.force_measured_N)
+            self._tissue.add_record(event.record)
         elif isinstance(event, CommandRefused):
             self.statusBar().showMessage(f"{event.command} refused: {event.reason}", STATUS_MESSAGE_MS)
+            if event.command == "SetRamp":
+                self._ramp_editor.refuse(event.reason)
+            elif event.command == "SetGains":
+                self._gains_editor.refuse(event.reason)
         elif isinstance(event, LevelTimedOut):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
         elif isinstance(event, RegionAborted):
-            self.statusBar().showMessage(f"region {event.region} aborted: {event.reason}", STATUS_MESSAGE_MS)
+            self.statusBar().showMessage(f"Region {event.region + 1} aborted: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, Notice):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
+            # The loop confirms settings with a notice; a refusal would have come as CommandRefused.
+            if event.message.startswith("Ramp set") and self._ramp_editor.pending() is not None:
+                self._ramp_editor.confirm()
+                self.set_ramp(self._ramp_editor.applied())
+            elif event.message.startswith("Impedance gains"):
+                self._gains_editor.confirm()
 
-    def _show_phase(self, tick: np.ndarray) -> None:
-        raw = int(tick["phase"])
-        try:
-            phase = Phase(raw)
-        except ValueError:
-            self._set_text(self._phase, f"unknown phase {raw}")
-            self._set_text(self._phase_hint, "the controller reported a phase this console does not know")
+    # ---- display -------------------------------------------------------------------------------------
+
+    def _show_tick(self, tick: np.ndarray) -> None:
+        self._flow.show_tick(tick)
+        self._sz.set_state(int(tick["sz"]) == 1)
+        self._set_text(self._force_desired, _fmt(tick["force_desired_N"], "N"))
+        self._set_text(self._force_measured, _fmt(tick["force_measured_N"], "N"))
+        self._show_indentation(float(tick["indentation_m"]))
+        if self._controller_failure is None:
+            self._show_fault(int(tick["fault"]))
+        self._health_panel.show_ages(tick)
+        self._show_health_chip()
+        position = tick["x_slave_m"]
+        self._jog.set_position(position)
+        self._tissue.set_tsi_position(float(position[0]), float(position[1]))
+        self._update_controls()
+
+    def _show_indentation(self, depth_m: float) -> None:
+        contact = math.isfinite(depth_m)
+        self._set_text(self._indentation, f"{depth_m * 1e3:.1f} mm" if contact else "no contact")
+        if self._indentation.property("contact") != contact:
+            self._indentation.setProperty("contact", contact)
+            self._indentation.style().unpolish(self._indentation)
+            self._indentation.style().polish(self._indentation)
+
+    def _show_frame(self, frame: np.ndarray) -> None:
+        pressure = frame["pressure_pa"]
+        self._pressure.set_data(pressure)
+        self._stiffness.set_data(frame["stiffness_pa"])
+        metrics = contact_metrics(pressure, self._config.contact.confirm_threshold_pa, self._sensor)
+        self._contact.show_metrics(metrics, frame["tsi_position_m"])
+        self._pressure.set_marker_m(metrics.centre_m)
+
+    def _jog_unavailable(self, tick: np.ndarray | None) -> str | None:
+        if self._controller_failure is not None:
+            return "the controller is not running"
+        if tick is None:
+            return "waiting for the controller"
+        if not math.isnan(float(tick["master_age_s"])):
+            return "a master device is attached: move the TSI with it"
+        if int(tick["fault"]) != 0:
+            return "a fault holds the robot"
+        if self.autopilot is not None and self.autopilot.running:
+            return "the autopilot is driving the TSI"
+        phase = int(tick["phase"])
+        if phase not in _IDLE:
+            return "the TSI moves only between areas (S_z = position, not during a ramp)"
+        return None
+
+    def _update_controls(self) -> None:
+        tick = self._tick
+        reason = self._jog_unavailable(tick)
+        self._jog.set_unavailable(reason)
+        idle = tick is not None and int(tick["phase"]) in _IDLE and int(tick["fault"]) == 0
+        self._tare.setEnabled(idle and self._controller_failure is None)
+        if self.autopilot is None:
+            self._autopilot_panel.show_state("unavailable", "this rig has no phantom file to plan the areas from",
+                                             can_start=False)
             return
-        headline, colour, hint = _PHASES[phase]
-        if self._texts.get(self._phase) != headline:
-            self._phase.setStyleSheet(f"color: {colour};")
-        self._set_text(self._phase, headline)
-        self._set_text(self._phase_hint, hint)
-
-        level, n_levels = int(tick["level"]), int(tick["n_levels"])
-        if phase == Phase.DONE and n_levels > 0:
-            level_text = f"all {n_levels} levels recorded"
-        elif level >= 0 and n_levels > 0:
-            level_text = f"level {level + 1} of {n_levels}"
-        else:
-            level_text = ""
-        self._set_text(self._level, level_text)
-
-        rmse = float(tick["rmse_N"])
-        if phase == Phase.SETTLING and math.isfinite(rmse):
-            settled = rmse < self._eps_N
-            text = f"RMSE {rmse:.3f} N {'<' if settled else '≥'} ε {self._eps_N:.3f} N"
-            colour = "#5fd35f" if settled else "#ffc37a"
-            if self._texts.get(self._rmse) != text:
-                self._rmse.setStyleSheet(f"color: {colour};")
-            self._set_text(self._rmse, text)
-        else:
-            self._set_text(self._rmse, "")
-
-    def _show_region_done(self, done: bool) -> None:
-        if done == self._region_done:
-            return
-        self._region_done = done
-        label = self._region_done_label
-        label.setText("REGION DONE\nmove to the next area" if done else "region not done")
-        label.setProperty("done", done)
-        label.style().unpolish(label)
-        label.style().polish(label)
+        ap = self.autopilot
+        blocked = reason if reason and ap.state is not AutopilotState.RUNNING else None
+        message = ap.message if ap.state is not AutopilotState.IDLE or blocked is None else blocked
+        self._autopilot_panel.show_state(ap.state.value, message, can_start=blocked is None)
 
     def _show_fault(self, fault: int) -> None:
-        if fault == self._fault_shown:
+        message = self._controller_failure if fault == FaultKind.CONTROLLER else self._fault_messages.get(fault)
+        key = (fault, message or "")
+        if key == self._fault_shown:
             return
-        self._fault_shown = fault
+        self._fault_shown = key
         if fault == 0:
-            self._fault_banner.hide()
+            self._banner_bar.hide()
             return
-        message = self._fault_messages.get(fault)
-        self._fault_text.setText(f"FAULT: {_fault_name(fault)}" + (f" — {message}" if message else ""))
-        self._fault_banner.show()
+        if fault == FaultKind.CONTROLLER:
+            text = (f"CONTROLLER STOPPED — {message}. The robot was left holding (or was never commanded); "
+                    "restart the console to go on.")
+        else:
+            text = f"FAULT: {fault_name(fault)}" + (f" — {message}" if message else "")
+        self._fault_text.setText(text)
+        self._clear_fault.setVisible(fault != FaultKind.CONTROLLER)
+        self._banner_bar.show()
+
+    def _show_health_chip(self) -> None:
+        level, text = self._health_panel.overall()
+        self._set_text(self._health_chip, text)
+        if self._health_chip.property("level") != level:
+            self._health_chip.setProperty("level", level)
+            self._health_chip.style().unpolish(self._health_chip)
+            self._health_chip.style().polish(self._health_chip)
 
     def _show_health(self, health: LoopHealth) -> None:
-        text = (f"loop {health.rate_hz:.0f} Hz · late > 0.5 ms: {health.late_over_0_5ms_pct:.2f} % · "
-                f"p99 jitter {health.p99_abs_jitter_us:.0f} µs · missed {health.missed_ticks} · "
-                f"longest stall {health.longest_stall_ms:.1f} ms · "
-                + ("real-time priority" if health.rt_priority else "no real-time priority")
-                + (f" · CPU {health.cpu}" if health.cpu is not None else "")
-                + (f" · {health.warning}" if health.warning else ""))
-        self._set_text(self._health, text)
-        degraded = bool(health.warning) or health.late_over_0_5ms_pct > 1.0
+        self._health_panel.show_health(health)
+        self._show_health_chip()
+        self._set_text(self._health, health_summary(health))
+        degraded = health_degraded(health)
         if degraded != self._health_degraded:
             self._health_degraded = degraded
             self._health.setProperty("degraded", degraded)
             self._health.style().unpolish(self._health)
             self._health.style().polish(self._health)
 
+    def _pressure_floor_pa(self, ramp: RampSettings) -> float:
+        face_m2 = self._sensor.rows * self._sensor.cols * self._sensor.element_area_m2
+        return PRESSURE_FLOOR_FACTOR * ramp.force_max_N / face_m2
 
-def _fault_name(kind: int) -> str:
-    try:
-        return FaultKind(kind).name.replace("_", " ").lower()
-    except ValueError:
-        return f"fault {kind}"
+    def _set_text(self, label: QtWidgets.QLabel, text: str) -> None:
+        if self._texts.get(label) != text:
+            self._texts[label] = text
+            label.setText(text)
+
+
+def _bool(value, default: bool) -> bool:
+    """QSettings' INI files give booleans back as the strings "true" / "false"."""
+    if value is None:
+        return default
+    if isinstance(value, bool):
+        return value
+    return str(value).lower() == "true"

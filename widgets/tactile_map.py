@@ -21,11 +21,13 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from scipy import ndimage
 
 from control.telemetry import COLS, ROWS
-from widgets.colormaps import CONTOUR_COLORMAP, CONTOUR_LUT, NO_DATA_RGB
+from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.colour_image import ColourImageItem
 
 UPSAMPLE = 8  # contour pixels per element along each axis
+MARKER_ARM_MM = 1.6
 _KPA_PER_PA = 1e-3
-_SPIN_LIMIT_KPA = 1e5
+_SPIN_LIMIT_KPA = 1e4  # ten times the stiffness of a hard tumour; the spin boxes stay narrow
 
 
 class ViewMode(enum.Enum):
@@ -140,7 +142,8 @@ class TactileMapWidget(QtWidgets.QWidget):
 
     Child objectNames: ``title``, ``maxLabel``, ``cellsButton``, ``contourButton``, ``isoLines``,
     ``lockRange``, ``levelMin``, ``levelMax``, ``levelError``, ``plot``; graphics items in the plot's scene:
-    ``mapImage``, ``cellGrid``, ``isoCurves``, ``noDataText``, ``colorBar``.
+    ``mapImage`` (a :class:`~widgets.colour_image.ColourImageItem`), ``cellGrid``, ``isoCurves``, ``noDataText``,
+    ``colorBar``; the marker is :meth:`marker_m`.
     """
 
     def __init__(self, title: str, *, pitch_m: float = 2e-3, auto_floor_pa: float = 10e3,
@@ -156,7 +159,7 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._locked = False
         self._data_kpa = np.full((ROWS, COLS), np.nan, dtype=np.float32)
         self._max_text = ""
-        self._shown_shape: tuple[int, ...] = ()
+        self._marker_at: tuple[int, int] | None = None
         self._no_data_text = no_data_text
 
         pitch_mm = pitch_m * 1e3
@@ -179,12 +182,13 @@ class TactileMapWidget(QtWidgets.QWidget):
     def _build_controls(self, title: str) -> None:
         self._title = QtWidgets.QLabel(title, objectName="title")
         font = self._title.font()
-        font.setPointSizeF(font.pointSizeF() * 1.35)
+        font.setPointSizeF(font.pointSizeF() * 1.3)
         font.setBold(True)
         self._title.setFont(font)
         self._max_label = QtWidgets.QLabel("", objectName="maxLabel")
         self._max_label.setFont(font)
-        self._max_label.setMinimumWidth(QtGui.QFontMetrics(font).horizontalAdvance("max 000.0 kPa  "))
+        # room for the widest reading, so a changing maximum never re-lays out the bar
+        self._max_label.setMinimumWidth(QtGui.QFontMetrics(font).horizontalAdvance("max 000.0 kPa"))
 
         # Radio buttons: their checked state reads at a glance in any palette, unlike flat tool buttons.
         self._cells = QtWidgets.QRadioButton("Cells", objectName="cellsButton", checked=True)
@@ -198,11 +202,11 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._cells.toggled.connect(lambda on: on and self.set_view_mode(ViewMode.CELLS))
         self._contour.toggled.connect(lambda on: on and self.set_view_mode(ViewMode.CONTOUR))
 
-        self._iso = QtWidgets.QCheckBox("Iso-lines", objectName="isoLines", enabled=False)
+        self._iso = QtWidgets.QCheckBox("Iso", objectName="isoLines", enabled=False)
         self._iso.setToolTip("Lines of equal value at round steps of the colour range (contour view)")
         self._iso.toggled.connect(self._render)
 
-        self._lock = QtWidgets.QCheckBox("Lock range", objectName="lockRange")
+        self._lock = QtWidgets.QCheckBox("Lock", objectName="lockRange")
         self._lock.setToolTip("Keep the colour range fixed instead of following the data")
         self._lock.toggled.connect(self._lock_toggled)
         self._min_spin = self._make_spin("levelMin", "Lowest value of the colour range")
@@ -214,7 +218,7 @@ class TactileMapWidget(QtWidgets.QWidget):
         bar = QtWidgets.QHBoxLayout()
         bar.setContentsMargins(0, 0, 0, 0)
         bar.addWidget(self._title)
-        bar.addSpacing(12)
+        bar.addSpacing(8)
         bar.addWidget(self._max_label)
         bar.addStretch(1)
         bar.addWidget(self._cells)
@@ -231,6 +235,7 @@ class TactileMapWidget(QtWidgets.QWidget):
     def _make_spin(self, name: str, tip: str) -> QtWidgets.QDoubleSpinBox:
         spin = QtWidgets.QDoubleSpinBox(objectName=name, enabled=False)
         spin.setRange(-_SPIN_LIMIT_KPA, _SPIN_LIMIT_KPA)
+        spin.setMaximumWidth(QtGui.QFontMetrics(spin.font()).horizontalAdvance("-0000.0 kPa") + 30)
         spin.setDecimals(1)
         spin.setSuffix(" kPa")
         spin.setKeyboardTracking(False)  # apply on Enter / focus-out, not on every keystroke
@@ -261,15 +266,7 @@ class TactileMapWidget(QtWidgets.QWidget):
             axis.setTickFont(tick_font)
             item.setLabel(side, label)
 
-        no_data = QtWidgets.QGraphicsRectItem(self._rect)
-        no_data.setBrush(pg.mkBrush(NO_DATA_RGB))
-        no_data.setPen(pg.mkPen(None))
-        no_data.setZValue(-10)
-        view.addItem(no_data, ignoreBounds=True)
-
-        self._image = pg.ImageItem(axisOrder="row-major")
-        self._image.setLookupTable(CONTOUR_LUT)
-        self._image.setAutoDownsample(False)
+        self._image = ColourImageItem()  # NaN is coloured no-data grey in the image itself
         self._image.setObjectName("mapImage")
         view.addItem(self._image)
 
@@ -294,6 +291,25 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._no_data_label.setZValue(10)
         self._no_data_label.setObjectName("noDataText")
         view.addItem(self._no_data_label, ignoreBounds=True)
+
+        # A cross with a dark outline under a light core reads on every colour of the scale. Plain path
+        # items: moving one costs a fraction of what a ScatterPlotItem costs to paint.
+        arm = MARKER_ARM_MM
+        cross = QtGui.QPainterPath()
+        cross.moveTo(-arm, 0.0)
+        cross.lineTo(arm, 0.0)
+        cross.moveTo(0.0, -arm)
+        cross.lineTo(0.0, arm)
+        self._markers = []
+        for z, colour, width in ((11, (20, 20, 20), 5.0), (12, (255, 255, 255), 2.0)):
+            marker = QtWidgets.QGraphicsPathItem(cross)
+            pen = pg.mkPen(colour, width=width)
+            pen.setCosmetic(True)
+            marker.setPen(pen)
+            marker.setZValue(z)
+            marker.hide()
+            view.addItem(marker, ignoreBounds=True)
+            self._markers.append(marker)
 
         self._bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=CONTOUR_COLORMAP, label="kPa", interactive=False,
                                     colorMapMenu=False, width=18)
@@ -347,6 +363,30 @@ class TactileMapWidget(QtWidgets.QWidget):
         data[~np.isfinite(data)] = np.nan
         self._data_kpa = data
         self._render()
+
+    def set_marker_m(self, point_m: tuple[float, float] | None) -> None:
+        """Mark a point of the face, (x, y) in m from the TSI centre (e.g. the centre of pressure); None hides it."""
+        if point_m is None:
+            if self._marker_at is not None:
+                self._marker_at = None
+                for marker in self._markers:
+                    marker.hide()
+            return
+        x_mm, y_mm = point_m[0] * 1e3, point_m[1] * 1e3
+        at = (round(x_mm * 20), round(y_mm * 20))  # move it only after 0.05 mm
+        if at == self._marker_at:
+            return
+        self._marker_at = at
+        for marker in self._markers:
+            marker.setPos(y_mm, x_mm)  # y runs across the screen, x up it
+            marker.show()
+
+    def marker_m(self) -> tuple[float, float] | None:
+        """The marked point (x, y) in m, or None."""
+        if self._marker_at is None:
+            return None
+        pos = self._markers[0].pos()
+        return pos.y() * 1e-3, pos.x() * 1e-3
 
     def data_pa(self) -> np.ndarray:
         """The array last shown, in Pa (NaN where there is no data)."""
@@ -458,11 +498,7 @@ class TactileMapWidget(QtWidgets.QWidget):
         if not self._locked:
             self._levels_kpa_follow()
         image = data if self._mode == ViewMode.CELLS else self._upsample(data, valid, any_valid)
-        if image.shape == self._shown_shape:
-            self._image.setImage(image, autoLevels=False, levels=self._levels_kpa)
-        else:  # the rect maps pixels to mm, so it must follow a change of resolution
-            self._image.setImage(image, autoLevels=False, levels=self._levels_kpa, rect=self._rect)
-            self._shown_shape = image.shape
+        self._image.set_data(image, self._levels_kpa, self._rect)
 
         if any_valid:
             text = f"max {float(data[valid].max()):.1f} kPa"

@@ -1,22 +1,38 @@
+"""The console window against a scripted controller: exact snapshots in, exact readouts and commands out.
+
+The fast-forward tests (test_console.py) show the same window working against the real loop; these pin
+down what each figure shows for a given tick, event or frame.
+"""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from PySide6 import QtCore, QtWidgets
 
-from control.config import RampSettings
-from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised, Phase,
-                              SetSz)
+from app.autopilot import Area, AutopilotPlan
+from control.config import ControlConfig, RampSettings, SafetyLimits
+from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised, Jog,
+                              LevelRecord, LevelRecorded, Notice, Phase, SetRamp, SetSz)
 from control.telemetry import LiveSnapshot, LoopHealth, empty_frame, empty_tick
+from hardware.interfaces import TactileConstraints
+from widgets.flowchart import LevelLadder
+from widgets.health import HealthPanel
+from widgets.history_plots import HistoryPlots
 from widgets.live_window import LiveWindow
+from widgets.messages import MessagesPane
 from widgets.sz_switch import SzSwitch
-from widgets.tactile_map import TactileMapWidget
+from widgets.tactile_map import TactileMapWidget, ViewMode
+from widgets.tissue_view import WholeTissueView
 
 
 class FakeController(QtCore.QObject):
-    """The two members LiveWindow uses of app.bridge.ControllerBridge."""
+    """The members LiveWindow uses of app.bridge.ControllerBridge."""
 
     snapshot = QtCore.Signal(object)
+    started = QtCore.Signal()
+    stopped = QtCore.Signal()
+    crashed = QtCore.Signal(str)
 
     def __init__(self):
         super().__init__()
@@ -29,6 +45,11 @@ class FakeController(QtCore.QObject):
 def make_tick(**fields):
     tick = empty_tick()
     tick["sz"] = 1
+    tick["x_des_m"] = tick["x_slave_m"] = (0.036, 0.015, 0.06)
+    tick["master_age_s"] = np.nan  # no master device: the console jogs
+    tick["sensor_age_s"] = 0.004
+    tick["slave_age_s"] = 0.001
+    tick["force_measured_N"] = 0.0
     for name, value in fields.items():
         tick[name] = value
     return tick
@@ -37,6 +58,7 @@ def make_tick(**fields):
 def make_frame(seq=1, peak_pa=30e3):
     frame = empty_frame()
     frame["sensor_seq"] = seq
+    frame["tsi_position_m"] = (0.036, 0.015, 0.027)
     i, j = np.meshgrid(np.arange(4), np.arange(15), indexing="ij")
     frame["pressure_pa"] = 1e3 + peak_pa * np.exp(-((i - 1.5) ** 2 + (j - 9.0) ** 2 / 3.0))
     stiffness = np.full((4, 15), 25e3, dtype=np.float32)
@@ -45,8 +67,26 @@ def make_frame(seq=1, peak_pa=30e3):
     return frame
 
 
+def make_record(region=0, level=0, force=1.0, x=0.012):
+    p = np.full((4, 15), 5e3)
+    return LevelRecord(region=region, level=level, t_s=2.0 + level, force_desired_N=force, force_measured_N=force,
+                       rmse_N=0.02, settle_time_s=0.6, tsi_position_m=(x, 0.015, 0.024),
+                       indentation_m=1e-3 * (1 + level),
+                       pressure_pa=p, element_force_N=p * 4e-6, onset_height_m=np.full((4, 15), 0.025),
+                       L0_m=np.full((4, 15), 0.025), dL_m=np.full((4, 15), 1e-3 * (1 + level)),
+                       stiffness_pa=np.full((4, 15), 40e3))
+
+
 HEALTH = LoopHealth(rate_hz=999.6, late_over_0_5ms_pct=0.42, p99_abs_jitter_us=41.0, missed_ticks=3,
                     longest_stall_ms=4.5, rt_priority=False, cpu=1)
+PLAN = AutopilotPlan((Area(0, 0.004, 0.015, 0.028), Area(1, 0.012, 0.015, 0.028)), travel_z_m=0.045,
+                     jog_speed_m_s=0.01, phantom_extent_m=(0.0, 0.072, 0.0, 0.030))
+CONFIG = ControlConfig(ramp=RampSettings(rmse_threshold_N=0.1))
+
+
+@pytest.fixture
+def settings(tmp_path):
+    return QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
 
 
 @pytest.fixture
@@ -54,16 +94,20 @@ def controller():
     return FakeController()
 
 
-@pytest.fixture
-def window(qtbot, controller):
-    win = LiveWindow(controller, ramp=RampSettings(rmse_threshold_N=0.1))
+def open_window(qtbot, controller, settings, **kwargs) -> LiveWindow:
+    kwargs.setdefault("config", CONFIG)
+    win = LiveWindow(controller, settings=settings, **kwargs)
     qtbot.addWidget(win)
-    win.resize(1300, 800)
     win.show()
     qtbot.waitExposed(win)
     win.activateWindow()
     qtbot.waitUntil(win.isActiveWindow)
     return win
+
+
+@pytest.fixture
+def window(qtbot, controller, settings):
+    return open_window(qtbot, controller, settings, plan=PLAN)
 
 
 def push(controller, tick, frame=None, events=(), health=None):
@@ -88,11 +132,13 @@ def test_readouts_follow_the_snapshot(window, controller):
     push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, force_desired_N=3.0,
                                force_measured_N=2.968, rmse_N=0.042, indentation_m=2.4e-3))
     assert label(window, "phaseLabel").text() == "SETTLING"
-    assert label(window, "levelLabel").text() == "level 3 of 7"
+    assert label(window, "levelLabel").text() == "level 3 of 7: F_d 3.00 N"
     assert label(window, "rmseLabel").text() == "RMSE 0.042 N < ε 0.100 N"
     assert label(window, "forceDesired").text() == "3.00 N"
     assert label(window, "forceMeasured").text() == "2.97 N"
     assert label(window, "indentation").text() == "2.4 mm"
+    ladder = window.findChild(LevelLadder, "levelLadder")
+    assert ladder.recorded() == 2 and ladder.current() == 2  # levels 1 and 2 recorded, 3 settling
 
     push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, rmse_N=0.25))
     assert label(window, "rmseLabel").text() == "RMSE 0.250 N ≥ ε 0.100 N"
@@ -100,22 +146,27 @@ def test_readouts_follow_the_snapshot(window, controller):
     push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, rmse_N=0.25))
     assert label(window, "rmseLabel").text() == "RMSE 0.250 N < ε 0.300 N"
 
-    push(controller, make_tick(phase=Phase.APPROACH))  # no contact, outside the ramp
+    push(controller, make_tick(phase=Phase.RETRACT, level=-1, n_levels=7))  # ended early: an abort
+    assert label(window, "levelLabel").text() == "2 of 7 recorded, not finished"
+    assert ladder.recorded() == 2 and ladder.current() is None
+    push(controller, make_tick(phase=Phase.APPROACH))
     assert label(window, "phaseLabel").text() == "APPROACH"
-    assert label(window, "levelLabel").text() == "" and label(window, "rmseLabel").text() == ""
-    assert label(window, "indentation").text() == "—"
+    assert label(window, "rmseLabel").text() == "ε 0.300 N"
+    assert label(window, "indentation").text() == "no contact"
 
 
 def test_region_done_is_unmistakable(window, controller):
     done = label(window, "regionDone")
     push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=6, n_levels=7))
     assert done.property("done") is False and "REGION DONE" not in done.text()
-    push(controller, make_tick(phase=Phase.DONE, sz=0, region_done=1, level=6, n_levels=7))
+    push(controller, make_tick(phase=Phase.DONE, sz=1, region_done=1, level=-1, n_levels=7))
     assert done.property("done") is True and "REGION DONE" in done.text()
     assert label(window, "phaseLabel").text() == "DONE"
     assert label(window, "levelLabel").text() == "all 7 levels recorded"
-    push(controller, make_tick(phase=Phase.APPROACH, region_done=0))
+    assert window.findChild(LevelLadder, "levelLadder").recorded() == 7
+    push(controller, make_tick(phase=Phase.SEEK_CONTACT, sz=0, region_done=0, level=0, n_levels=7))
     assert done.property("done") is False
+    assert window.findChild(LevelLadder, "levelLadder").recorded() == 0
 
 
 def test_sz_switch_sends_a_request_and_shows_only_the_reported_state(qtbot, window, controller):
@@ -129,33 +180,14 @@ def test_sz_switch_sends_a_request_and_shows_only_the_reported_state(qtbot, wind
     assert switch.state() is True and position.property("active") is True and force.property("active") is False
     qtbot.mouseClick(force, QtCore.Qt.MouseButton.LeftButton)
     assert controller.sent == [SetSz(position_control=False)]
-    # The click alone changes nothing but the "pending" mark: the controller has not confirmed it.
-    assert switch.state() is True and position.property("active") is True
-    assert switch.pending() is False and force.property("pending") is True
-    push(controller, make_tick(sz=1))
-    assert switch.state() is True and switch.pending() is False
-
+    assert switch.state() is True and force.property("pending") is True
     push(controller, make_tick(sz=0, phase=Phase.SEEK_CONTACT))
-    assert switch.state() is False and switch.pending() is None
-    assert force.property("active") is True and force.property("pending") is False
-    qtbot.mouseClick(force, QtCore.Qt.MouseButton.LeftButton)  # already in force control: no request
-    assert controller.sent == [SetSz(position_control=False)]
+    assert switch.state() is False and switch.pending() is None and force.property("active") is True
 
     qtbot.keyClick(window, QtCore.Qt.Key.Key_S)
     assert controller.sent[-1] == SetSz(position_control=True)
     qtbot.keyClick(window, QtCore.Qt.Key.Key_Space)  # Space must not toggle S_z next to a robot
     assert len(controller.sent) == 2
-
-
-def test_unconfirmed_request_lapses(qtbot, controller):
-    switch = SzSwitch(pending_timeout_ms=50)
-    qtbot.addWidget(switch)
-    switch.set_state(True)
-    with qtbot.waitSignal(switch.toggled) as request:
-        qtbot.mouseClick(switch.findChild(QtWidgets.QPushButton, "szForce"), QtCore.Qt.MouseButton.LeftButton)
-    assert request.args == [False] and switch.pending() is False
-    qtbot.waitUntil(lambda: switch.pending() is None, timeout=5000)
-    assert switch.state() is True
 
 
 def test_emergency_stop_from_button_and_escape(qtbot, window, controller):
@@ -165,7 +197,7 @@ def test_emergency_stop_from_button_and_escape(qtbot, window, controller):
     assert controller.sent == [EStop(), EStop()]
 
 
-def test_fault_banner_shows_the_message_and_clears(qtbot, window, controller):
+def test_fault_banner_shows_the_explanation_and_clears(qtbot, window, controller):
     banner = window.findChild(QtWidgets.QFrame, "faultBanner")
     assert not banner.isVisible()
     message = "F_ts 12.4 N exceeded the 12.0 N ceiling; robot held"
@@ -174,6 +206,7 @@ def test_fault_banner_shows_the_message_and_clears(qtbot, window, controller):
     assert banner.isVisible()
     assert label(window, "faultText").text() == f"FAULT: force ceiling — {message}"
     assert label(window, "phaseLabel").text() == "HOLD"
+    assert window.messages().severities()[-1] == "error" and message in window.messages().lines()[-1]
     qtbot.mouseClick(button(window, "clearFault"), QtCore.Qt.MouseButton.LeftButton)
     assert controller.sent == [ClearFault()]
     push(controller, make_tick(phase=Phase.HOLD, fault=FaultKind.FORCE_CEILING))  # still held
@@ -185,7 +218,17 @@ def test_fault_banner_shows_the_message_and_clears(qtbot, window, controller):
     assert banner.isVisible() and label(window, "faultText").text() == "FAULT: sensor stale"
 
 
-def test_maps_show_new_frames_only(window, controller):
+def test_a_stopped_controller_is_shown_as_a_fault_that_cannot_be_cleared(window, controller):
+    push(controller, make_tick())
+    controller.crashed.emit("The controller process stopped unexpectedly (killed by SIGKILL)")
+    banner = window.findChild(QtWidgets.QFrame, "faultBanner")
+    assert banner.isVisible() and "CONTROLLER STOPPED" in label(window, "faultText").text()
+    assert "SIGKILL" in label(window, "faultText").text()
+    assert not button(window, "clearFault").isVisible()
+    assert not button(window, "tareButton").isEnabled() and not button(window, "jogXPlus").isEnabled()
+
+
+def test_maps_show_new_frames_only_with_the_contact_figures(window, controller):
     pressure = window.findChild(TactileMapWidget, "pressureMap")
     stiffness = window.findChild(TactileMapWidget, "stiffnessMap")
     assert np.isnan(pressure.data_pa()).all()  # before the first frame: no data, not zeros
@@ -195,6 +238,15 @@ def test_maps_show_new_frames_only(window, controller):
     shown_stiffness = stiffness.data_pa()
     assert np.isnan(shown_stiffness[:, :3]).all()
     np.testing.assert_allclose(shown_stiffness[:, 3:], 25e3, rtol=1e-6)
+    # every element is above the 900 Pa confirm threshold: the whole face is in contact
+    assert label(window, "contactArea").text() == "240 mm²  (60 el.)"
+    assert label(window, "peakPressure").text() == f"{frame['pressure_pa'].max() / 1e3:.1f} kPa"
+    p = frame["pressure_pa"].astype(float)
+    offsets = TactileConstraints().element_offsets_m()
+    expected = (p[..., None] * offsets).sum(axis=(0, 1)) / p.sum()
+    assert pressure.marker_m() == pytest.approx(tuple(expected), abs=0.05e-3)  # the cross sits at the centre
+    assert expected[1] > 2e-3  # pulled towards the hot spot at column 9 of 15
+    assert "on the tissue" in label(window, "centreOfPressure").text()
 
     same_seq = make_frame(seq=5, peak_pa=90e3)  # a snapshot repeating the frame it already showed
     push(controller, make_tick(), frame=same_seq)
@@ -204,11 +256,16 @@ def test_maps_show_new_frames_only(window, controller):
     np.testing.assert_allclose(pressure.data_pa(), newer["pressure_pa"], rtol=1e-6)
 
 
-def test_loop_health_and_messages_reach_the_status_bar(window, controller):
+def test_loop_health_reaches_the_status_bar_and_the_panel(window, controller):
     health = label(window, "loopHealth")
     push(controller, make_tick(), health=HEALTH)
     assert "1000 Hz" in health.text() and "0.42 %" in health.text() and "missed 3" in health.text()
     assert health.property("degraded") is False
+    panel = window.findChild(HealthPanel)
+    assert label(window, "rtPriority").text() == "no, CPU 1" and panel.level("rtPriority") == "watch"
+    assert panel.level("loopRate") == "good" and panel.level("lateTicks") == "good"
+    assert label(window, "masterAge").text() == "none attached"
+    assert label(window, "sensorAge").text() == "4 ms  (limit 60 ms)" and panel.level("sensorAge") == "good"
     warned = LoopHealth(**{**{f: getattr(HEALTH, f) for f in HEALTH.__slots__},
                            "warning": "SCHED_FIFO not permitted"})
     push(controller, make_tick(), health=warned)
@@ -216,6 +273,160 @@ def test_loop_health_and_messages_reach_the_status_bar(window, controller):
 
     push(controller, make_tick(), events=[CommandRefused(3.0, "SetSz", "a fault holds the robot")])
     assert window.statusBar().currentMessage() == "SetSz refused: a fault holds the robot"
+    assert window.messages().lines()[-1].endswith("Refused SetSz: a fault holds the robot")
+
+
+def test_device_ages_turn_red_past_the_safety_timeouts(controller, settings):
+    panel = HealthPanel(SafetyLimits())
+    tick = make_tick(sensor_age_s=0.08, slave_age_s=0.007, master_age_s=0.01)
+    panel.show_ages(tick)
+    assert panel.level("sensorAge") == "bad" and panel.level("slaveAge") == "watch"
+    assert panel.level("masterAge") == "good"
+
+
+def test_messages_carry_timestamps_from_the_first_tick(window, controller):
+    push(controller, make_tick(t_s=100.0))
+    push(controller, make_tick(t_s=102.5), events=[Notice(102.5, "Tactile sensor tared: the current reading "
+                                                                 "is the new zero.")])
+    line = window.messages().lines()[-1]
+    assert "t    2.50 s" in line and "Tactile sensor tared" in line
+    assert line[:8].count(":") == 2  # the wall-clock time it arrived, HH:MM:SS
+
+
+def test_level_records_fill_the_history_and_the_whole_tissue_view(window, controller):
+    push(controller, make_tick(t_s=1.0))
+    push(controller, make_tick(t_s=3.0), events=[LevelRecorded(3.0, make_record(level=0, force=1.0)),
+                                                 LevelRecorded(4.0, make_record(level=1, force=2.0))])
+    tissue = window.findChild(WholeTissueView)
+    assert tissue.record_count() == 2 and tissue.level_force_N() == 2.0
+    assert np.isfinite(tissue.shown_values()).any()
+    markers = window.findChild(HistoryPlots)._recorded.getData()
+    assert list(markers[1]) == [1.0, 2.0]
+
+
+def test_keyboard_jog_moves_along_the_map_axes_only_when_allowed(qtbot, window, controller):
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Up)
+    assert controller.sent == []  # no tick yet: unknown whether a master is attached
+    push(controller, make_tick(phase=Phase.APPROACH))
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Up)
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Right)
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_PageDown)
+    assert controller.sent == [Jog((1e-3, 0.0, 0.0)), Jog((0.0, 1e-3, 0.0)), Jog((0.0, 0.0, -1e-3))]
+    reason = label(window, "jogReason")
+    push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=0, n_levels=7))
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Left)
+    assert len(controller.sent) == 3 and "between areas" in reason.text()
+    push(controller, make_tick(phase=Phase.APPROACH, master_age_s=0.002))
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Left)
+    assert len(controller.sent) == 3 and "master device" in reason.text()
+
+
+def test_invalid_ramp_is_refused_with_the_reason_and_never_sent(qtbot, window, controller):
+    f_min = window.findChild(QtWidgets.QDoubleSpinBox, "force_min_N")
+    apply = button(window, "rampApply")
+    summary = label(window, "rampSummary")
+    assert summary.text().startswith("7 levels: 1, 2, 3")
+    f_min.setValue(8.0)
+    assert not apply.isEnabled()
+    assert summary.text() == "Refused — F_max: must be >= F_min (8 N), got 7"
+    qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
+    assert controller.sent == []
+    f_min.setValue(0.0)
+    assert summary.text() == "Refused — F_min: must be > 0, got 0"
+    f_min.setValue(2.0)
+    assert apply.isEnabled() and summary.text() == "6 levels: 2, 3, 4, 5, 6, 7 N"
+    qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
+    assert controller.sent == [SetRamp(RampSettings(force_min_N=2.0, rmse_threshold_N=0.1))]
+    status = label(window, "rampStatus")
+    push(controller, make_tick(), events=[CommandRefused(1.0, "SetRamp", "settings can change only between regions")])
+    assert status.text() == "Not applied — the controller refused: settings can change only between regions"
+    assert window.findChild(LevelLadder, "levelLadder").forces() == [1, 2, 3, 4, 5, 6, 7]
+
+
+def test_gains_are_shown_locked_and_sent_only_once_unlocked(qtbot, window, controller):
+    k_z = window.findChild(QtWidgets.QDoubleSpinBox, "stiffness_N_m_z")
+    apply = button(window, "gainsApply")
+    assert k_z.value() == 1600.0 and not k_z.isEnabled() and not apply.isEnabled()
+    qtbot.mouseClick(window.findChild(QtWidgets.QCheckBox, "gainsUnlock"), QtCore.Qt.MouseButton.LeftButton)
+    assert k_z.isEnabled()
+    k_z.setValue(0.0)
+    assert label(window, "gainsSummary").text() == "Refused — K_d z: must be > 0, got 0"
+    assert not apply.isEnabled()
+    k_z.setValue(2000.0)
+    qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
+    sent = controller.sent[-1]
+    assert sent.gains.stiffness_N_m == (1600.0, 1600.0, 2000.0)
+    assert not k_z.isEnabled()  # locked again at once
+    push(controller, make_tick(), events=[Notice(1.0, "Impedance gains changed.")])
+    assert label(window, "gainsStatus").text() == "Applied."
+
+
+def test_layout_and_settings_are_restored_on_the_next_run(qtbot, controller, settings):
+    first = open_window(qtbot, controller, settings, plan=PLAN)
+    first.findChild(TactileMapWidget, "pressureMap").set_view_mode(ViewMode.CONTOUR)
+    first.findChild(TactileMapWidget, "stiffnessMap").lock_levels(0.0, 150e3)
+    first.findChild(QtWidgets.QDockWidget, "messagesDock").close()
+    first.findChild(QtWidgets.QComboBox, "jogStep").setCurrentIndex(4)  # 5 mm
+    first.findChild(WholeTissueView).set_quantity("stiffness_pa")
+    # a ramp the controller accepted
+    first.findChild(QtWidgets.QDoubleSpinBox, "force_max_N").setValue(3.0)
+    qtbot.mouseClick(button(first, "rampApply"), QtCore.Qt.MouseButton.LeftButton)
+    push(controller, make_tick(), events=[Notice(1.0, "Ramp set: 1 to 3 N ...")])
+    assert first.findChild(LevelLadder, "levelLadder").forces() == [1, 2, 3]
+    first.close()
+
+    second_controller = FakeController()
+    second = open_window(qtbot, second_controller, settings, plan=PLAN)
+    assert second.findChild(TactileMapWidget, "pressureMap").view_mode() == ViewMode.CONTOUR
+    stiffness = second.findChild(TactileMapWidget, "stiffnessMap")
+    assert stiffness.is_locked() and stiffness.levels_pa() == pytest.approx((0.0, 150e3))
+    assert not second.findChild(QtWidgets.QDockWidget, "messagesDock").isVisible()
+    assert second.findChild(QtWidgets.QComboBox, "jogStep").currentText() == "5 mm"
+    assert second.findChild(WholeTissueView).quantity() == "stiffness_pa"
+    # the accepted ramp is asked for again once the controller runs, and shown once it is confirmed
+    assert second_controller.sent == []
+    second_controller.started.emit()
+    push(second_controller, make_tick())
+    assert second_controller.sent == [SetRamp(RampSettings(force_max_N=3.0, rmse_threshold_N=0.1))]
+
+
+def test_a_changed_configuration_wins_over_the_restored_ramp(qtbot, controller, settings):
+    first = open_window(qtbot, controller, settings)
+    first.findChild(QtWidgets.QDoubleSpinBox, "force_max_N").setValue(3.0)
+    qtbot.mouseClick(button(first, "rampApply"), QtCore.Qt.MouseButton.LeftButton)
+    push(controller, make_tick(), events=[Notice(1.0, "Ramp set: 1 to 3 N ...")])
+    first.close()
+    second_controller = FakeController()
+    edited = ControlConfig(ramp=RampSettings(force_max_N=5.0))  # the configuration file changed meanwhile
+    second = open_window(qtbot, second_controller, settings, config=edited)
+    second_controller.started.emit()
+    push(second_controller, make_tick())
+    assert second_controller.sent == []
+    assert any("configuration's ramp changed" in line for line in second.messages().lines())
+
+
+def test_autopilot_panel_starts_and_stops_and_says_why_it_cannot(qtbot, window, controller):
+    start, stop = button(window, "autopilotStart"), button(window, "autopilotStop")
+    status = label(window, "autopilotStatus")
+    assert not start.isEnabled() and "waiting for the controller" in status.text()
+    push(controller, make_tick(phase=Phase.APPROACH))
+    assert start.isEnabled() and not stop.isEnabled()
+    window.findChild(QtWidgets.QSpinBox, "autopilotFirst").setValue(2)
+    qtbot.mouseClick(start, QtCore.Qt.MouseButton.LeftButton)
+    push(controller, make_tick(phase=Phase.APPROACH))
+    # area 2 of the plan at the travel height: one jog from X_d
+    assert controller.sent == [Jog(pytest.approx((0.012 - 0.036, 0.0, 0.045 - 0.06)))]
+    assert stop.isEnabled() and "moving above area 2 of 2" in status.text()
+    assert not button(window, "jogXPlus").isEnabled()  # the autopilot owns the TSI
+    qtbot.mouseClick(stop, QtCore.Qt.MouseButton.LeftButton)
+    assert "stopped by the operator" in status.text() and button(window, "jogXPlus").isEnabled()
+
+
+def test_without_a_plan_the_autopilot_is_unavailable(qtbot, controller, settings):
+    win = open_window(qtbot, controller, settings)
+    push(controller, make_tick())
+    assert not button(win, "autopilotStart").isEnabled()
+    assert "no phantom file" in label(win, "autopilotStatus").text()
 
 
 def test_colour_ranges_start_from_the_ramp_and_tissue_scale(window):
@@ -226,3 +437,37 @@ def test_colour_ranges_start_from_the_ramp_and_tissue_scale(window):
     window.set_ramp(RampSettings(force_min_N=2.0, force_max_N=12.0, force_step_N=2.0))
     assert pressure.auto_floor_pa() == pytest.approx(1.5 * 12.0 / face_m2)
     assert stiffness.auto_floor_pa() == pytest.approx(100e3)
+
+
+def test_every_message_pane_line_is_bounded(qtbot):
+    pane = MessagesPane(max_lines=5)
+    qtbot.addWidget(pane)
+    for k in range(8):
+        pane.add(f"line {k}")
+    assert [line.split()[-1] for line in pane.lines()] == ["3", "4", "5", "6", "7"]
+
+
+def test_the_health_chip_sums_up_the_loop_and_the_devices(window, controller):
+    chip = label(window, "healthChip")
+    assert chip.text() == "loop: no report yet" and chip.property("level") == "watch"
+    push(controller, make_tick(), health=LoopHealth(rate_hz=1000.0, late_over_0_5ms_pct=0.05, p99_abs_jitter_us=30.0,
+                                                    missed_ticks=0, longest_stall_ms=0.4, rt_priority=True, cpu=1))
+    assert chip.property("level") == "good"
+    assert chip.text() == "Loop OK · 1000 Hz · late 0.05 %\nsensor 4 ms · robot 1 ms"
+    for _ in range(6):  # device ages are refreshed at a tenth of the display rate
+        push(controller, make_tick(sensor_age_s=0.2))
+    assert chip.property("level") == "bad" and chip.text().startswith("LOOP / DEVICE PROBLEM")
+    assert "sensor 200 ms" in chip.text()
+
+
+def test_a_double_click_on_the_tissue_sends_the_probe_there_only_off_the_tissue(window, controller):
+    tissue = window.findChild(WholeTissueView)
+    push(controller, make_tick(phase=Phase.APPROACH, force_measured_N=0.8))
+    tissue.move_requested.emit(0.020, 0.010)
+    assert controller.sent == [] and "Lift the TSI off the tissue" in window.statusBar().currentMessage()
+    push(controller, make_tick(phase=Phase.APPROACH))
+    tissue.move_requested.emit(0.020, 0.010)
+    assert controller.sent == [Jog(pytest.approx((0.020 - 0.036, 0.010 - 0.015, 0.0)))]  # at its current height
+    push(controller, make_tick(phase=Phase.HOLD, fault=FaultKind.ESTOP))
+    tissue.move_requested.emit(0.030, 0.010)
+    assert len(controller.sent) == 1 and "a fault holds the robot" in window.statusBar().currentMessage()

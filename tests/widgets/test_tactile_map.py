@@ -145,6 +145,8 @@ def test_set_data_feeds_the_fast_path_in_kpa_without_new_items(tmap):
     assert image.image.dtype == np.float32 and image.image.flags.c_contiguous
     np.testing.assert_allclose(image.image, data / 1e3, rtol=1e-6)
     assert image.lut is CONTOUR_LUT or np.array_equal(image.lut, CONTOUR_LUT)
+    # drawn as RGB32, the format the raster engine scales without converting it first
+    assert image.qimage.format() == QtGui.QImage.Format.Format_RGB32
     lo, hi = tmap.levels_pa()
     assert tuple(image.levels) == pytest.approx((lo / 1e3, hi / 1e3))
     assert scene_item(tmap, "colorBar").levels() == pytest.approx((lo / 1e3, hi / 1e3))

@@ -1,0 +1,302 @@
+"""The whole-tissue view: stitched pressure, stiffness and coverage that fill in as areas are palpated.
+
+Every recorded level (a ``LevelRecorded`` event) is kept and the lot is stitched with the sessions'
+stitching (:func:`app.session.stitch.stitch`, the same placement, overlap averaging and coverage as the
+reviewer and the exported maps), one map per force level. The view is fixed on the phantom (when its
+extent is known): palpated areas fill in against the grey of what has not been touched yet, with the
+planned areas numbered and the TSI's footprint drawn where it is now. Double-clicking a point asks to move
+the TSI there (the window decides whether it may).
+
+It is drawn the way the live maps are: y (the TSI's long axis) to the right and x upwards, in mm in the
+tissue frame, so the TSI's footprint and a hot spot look the same here as on the live maps, and the
+phantom's long side runs up the tall dock it lives in. The colour ranges follow the data from 0 as on the
+live maps, with the same floors, so the same colour means the same value on both.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from app.session.recorder import LEVEL_DTYPE, level_row
+from app.session.stitch import StitchParams, StitchResult, stitch
+from control.messages import LevelRecord
+from hardware.interfaces import TactileConstraints
+from widgets.colormaps import CONTOUR_COLORMAP, CONTOUR_LUT, NO_DATA_RGB
+from widgets.tactile_map import auto_levels
+
+CELL_M = 1e-3
+COVERAGE_LEVELS = (0.0, 2.0)  # 1 = palpated once, 2 = two areas overlap
+# (objectName, label, LevelMap field, unit, display scale)
+QUANTITIES = (
+    ("tissuePressure", "Pressure", "pressure_pa", "kPa", 1e-3),
+    ("tissueStiffness", "Stiffness", "stiffness_pa", "kPa", 1e-3),
+    ("tissueCoverage", "Coverage", "coverage", "×", 1.0),
+)
+
+
+class WholeTissueView(QtWidgets.QWidget):
+    """Signal ``move_requested(x_m, y_m)`` on a double-click. Child objectNames: ``tissueLevel`` (force
+    level combo), the radio buttons of :data:`QUANTITIES`, ``tissueSummary``, ``tissuePlot``; scene items
+    ``tissueImage``, ``tissueColorBar``; the TSI footprint is :meth:`footprint_rect_mm`."""
+
+    move_requested = QtCore.Signal(float, float)
+
+    def __init__(self, sensor: TactileConstraints, *, min_indentation_m: float, pressure_floor_pa: float,
+                 stiffness_floor_pa: float, extent_m: tuple[float, float, float, float] | None = None,
+                 areas: tuple[tuple[float, float], ...] = (), parent: QtWidgets.QWidget | None = None):
+        super().__init__(parent)
+        self._sensor = sensor
+        self._min_indentation_m = min_indentation_m
+        self._floors = {"pressure_pa": pressure_floor_pa * 1e-3, "stiffness_pa": stiffness_floor_pa * 1e-3}
+        self._extent = extent_m
+        self._records: list[tuple] = []
+        self._result: StitchResult | None = None
+        self._dirty = False
+        self._levels: dict[str, tuple[float, float] | None] = {"pressure_pa": None, "stiffness_pa": None}
+        self._chosen_force: float | None = None  # None: follow the highest level
+        self._quantity = "pressure_pa"
+        self._tsi: tuple[float, float] | None = None
+
+        self._level_combo = QtWidgets.QComboBox(objectName="tissueLevel")
+        self._level_combo.setToolTip("Force level of the stitched maps")
+        self._level_combo.setMinimumWidth(120)
+        self._level_combo.activated.connect(self._level_chosen)
+        self._buttons: dict[str, QtWidgets.QRadioButton] = {}
+        group = QtWidgets.QButtonGroup(self)
+        top = QtWidgets.QHBoxLayout()
+        for name, label, field, *_ in QUANTITIES:
+            button = QtWidgets.QRadioButton(label, objectName=name)
+            button.toggled.connect(lambda on, f=field: on and self.set_quantity(f))
+            group.addButton(button)
+            self._buttons[field] = button
+            top.addWidget(button)
+        self._buttons[self._quantity].setChecked(True)
+        top.addStretch(1)
+        top.addWidget(QtWidgets.QLabel("at"))
+        top.addWidget(self._level_combo)
+        self._summary = QtWidgets.QLabel("no area palpated yet", objectName="tissueSummary", wordWrap=True)
+
+        self._build_plot(areas)
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        layout.setSpacing(2)
+        layout.addLayout(top)
+        layout.addWidget(self._plot, 1)
+        layout.addWidget(self._summary)
+        self._refresh_levels()
+        self._show()
+
+    # ---- construction --------------------------------------------------------------------------------
+
+    def _build_plot(self, areas) -> None:
+        self._plot = pg.PlotWidget()
+        self._plot.setObjectName("tissuePlot")
+        item = self._plot.getPlotItem()
+        item.setMenuEnabled(False)
+        item.hideButtons()
+        item.setLabel("bottom", "y (mm)")
+        item.setLabel("left", "x (mm)")
+        self._view = item.getViewBox()
+        self._view.setAspectLocked(True)
+        self._view.setMouseEnabled(x=False, y=False)
+        self._no_data = QtWidgets.QGraphicsRectItem(0, 0, 1, 1)
+        self._no_data.setBrush(pg.mkBrush(NO_DATA_RGB))
+        self._no_data.setPen(pg.mkPen(None))
+        self._no_data.setZValue(-10)
+        self._view.addItem(self._no_data)
+        self._image = pg.ImageItem(axisOrder="row-major")
+        self._image.setObjectName("tissueImage")
+        self._image.setLookupTable(CONTOUR_LUT)
+        self._view.addItem(self._image)
+        for k, (x, y) in enumerate(areas):
+            label = pg.TextItem(str(k + 1), color=(255, 255, 255, 150), anchor=(0.5, 0.5))
+            label.setPos(y * 1e3, x * 1e3)
+            label.setZValue(4)
+            self._view.addItem(label)
+        sx, sy = self._sensor.size_m
+        self._footprint = QtWidgets.QGraphicsRectItem(-sy * 500, -sx * 500, sy * 1e3, sx * 1e3)
+        self._footprint.setPen(pg.mkPen((255, 255, 255), width=2.5))
+        self._footprint.setBrush(QtGui.QBrush(QtCore.Qt.BrushStyle.NoBrush))
+        self._footprint.setZValue(8)
+        self._footprint.setVisible(False)
+        self._view.addItem(self._footprint)
+        self._bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=CONTOUR_COLORMAP, label="kPa", interactive=False,
+                                    colorMapMenu=False, width=16)
+        self._bar.setObjectName("tissueColorBar")
+        item.layout.addItem(self._bar, 2, 5)
+        self._plot.scene().sigMouseClicked.connect(self._clicked)
+        if self._extent is not None:
+            self._show_extent(self._extent)
+        self._apply_palette()
+
+    def _apply_palette(self) -> None:
+        palette = self.palette()
+        text = palette.color(QtGui.QPalette.ColorRole.WindowText)
+        self._plot.setBackground(palette.color(QtGui.QPalette.ColorRole.Window))
+        axes = [self._plot.getPlotItem().getAxis(side) for side in ("bottom", "left")]
+        axes += [self._bar.getAxis(side) for side in ("left", "right")]
+        for axis in axes:
+            axis.setPen(pg.mkPen(text))
+            axis.setTextPen(pg.mkPen(text))
+
+    def changeEvent(self, event: QtCore.QEvent) -> None:
+        if event.type() == QtCore.QEvent.Type.PaletteChange:
+            self._apply_palette()
+        super().changeEvent(event)
+
+    # ---- public API ----------------------------------------------------------------------------------
+
+    def add_record(self, record: LevelRecord) -> None:
+        """Keep one recorded level; the maps are re-stitched by the next :meth:`refresh`."""
+        self._records.append(level_row(record))
+        self._dirty = True
+
+    def refresh(self) -> None:
+        """Re-stitch if levels were recorded since the last call (cheap otherwise; call per display frame)."""
+        if not self._dirty:
+            return
+        self._dirty = False
+        levels = np.array(self._records, dtype=LEVEL_DTYPE)
+        self._result = stitch(levels, self._sensor.pitch_m, self._sensor.element_area_m2,
+                              StitchParams(cell_m=CELL_M), self._min_indentation_m)
+        self._refresh_levels()
+        self._show()
+
+    def result(self) -> StitchResult | None:
+        return self._result
+
+    def record_count(self) -> int:
+        return len(self._records)
+
+    def quantity(self) -> str:
+        return self._quantity
+
+    def set_quantity(self, field: str) -> None:
+        if field not in self._buttons:
+            raise ValueError(f"unknown whole-tissue map {field!r} (known: {', '.join(self._buttons)})")
+        if field == self._quantity:
+            return
+        self._quantity = field
+        self._buttons[field].setChecked(True)
+        self._show()
+
+    def level_force_N(self) -> float | None:
+        """The force level shown (None before any level is recorded)."""
+        index = self._level_index()
+        return self._result.levels[index].force_N if index is not None else None
+
+    def set_level_force_N(self, force_N: float | None) -> None:
+        """Show the level nearest ``force_N``; None follows the highest level recorded."""
+        self._chosen_force = force_N
+        self._refresh_levels()
+        self._show()
+
+    def set_tsi_position(self, x_m: float, y_m: float) -> None:
+        """Where the TSI's face is now (its footprint is drawn there)."""
+        position = (round(x_m * 1e4), round(y_m * 1e4))  # redraw only after 0.1 mm of travel
+        if position == self._tsi:
+            return
+        self._tsi = position
+        self._footprint.setPos(y_m * 1e3, x_m * 1e3)
+        self._footprint.setVisible(True)
+
+    def footprint_rect_mm(self) -> QtCore.QRectF | None:
+        """The footprint as drawn: left/width along y, top/height along x, in mm."""
+        if not self._footprint.isVisible():
+            return None
+        return self._footprint.mapRectToParent(self._footprint.rect())
+
+    def shown_values(self) -> np.ndarray | None:
+        """The shown map in SI units, shaped (nx, ny) (None before any level is recorded)."""
+        index = self._level_index()
+        return None if index is None else self._result.levels[index].quantity(self._quantity)
+
+    def levels_shown(self) -> tuple[float, float]:
+        """The colour range in display units (kPa, or × for coverage)."""
+        return tuple(self._bar.levels())
+
+    # ---- internals -----------------------------------------------------------------------------------
+
+    def _level_index(self) -> int | None:
+        if self._result is None or not self._result.levels:
+            return None
+        if self._chosen_force is None:
+            return len(self._result.levels) - 1
+        forces = np.array(self._result.level_forces_N())
+        return int(np.argmin(np.abs(forces - self._chosen_force)))
+
+    def _refresh_levels(self) -> None:
+        combo = self._level_combo
+        forces = self._result.level_forces_N() if self._result is not None else []
+        items = [f"{f:g} N" for f in forces]
+        if [combo.itemText(i) for i in range(combo.count())] != items:
+            combo.clear()
+            combo.addItems(items)
+        index = self._level_index()
+        combo.setEnabled(index is not None)
+        if index is not None and combo.currentIndex() != index:
+            combo.setCurrentIndex(index)
+
+    def _level_chosen(self, index: int) -> None:
+        forces = self._result.level_forces_N() if self._result is not None else []
+        if 0 <= index < len(forces):
+            # the highest entry means "follow the highest", so later, higher levels keep showing up
+            self._chosen_force = None if index == len(forces) - 1 else forces[index]
+            self._show()
+
+    def _show(self) -> None:
+        index = self._level_index()
+        unit, scale = next((u, s) for _, _, f, u, s in QUANTITIES if f == self._quantity)
+        self._bar.getAxis("left").setLabel(unit)
+        if index is None:
+            self._image.clear()
+            self._summary.setText("no area palpated yet")
+            return
+        result = self._result
+        level = result.levels[index]
+        values = level.quantity(self._quantity)
+        if self._quantity == "coverage":
+            values = np.where(values > 0, values, np.nan)
+            levels = COVERAGE_LEVELS
+        else:
+            finite = values[np.isfinite(values)]
+            top = float(finite.max()) * scale if finite.size else 0.0
+            levels = auto_levels(top, self._levels[self._quantity], self._floors[self._quantity])
+            self._levels[self._quantity] = levels
+        x0, x1, y0, y1 = (v * 1e3 for v in result.grid.extent_m)
+        image = np.ascontiguousarray(values * scale, dtype=np.float32)  # rows along x: x upwards
+        self._image.setImage(image, autoLevels=False, levels=levels, rect=QtCore.QRectF(y0, x0, y1 - y0, x1 - x0))
+        self._bar.setLevels(levels, update_items=False)
+        if self._extent is None:
+            self._show_extent(result.grid.extent_m)
+        self._summary.setText(self._describe(level))
+
+    def _describe(self, level) -> str:
+        regions = len({int(r[1]) for r in self._records})
+        covered_m2 = float(np.count_nonzero(level.coverage > 0.5)) * self._result.grid.cell_m ** 2
+        text = f"{len(self._records)} levels recorded in {regions} area{'s' if regions != 1 else ''}"
+        if self._extent is not None:
+            x0, x1, y0, y1 = self._extent
+            share = min(1.0, covered_m2 / ((x1 - x0) * (y1 - y0)))
+            text += f" · {share * 100:.0f} % of the phantom covered at {level.force_N:g} N"
+        else:
+            text += f" · {covered_m2 * 1e6:.0f} mm² covered at {level.force_N:g} N"
+        if math.isfinite(level.tsi_indentation_m):
+            text += f" · mean depth {level.tsi_indentation_m * 1e3:.1f} mm"
+        return text
+
+    def _show_extent(self, extent_m) -> None:
+        x0, x1, y0, y1 = (v * 1e3 for v in extent_m)
+        rect = QtCore.QRectF(y0, x0, y1 - y0, x1 - x0)
+        self._no_data.setRect(rect)
+        self._view.setRange(rect, padding=0.03)
+
+    def _clicked(self, event) -> None:
+        if not event.double():
+            return
+        point = self._view.mapSceneToView(event.scenePos())
+        self.move_requested.emit(point.y() * 1e-3, point.x() * 1e-3)
