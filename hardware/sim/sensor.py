@@ -4,7 +4,9 @@ Every ``1 / frame_rate_hz`` the array samples the tissue under the TSI where the
 instant; the frame becomes readable ``latency_s`` later and carries the sampling instant as ``t_s`` and
 the sample index as ``seq`` (a jump in ``seq`` is a frame the host never saw). Per element, in order:
 
-1. true pressure ``p`` = the tissue model's element force / element area;
+1. true pressure ``p`` = the tissue model's element force / element area, seen through the sensor's
+   compliant cover, which spreads load sideways by about its thickness (``cover_spread_m``, a Gaussian
+   integrated over the 2 mm elements: it softens the rigid face's edge peaks; total force is kept);
 2. creep ``c``: the dielectric relaxes under load, a first-order rise towards ``creep_fraction * p``
    with time constant ``creep_time_constant_s`` (and back when unloaded);
 3. the raw reading ``offset + gain * (p + c) + noise``: a per-element zero offset and sensitivity fixed
@@ -36,6 +38,7 @@ class SimTactileSensor(SimDevice, TactileSensor):
         s = world.settings.sensor
         self.settings = s
         self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz)
+        self._cover_weight = cover_weight(s.cover_spread_m, self.constraints.pitch_m)
         shape = self.constraints.shape
         made = np.random.default_rng(s.seed)
         # log-normal: a relative spread that can never make an element's sensitivity negative
@@ -72,7 +75,7 @@ class SimTactileSensor(SimDevice, TactileSensor):
 
     def true_pressure_pa(self, t_s: float) -> np.ndarray:
         """What an ideal array would read at ``t_s``: the tissue model's forces over the element area,
-        before creep, gain, noise and the converter (the first stage of every frame)."""
+        through the cover, before creep, gain, noise and the converter (the first stage of every frame)."""
         x, y, z = self.world.state_at(t_s)[0]
         forces = np.asarray(self.world.tissue.element_forces_N(x, y, z), dtype=float)
         if forces.shape != self.constraints.shape or not np.isfinite(forces).all():
@@ -80,7 +83,7 @@ class SimTactileSensor(SimDevice, TactileSensor):
             raise DeviceError(f"sim tactile sensor: the tissue model {type(self.world.tissue).__name__} returned "
                               f"{problem} at ({x:.4f}, {y:.4f}, {z:.4f}) m; it must return finite "
                               f"{self.constraints.shape} forces")
-        return forces / self._area_m2
+        return self._through_cover(forces / self._area_m2)
 
     def poll(self, now_s: float) -> None:
         world = self.world
@@ -117,3 +120,26 @@ class SimTactileSensor(SimDevice, TactileSensor):
         if s.quantisation_pa > 0:
             raw = np.round(raw / s.quantisation_pa) * s.quantisation_pa
         return np.clip(raw, 0.0, self._raw_max_pa)
+
+    def _through_cover(self, p: np.ndarray) -> np.ndarray:
+        """Spread each element's load to its neighbours along both axes; edge elements keep what would
+        leave the array, so the total force is unchanged."""
+        w = self._cover_weight
+        if w == 0.0:
+            return p
+        for axis in (0, 1):
+            padded = np.concatenate([np.take(p, [0], axis), p, np.take(p, [-1], axis)], axis=axis)
+            n = p.shape[axis]
+            p = (1.0 - 2.0 * w) * p + w * (np.take(padded, range(0, n), axis) + np.take(padded, range(2, n + 2), axis))
+        return p
+
+
+def cover_weight(spread_m: float, pitch_m: float) -> float:
+    """Fraction of a uniformly loaded element's force a Gaussian spread of ``spread_m`` moves into one
+    neighbour (exact integral of the Gaussian's tail over the element)."""
+    if spread_m <= 0.0:
+        return 0.0
+    a = pitch_m / spread_m
+    # (1/a) * integral_0^a Q(t) dt = Q(a) + (phi(0) - phi(a)) / a, Q the Gaussian tail, phi its density
+    q = 0.5 * math.erfc(a / math.sqrt(2.0))
+    return q + (1.0 - math.exp(-0.5 * a * a)) / (math.sqrt(2.0 * math.pi) * a)

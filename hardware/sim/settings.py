@@ -114,18 +114,20 @@ class SensorSimSettings(_Section):
     zero_offset_spread_pa: float = 200.0  # its standard deviation across elements
     creep_fraction: float = 0.03  # final relative rise of the reading under a constant load
     creep_time_constant_s: float = 2.0
+    cover_spread_m: float = 0.5e-3  # the elastomer cover spreads load sideways by about its thickness
     seed: int = 0
 
     def __post_init__(self):
         for name in ("full_scale_pa", "frame_rate_hz", "creep_time_constant_s"):
             object.__setattr__(self, name, _positive(name, getattr(self, name)))
         for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
-                     "zero_offset_spread_pa", "creep_fraction"):
+                     "zero_offset_spread_pa", "creep_fraction", "cover_spread_m"):
             object.__setattr__(self, name, _non_negative(name, getattr(self, name)))
         _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
         _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
         _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")
         _at_most("creep_fraction", self.creep_fraction, 0.5, "capacitive arrays creep by a few %")
+        _at_most("cover_spread_m", self.cover_spread_m, 2e-3, "a cover thicker than an element blurs beyond it")
         _at_most("quantisation_pa", self.quantisation_pa, self.full_scale_pa / 16, "at least 4 bits over full scale")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError("seed", f"must be a non-negative integer, got {self.seed!r}")

@@ -42,7 +42,7 @@ def test_settings_come_from_a_mapping_and_bad_ones_name_their_key():
     assert rig.master.home_m == (0.01, 0.01, 0.05)
     assert rig.description["settings"]["substep_s"] == 5e-4
     cases = [
-        ({"sensor": {"noise": 1.0}}, r"^sensor\.noise: unknown key \(known: creep_fraction, "),
+        ({"sensor": {"noise": 1.0}}, r"^sensor\.noise: unknown key \(known: cover_spread_m, creep_fraction, "),
         ({"robot": {"bandwidth_hz": -20}}, r"^robot\.bandwidth_hz: must be > 0, got -20"),
         ({"robot": {"home_m": [0.0, 0.0, 0.5]}}, r"^robot\.home_m: z = 0\.5 m lies outside the workspace"),
         ({"robot": {"home_m": "up"}}, r"^robot\.home_m: must be three numbers"),

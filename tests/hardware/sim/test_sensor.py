@@ -15,7 +15,7 @@ from hardware.sim.world import SimWorld
 T0 = 40.0
 MS = 1e-3
 AREA = TactileConstraints().element_area_m2
-IDEAL = dict(noise_std_pa=0.0, quantisation_pa=0.0, gain_spread=0.0, creep_fraction=0.0)
+IDEAL = dict(noise_std_pa=0.0, quantisation_pa=0.0, gain_spread=0.0, creep_fraction=0.0, cover_spread_m=0.0)
 
 
 class KnownLoad:
@@ -234,3 +234,20 @@ def test_a_tissue_model_returning_garbage_is_reported():
     sensor = make_sensor(Broken())
     with pytest.raises(DeviceError, match=r"Broken returned shape \(15, 4\)"):
         run(sensor, T0, 0.05)
+
+
+def test_the_cover_spreads_an_edge_peak_to_its_neighbours_and_keeps_the_total_force():
+    from hardware.sim.sensor import cover_weight
+
+    w = cover_weight(0.5e-3, 2e-3)
+    assert w == pytest.approx(0.0997, abs=5e-4)  # Q(4) + (phi(0) - phi(4)) / 4
+    assert cover_weight(0.0, 2e-3) == 0.0
+    sensor = SimTactileSensor.__new__(SimTactileSensor)
+    sensor._cover_weight = w
+    p = np.zeros((4, 15))
+    p[:, 0] = 10e3  # the rigid face's edge peak along one end of the array
+    p[:, 1:] = 2e3
+    seen = sensor._through_cover(p)
+    assert seen.sum() == pytest.approx(p.sum())
+    assert seen[0, 0] < p[0, 0] and seen[0, 1] > p[0, 1]
+    assert seen[1, 0] == pytest.approx(10e3 - w * 8e3)  # lost to the neighbour column, none across rows
