@@ -7,7 +7,9 @@ right column is fixed (it cannot be closed or moved): the S_z switch, where the 
 indentation depth in large figures, the contact area, centre of pressure and peak pressure, tare and the
 emergency stop. Around them, dockable panels that can be rearranged and are restored on the next run: the
 whole-tissue view, jog and autopilot, ramp settings and gains, F_d and F_ts over time with the indentation
-history, the messages pane and the loop's health. The status bar keeps one line of loop health in view.
+history, the messages pane, the loop's health and the session panel (where this run is recorded, operator
+notes). The status bar keeps one line of loop health in view. The File menu opens recorded sessions
+read-only, each in a reviewer window of its own.
 
 Data flow. The window talks to a controller object (:class:`app.bridge.ControllerBridge` or a test double)
 through ``send(command)`` and the signals ``snapshot(LiveSnapshot)`` (display rate, never per tick),
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
@@ -43,6 +46,8 @@ from widgets.health import HealthPanel, health_degraded, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
 from widgets.messages import MessagesPane, Severity, fault_name
+from widgets.review import RecentSessions, ReviewWindow
+from widgets.session_panel import SessionPanel
 from widgets.settings_panel import GainsEditor, RampEditor
 from widgets.sz_switch import SzSwitch
 from widgets.tactile_map import TactileMapWidget, ViewMode
@@ -125,13 +130,22 @@ class LiveWindow(QtWidgets.QMainWindow):
     :class:`~widgets.messages.MessagesPane`, :class:`~widgets.health.HealthPanel`): ``forceDesired``,
     ``forceMeasured``, ``indentation``, ``healthChip``, ``tareButton``, ``estopButton``, ``faultBanner``, ``faultText``,
     ``clearFault``, ``loopHealth``; docks ``controlDock``, ``tissueDock``, ``jogDock``, ``settingsDock``,
-    ``historyDock``, ``messagesDock``, ``healthDock``.
+    ``historyDock``, ``messagesDock``, ``healthDock``, ``sessionDock`` (a
+    :class:`~widgets.session_panel.SessionPanel`); File menu actions ``openSessionAction``,
+    ``recentSessionsMenu`` (the submenu's action), ``quitAction``.
+
+    Recorded sessions are opened read-only, each in a :class:`~widgets.review.ReviewWindow` of its own;
+    ``sessions_folder`` is where the Open dialog starts, ``recent`` the shared recent-sessions list.
     """
 
     def __init__(self, controller, *, config: ControlConfig | None = None, sensor: TactileConstraints | None = None,
                  plan: AutopilotPlan | None = None, settings: QtCore.QSettings | None = None,
+                 sessions_folder: str | Path | None = None, recent: RecentSessions | None = None,
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
+        self._sessions_folder = Path(sessions_folder) if sessions_folder is not None else Path.home()
+        self._recent = recent if recent is not None else RecentSessions()
+        self._reviews: list[ReviewWindow] = []
         self._controller = controller
         self._config = config or ControlConfig()
         self._sensor = sensor or TactileConstraints()
@@ -348,11 +362,14 @@ class LiveWindow(QtWidgets.QMainWindow):
         messages_dock = self._dock("Messages", "messagesDock", self._messages, bottom)
         self._health_panel = HealthPanel(cfg.safety, cfg.rate_hz)
         health_dock = self._dock("Loop health", "healthDock", self._health_panel, bottom)
+        self._session_panel = SessionPanel()
+        session_dock = self._dock("Session recording", "sessionDock", self._session_panel, bottom)
 
         self.tabifyDockWidget(jog_dock, settings_dock)
         jog_dock.raise_()
         self.splitDockWidget(history_dock, messages_dock, QtCore.Qt.Orientation.Horizontal)
         self.tabifyDockWidget(messages_dock, health_dock)
+        self.tabifyDockWidget(messages_dock, session_dock)
         messages_dock.raise_()
         self.resizeDocks([tissue_dock, jog_dock], [470, 360], QtCore.Qt.Orientation.Vertical)
         self.resizeDocks([tissue_dock], [400], QtCore.Qt.Orientation.Horizontal)
@@ -360,6 +377,19 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.resizeDocks([history_dock], [320], QtCore.Qt.Orientation.Vertical)
 
     def _build_menu(self) -> None:
+        file = self.menuBar().addMenu("&File")
+        open_action = file.addAction("&Open session…")
+        open_action.setObjectName("openSessionAction")
+        open_action.setShortcut(QtGui.QKeySequence.StandardKey.Open)
+        open_action.triggered.connect(self._open_session_dialog)
+        self._recent_menu = file.addMenu("&Recent sessions")
+        self._recent_menu.menuAction().setObjectName("recentSessionsMenu")
+        self._recent_menu.aboutToShow.connect(lambda: self._recent.fill_menu(self._recent_menu, self.open_session))
+        file.addSeparator()
+        quit_action = file.addAction("&Quit")
+        quit_action.setObjectName("quitAction")
+        quit_action.setShortcut(QtGui.QKeySequence.StandardKey.Quit)
+        quit_action.triggered.connect(self.close)
         view = self.menuBar().addMenu("&View")
         for dock in self._docks:
             view.addAction(dock.toggleViewAction())
@@ -472,6 +502,8 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:
         self.save_settings()
+        for review in self.review_windows():
+            review.close()
         super().closeEvent(event)
 
     # ---- public API ----------------------------------------------------------------------------------
@@ -514,9 +546,41 @@ class LiveWindow(QtWidgets.QMainWindow):
     def messages(self) -> MessagesPane:
         return self._messages
 
+    def session_panel(self) -> SessionPanel:
+        return self._session_panel
+
+    def recent_sessions(self) -> RecentSessions:
+        return self._recent
+
+    def review_windows(self) -> list[ReviewWindow]:
+        """The session reviewers opened from this console that are still open."""
+        return list(self._reviews)
+
+    def open_session(self, path: str | Path) -> ReviewWindow | None:
+        """Open a recorded session read-only in a reviewer window of its own; None (and the reason in the
+        messages pane) if the file is not a readable session."""
+        review = ReviewWindow(start_folder=self._sessions_folder)
+        review.setAttribute(QtCore.Qt.WidgetAttribute.WA_DeleteOnClose)
+        problems: list[str] = []
+        review.open_failed.connect(problems.append)
+        if not review.open_file(path):
+            self._messages.add(f"Cannot open the session: {problems[-1] if problems else path}", Severity.ERROR)
+            review.deleteLater()
+            return None
+        self._reviews.append(review)
+        review.destroyed.connect(lambda _=None, w=review: self._reviews.remove(w) if w in self._reviews else None)
+        review.show()
+        return review
+
     def latest_tick(self) -> np.ndarray | None:
         """The newest tick row shown (None before the first snapshot)."""
         return self._tick
+
+    def _open_session_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open a recorded session", str(self._sessions_folder),
+                                                        "Palpation sessions (*.h5);;All files (*)")
+        if path:
+            self.open_session(path)
 
     # ---- controller ----------------------------------------------------------------------------------
 
