@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any
+from typing import Any, ClassVar
 
 Vec3 = tuple[float, float, float]
 
@@ -20,7 +20,10 @@ class ConfigError(ValueError):
         self.problem = problem
 
 
-def _finite(key: str, value: float) -> float:
+def number(key: str, value: Any) -> float:
+    """A finite number (TOML's true/false are refused, not read as 1/0)."""
+    if isinstance(value, bool):
+        raise ConfigError(key, f"must be a number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -30,37 +33,49 @@ def _finite(key: str, value: float) -> float:
     return v
 
 
-def _positive(key: str, value: float) -> float:
-    v = _finite(key, value)
+def positive(key: str, value: Any) -> float:
+    v = number(key, value)
     if v <= 0:
         raise ConfigError(key, f"must be > 0, got {v:g}")
     return v
 
 
-def _vec3(key: str, value: Any, positive: bool = False) -> Vec3:
+def non_negative(key: str, value: Any) -> float:
+    v = number(key, value)
+    if v < 0:
+        raise ConfigError(key, f"must be >= 0, got {v:g}")
+    return v
+
+
+def vec3(key: str, value: Any, is_positive: bool = False) -> Vec3:
+    if isinstance(value, (str, bytes)):
+        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}")
     try:
         items = list(value)
     except TypeError:
         raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}") from None
     if len(items) != 3:
         raise ConfigError(key, f"must be three numbers [x, y, z], got {len(items)}")
-    check = _positive if positive else _finite
+    check = positive if is_positive else number
     return tuple(check(f"{key}[{i}]", v) for i, v in enumerate(items))  # type: ignore[return-value]
 
 
-class _Settings:
-    """Shared helpers: build from a mapping with unknown keys refused, and dump back to one."""
+class Settings:
+    """Base of every settings dataclass in the project: built from a TOML table with unknown keys refused
+    (nested tables through ``_nested``), errors naming the full key, and dumped back to a table."""
+
+    _nested: ClassVar[dict[str, type[Settings]]] = {}
 
     @classmethod
-    def from_mapping(cls, data: dict[str, Any], prefix: str = ""):
+    def from_mapping(cls, data: Any, prefix: str = ""):
         if not isinstance(data, dict):
-            raise ConfigError(prefix.rstrip(".") or cls.__name__, "must be a table")
-        known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+            raise ConfigError(prefix.rstrip(".") or cls.__name__, f"must be a table, got {data!r}")
+        known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
         kwargs: dict[str, Any] = {}
         for key, value in data.items():
             if key not in known:
                 raise ConfigError(f"{prefix}{key}", f"unknown key (known: {', '.join(sorted(known))})")
-            sub = _NESTED.get((cls.__name__, key))
+            sub = cls._nested.get(key)
             kwargs[key] = sub.from_mapping(value, f"{prefix}{key}.") if sub else value
         try:
             return cls(**kwargs)
@@ -68,22 +83,27 @@ class _Settings:
             raise ConfigError(f"{prefix}{err.key}", err.problem) from None
 
     def to_mapping(self) -> dict[str, Any]:
+        """Back to a table (TOML has no null: unset optional values are left out)."""
         return _plain(asdict(self))  # type: ignore[call-overload]
 
     def replace(self, **changes):
         return replace(self, **changes)  # type: ignore[type-var]
 
+    def _set(self, name: str, value: Any) -> None:
+        """Store a normalised value on a frozen dataclass from its __post_init__."""
+        object.__setattr__(self, name, value)
+
 
 def _plain(value: Any) -> Any:
     if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+        return {k: _plain(v) for k, v in value.items() if v is not None}
     if isinstance(value, tuple):
         return [_plain(v) for v in value]
     return value
 
 
 @dataclass(frozen=True)
-class ImpedanceGains(_Settings):
+class ImpedanceGains(Settings):
     """M_d, B_d, K_d of Eq. 2, diagonal, per tissue-frame axis (x, y, z)."""
 
     mass_kg: Vec3 = (1.0, 1.0, 1.0)
@@ -91,13 +111,13 @@ class ImpedanceGains(_Settings):
     stiffness_N_m: Vec3 = (1600.0, 1600.0, 1600.0)
 
     def __post_init__(self):
-        object.__setattr__(self, "mass_kg", _vec3("mass_kg", self.mass_kg, positive=True))
-        object.__setattr__(self, "damping_N_s_m", _vec3("damping_N_s_m", self.damping_N_s_m, positive=True))
-        object.__setattr__(self, "stiffness_N_m", _vec3("stiffness_N_m", self.stiffness_N_m, positive=True))
+        object.__setattr__(self, "mass_kg", vec3("mass_kg", self.mass_kg, is_positive=True))
+        object.__setattr__(self, "damping_N_s_m", vec3("damping_N_s_m", self.damping_N_s_m, is_positive=True))
+        object.__setattr__(self, "stiffness_N_m", vec3("stiffness_N_m", self.stiffness_N_m, is_positive=True))
 
 
 @dataclass(frozen=True)
-class RampSettings(_Settings):
+class RampSettings(Settings):
     """The Fig. 4 force ramp: F_d from F_min to F_max in steps of dF, each level settled to RMSE < eps."""
 
     force_min_N: float = 1.0
@@ -111,7 +131,7 @@ class RampSettings(_Settings):
     def __post_init__(self):
         for name in ("force_min_N", "force_max_N", "force_step_N", "rmse_threshold_N", "settle_window_s",
                      "min_settle_s", "level_timeout_s"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         if self.force_max_N < self.force_min_N:
             raise ConfigError("force_max_N", f"must be >= force_min_N ({self.force_min_N:g} N), got {self.force_max_N:g}")
         if self.force_step_N > self.force_max_N - self.force_min_N and self.force_max_N > self.force_min_N:
@@ -138,7 +158,7 @@ def _is_multiple(span: float, step: float) -> bool:
 
 
 @dataclass(frozen=True)
-class ContactSettings(_Settings):
+class ContactSettings(Settings):
     """How contact, L0 and dL are found from the data (see control/analysis.py)."""
 
     onset_threshold_pa: float = 300.0
@@ -153,14 +173,14 @@ class ContactSettings(_Settings):
     def __post_init__(self):
         for name in ("onset_threshold_pa", "confirm_threshold_pa", "min_indentation_m", "retract_height_m",
                      "retract_speed_m_s", "max_seek_depth_m", "pose_history_s"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        object.__setattr__(self, "table_height_m", _finite("table_height_m", self.table_height_m))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
+        object.__setattr__(self, "table_height_m", number("table_height_m", self.table_height_m))
         if self.confirm_threshold_pa <= self.onset_threshold_pa:
             raise ConfigError("confirm_threshold_pa", f"must exceed onset_threshold_pa ({self.onset_threshold_pa:g} Pa)")
 
 
 @dataclass(frozen=True)
-class SafetyLimits(_Settings):
+class SafetyLimits(Settings):
     force_ceiling_N: float = 12.0
     element_pressure_ceiling_pa: float = 95e3
     indentation_ceiling_m: float = 0.016
@@ -174,9 +194,9 @@ class SafetyLimits(_Settings):
     def __post_init__(self):
         for name in ("force_ceiling_N", "element_pressure_ceiling_pa", "indentation_ceiling_m", "velocity_limit_m_s",
                      "sensor_timeout_s", "master_timeout_s", "slave_timeout_s"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        lo = _vec3("workspace_min_m", self.workspace_min_m)
-        hi = _vec3("workspace_max_m", self.workspace_max_m)
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
+        lo = vec3("workspace_min_m", self.workspace_min_m)
+        hi = vec3("workspace_max_m", self.workspace_max_m)
         for i, axis in enumerate("xyz"):
             if hi[i] <= lo[i]:
                 raise ConfigError("workspace_max_m", f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
@@ -185,7 +205,7 @@ class SafetyLimits(_Settings):
 
 
 @dataclass(frozen=True)
-class MasterMapping(_Settings):
+class MasterMapping(Settings):
     """X_d = scale * master position + offset; the offset is re-clutched whenever an axis is handed back to
     the operator (start-up, end of a ramp, cleared fault) so the robot never jumps to the master."""
 
@@ -194,13 +214,13 @@ class MasterMapping(_Settings):
     derivative_filter_s: float = 0.005
 
     def __post_init__(self):
-        object.__setattr__(self, "scale", _positive("scale", self.scale))
-        object.__setattr__(self, "jog_speed_m_s", _positive("jog_speed_m_s", self.jog_speed_m_s))
-        object.__setattr__(self, "derivative_filter_s", _positive("derivative_filter_s", self.derivative_filter_s))
+        object.__setattr__(self, "scale", positive("scale", self.scale))
+        object.__setattr__(self, "jog_speed_m_s", positive("jog_speed_m_s", self.jog_speed_m_s))
+        object.__setattr__(self, "derivative_filter_s", positive("derivative_filter_s", self.derivative_filter_s))
 
 
 @dataclass(frozen=True)
-class ControlConfig(_Settings):
+class ControlConfig(Settings):
     rate_hz: float = 1000.0
     max_step_s: float = 0.002
     gains: ImpedanceGains = field(default_factory=ImpedanceGains)
@@ -210,8 +230,8 @@ class ControlConfig(_Settings):
     master: MasterMapping = field(default_factory=MasterMapping)
 
     def __post_init__(self):
-        object.__setattr__(self, "rate_hz", _positive("rate_hz", self.rate_hz))
-        object.__setattr__(self, "max_step_s", _positive("max_step_s", self.max_step_s))
+        object.__setattr__(self, "rate_hz", positive("rate_hz", self.rate_hz))
+        object.__setattr__(self, "max_step_s", positive("max_step_s", self.max_step_s))
         if self.max_step_s < 1.0 / self.rate_hz:
             raise ConfigError("max_step_s", f"must be at least one period ({1.0 / self.rate_hz:g} s)")
 
@@ -220,10 +240,5 @@ class ControlConfig(_Settings):
         return 1.0 / self.rate_hz
 
 
-_NESTED: dict[tuple[str, str], type[_Settings]] = {
-    ("ControlConfig", "gains"): ImpedanceGains,
-    ("ControlConfig", "ramp"): RampSettings,
-    ("ControlConfig", "contact"): ContactSettings,
-    ("ControlConfig", "safety"): SafetyLimits,
-    ("ControlConfig", "master"): MasterMapping,
-}
+ControlConfig._nested = {"gains": ImpedanceGains, "ramp": RampSettings, "contact": ContactSettings,
+                         "safety": SafetyLimits, "master": MasterMapping}

@@ -8,46 +8,9 @@ bad hardware setting exactly like a bad control setting.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, fields
 from typing import Any
 
-from control.config import ConfigError
-
-
-class Settings:
-    @classmethod
-    def from_mapping(cls, data: Any, prefix: str = ""):
-        if not isinstance(data, dict):
-            raise ConfigError(prefix.rstrip(".") or cls.__name__, f"must be a table, got {data!r}")
-        known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"{prefix}{unknown[0]}", f"unknown key (known: {', '.join(sorted(known))})")
-        try:
-            return cls(**data)
-        except ConfigError as err:
-            raise ConfigError(f"{prefix}{err.key}", err.problem) from None
-
-    def to_mapping(self) -> dict[str, Any]:
-        """Back to a table (TOML has no null: unset optional values are left out)."""
-        return {k: list(v) if isinstance(v, tuple) else v
-                for k, v in asdict(self).items() if v is not None}  # type: ignore[call-overload]
-
-    def _set(self, name: str, value: Any) -> None:
-        object.__setattr__(self, name, value)
-
-
-def number(key: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise ConfigError(key, f"must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(key, f"must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ConfigError(key, f"must be finite, got {value!r}")
-    return v
+from control.config import ConfigError, number
 
 
 def in_range(key: str, value: Any, lo: float, hi: float, why: str = "") -> float:

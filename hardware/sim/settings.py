@@ -9,38 +9,12 @@ the console reports simulator settings exactly like control settings.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
-from typing import Any, ClassVar
+from dataclasses import dataclass, field
+from typing import ClassVar
 
-from control.config import ConfigError
+from control.config import ConfigError, Settings, non_negative, positive, vec3
 
 Vec3 = tuple[float, float, float]
-
-
-def _number(key: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise ConfigError(key, f"must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(key, f"must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ConfigError(key, f"must be finite, got {value!r}")
-    return v
-
-
-def _positive(key: str, value: Any) -> float:
-    v = _number(key, value)
-    if v <= 0:
-        raise ConfigError(key, f"must be > 0, got {v:g}")
-    return v
-
-
-def _non_negative(key: str, value: Any) -> float:
-    v = _number(key, value)
-    if v < 0:
-        raise ConfigError(key, f"must be >= 0, got {v:g}")
-    return v
 
 
 def _at_most(key: str, v: float, limit: float, why: str) -> None:
@@ -48,56 +22,11 @@ def _at_most(key: str, v: float, limit: float, why: str) -> None:
         raise ConfigError(key, f"must be <= {limit:g} ({why}), got {v:g}")
 
 
-def _vec3(key: str, value: Any) -> Vec3:
-    if isinstance(value, (str, bytes)):
-        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}")
-    try:
-        items = list(value)
-    except TypeError:
-        raise ConfigError(key, f"must be three numbers [x, y, z], got {value!r}") from None
-    if len(items) != 3:
-        raise ConfigError(key, f"must be three numbers [x, y, z], got {len(items)}")
-    return tuple(_number(f"{key}[{i}]", v) for i, v in enumerate(items))  # type: ignore[return-value]
-
-
 TISSUE_MODELS = ("continuum", "winkler")
 
 
-class _Section:
-    """Build from a mapping with unknown keys refused, nested sections included, and dump back."""
-
-    _nested: ClassVar[dict[str, type[_Section]]] = {}
-
-    @classmethod
-    def from_mapping(cls, data: dict[str, Any], prefix: str = ""):
-        if not isinstance(data, dict):
-            raise ConfigError(prefix.rstrip(".") or cls.__name__, f"must be a table, got {data!r}")
-        known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in known:
-                raise ConfigError(f"{prefix}{key}", f"unknown key (known: {', '.join(sorted(known))})")
-            sub = cls._nested.get(key)
-            kwargs[key] = sub.from_mapping(value, f"{prefix}{key}.") if sub else value
-        try:
-            return cls(**kwargs)
-        except ConfigError as err:
-            raise ConfigError(f"{prefix}{err.key}", err.problem) from None
-
-    def to_mapping(self) -> dict[str, Any]:
-        return _plain(asdict(self))  # type: ignore[call-overload]
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, tuple):
-        return [_plain(v) for v in value]
-    return value
-
-
 @dataclass(frozen=True)
-class SensorSimSettings(_Section):
+class SensorSimSettings(Settings):
     """The capacitive tactile array and its electronics.
 
     ``seed`` fixes the sensor as manufactured (per-element gains and zero offsets: the same physical
@@ -119,10 +48,10 @@ class SensorSimSettings(_Section):
 
     def __post_init__(self):
         for name in ("full_scale_pa", "frame_rate_hz", "creep_time_constant_s"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
                      "zero_offset_spread_pa", "creep_fraction", "cover_spread_m"):
-            object.__setattr__(self, name, _non_negative(name, getattr(self, name)))
+            object.__setattr__(self, name, non_negative(name, getattr(self, name)))
         _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
         _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
         _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")
@@ -134,7 +63,7 @@ class SensorSimSettings(_Section):
 
 
 @dataclass(frozen=True)
-class RobotSimSettings(_Section):
+class RobotSimSettings(Settings):
     """The slave robot as its inner Cartesian position loop presents it.
 
     The loop is a cascade (position P feeding a velocity loop) with natural frequency ``bandwidth_hz``
@@ -153,12 +82,12 @@ class RobotSimSettings(_Section):
 
     def __post_init__(self):
         for name in ("bandwidth_hz", "damping_ratio", "max_speed_m_s", "max_accel_m_s2", "rate_hz"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         _at_most("damping_ratio", self.damping_ratio, 2.0, "an inner loop is not tuned that sluggish")
         _at_most("rate_hz", self.rate_hz, 10e3, "encoder readings are polled by a 1 kHz loop")
-        lo = _vec3("workspace_min_m", self.workspace_min_m)
-        hi = _vec3("workspace_max_m", self.workspace_max_m)
-        home = _vec3("home_m", self.home_m)
+        lo = vec3("workspace_min_m", self.workspace_min_m)
+        hi = vec3("workspace_max_m", self.workspace_max_m)
+        home = vec3("home_m", self.home_m)
         for i, axis in enumerate("xyz"):
             if hi[i] <= lo[i]:
                 raise ConfigError("workspace_max_m",
@@ -172,7 +101,7 @@ class RobotSimSettings(_Section):
 
 
 @dataclass(frozen=True)
-class OperatorSimSettings(_Section):
+class OperatorSimSettings(Settings):
     """The scripted operator of Section IV-A: heights are above the table, speeds are peak speeds."""
 
     clearance_m: float = 0.003  # above the highest surface point under the TSI before switching S_z off
@@ -187,14 +116,14 @@ class OperatorSimSettings(_Section):
     def __post_init__(self):
         for name in ("clearance_m", "travel_height_m", "lateral_speed_m_s", "vertical_speed_m_s",
                      "region_timeout_s", "rate_hz"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("dwell_above_s", "dwell_after_s"):
-            object.__setattr__(self, name, _non_negative(name, getattr(self, name)))
+            object.__setattr__(self, name, non_negative(name, getattr(self, name)))
         _at_most("rate_hz", self.rate_hz, 10e3, "positions are polled by a 1 kHz loop")
 
 
 @dataclass(frozen=True)
-class SimSettings(_Section):
+class SimSettings(Settings):
     """Everything the simulated rig is built from, plus how its shared world is integrated."""
 
     sensor: SensorSimSettings = field(default_factory=SensorSimSettings)
@@ -205,7 +134,7 @@ class SimSettings(_Section):
     tissue: str = "continuum"  # continuum (finite elements, hardware/sim/mechanics) | winkler (spring baseline)
     finite_strain: bool = True  # continuum: stiffen element forces as the block does at finite strain
 
-    _nested: ClassVar[dict[str, type[_Section]]] = {
+    _nested: ClassVar[dict[str, type[Settings]]] = {
         "sensor": SensorSimSettings,
         "robot": RobotSimSettings,
         "operator": OperatorSimSettings,
@@ -215,7 +144,7 @@ class SimSettings(_Section):
         for name, kind in self._nested.items():
             if not isinstance(getattr(self, name), kind):
                 raise ConfigError(name, f"must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
-        substep = _positive("substep_s", self.substep_s)
+        substep = positive("substep_s", self.substep_s)
         _at_most("substep_s", substep, 1e-3, "the world must be integrated at 1 kHz or finer")
         # Semi-implicit Euler on the inner loop stays accurate while the velocity-loop gain times the
         # step is small; 0.2 keeps the step response within a few % of the continuous one.
@@ -227,7 +156,7 @@ class SimSettings(_Section):
             raise ConfigError("tissue", f"unknown tissue model {self.tissue!r} (known: {', '.join(TISSUE_MODELS)})")
         if not isinstance(self.finite_strain, bool):
             raise ConfigError("finite_strain", f"must be true or false, got {self.finite_strain!r}")
-        catchup = _positive("max_catchup_s", self.max_catchup_s)
+        catchup = positive("max_catchup_s", self.max_catchup_s)
         if catchup < substep:
             raise ConfigError("max_catchup_s", f"must be at least one substep ({substep:g} s)")
         object.__setattr__(self, "substep_s", substep)

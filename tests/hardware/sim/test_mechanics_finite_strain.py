@@ -1,7 +1,6 @@
 """Finite strain: the neo-Hookean element, the stiffening it predicts, and the model's correction."""
 
 import numpy as np
-import pytest
 
 from hardware.sim.mechanics.fem import HexGrid, assemble_sparse, graded_levels
 from hardware.sim.mechanics.finite_strain import NeoHookeanBlock, punch_on_block
