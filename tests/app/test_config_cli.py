@@ -29,6 +29,7 @@ def test_user_file_overrides_single_keys(tmp_path):
         ("[control.gains]\nmass_kg = [1, -1, 1]\n", "control.gains.mass_kg[1]", "must be > 0"),
         ("[robot]\nx = 1\n", "robot", "unknown section"),
         ("[rig]\nseed = 1.5\n", "rig.seed", "integer"),
+        ("[control.ramp]\nforce_max_N = true\n", "control.ramp.force_max_N", "must be a number, got True"),
         ("[control\n", "user.toml", "not valid TOML"),
     ],
 )
