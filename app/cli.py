@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from app.config import AppConfig, load_config
+from app.rigs import BACKENDS
 from control.config import ConfigError
 from control.messages import (CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice, RegionAborted,
                               RegionDone)
@@ -18,13 +19,56 @@ from hardware.sim.mechanics.progress import TextProgressBar
 from hardware.sim.phantom import PhantomError
 
 
-def _config(args) -> AppConfig:
+SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
+
+
+def slave_address(text: str) -> dict:
+    """``--slave HOST:PORT`` as a [hardware.slave] override (the port's range is checked with the config)."""
+    host, sep, port = text.rpartition(":")
+    host = host.removeprefix("[").removesuffix("]")  # [::1]:47600
+    if not sep or not host:
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST:PORT (e.g. 127.0.0.1:47600)")
+    try:
+        return {"host": host, "port": int(port)}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: the port {port!r} is not a number") from None
+
+
+def sensor_choice(text: str) -> dict:
+    """``--sensor`` as a [hardware.sensor] override: where the tactile array's frames come from."""
+    kind, _, where = text.partition(":")
+    if kind == "udp" and not where:
+        return {"kind": "udp"}
+    if kind == "serial" and where:
+        return {"kind": "serial", "port": where}
+    if kind == "usb":
+        return {"kind": "usb", "vid_pid": where} if where else {"kind": "usb"}
+    raise argparse.ArgumentTypeError(f"{text!r} is not one of {SENSOR_FLAG} (e.g. serial:/dev/ttyACM0)")
+
+
+def config_overrides(args) -> dict:
+    """The command line's flags as overrides of the configuration files' keys."""
     overrides: dict = {}
     if getattr(args, "phantom", None):
         overrides.setdefault("rig", {})["phantom"] = args.phantom
     if getattr(args, "seed", None) is not None:
         overrides.setdefault("rig", {})["seed"] = args.seed
-    return load_config(args.config, overrides)
+    hardware = {name: value for name, value in (("slave", getattr(args, "slave", None)),
+                                                ("sensor", getattr(args, "sensor", None))) if value is not None}
+    backend = getattr(args, "backend", None)
+    if hardware:
+        if backend == "sim":
+            flags = " and ".join(f"--{name}" for name in hardware)
+            raise ConfigError(flags, "only the real rig (--backend udp) has these devices")
+        overrides["hardware"] = hardware
+        backend = "udp"  # naming a device means driving it
+    if backend is not None:
+        overrides.setdefault("rig", {})["backend"] = backend
+    return overrides
+
+
+def _config(args) -> AppConfig:
+    return load_config(args.config, config_overrides(args))
 
 
 def cmd_run(args) -> int:
@@ -55,6 +99,9 @@ def cmd_simulate(args) -> int:
     from app.rigs import build_rig
 
     config = _config(args)
+    if config.rig.backend != "sim":
+        raise ConfigError("rig.backend", f"simulate palpates the simulated rig, not {config.rig.backend!r}"
+                                         " (use `run` for real hardware)")
     rig = build_rig(config.rig, progress=TextProgressBar())
     operator = rig.master
     if operator is None or not hasattr(operator, "finished"):
@@ -116,6 +163,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="open the console (default)")
     run.add_argument("--phantom", help="simulated rig: phantom name or TOML file")
+    real = run.add_argument_group("real hardware", "override [rig] backend and the [hardware] tables of the "
+                                  "config (see docs/hardware.md); --slave or --sensor imply --backend udp")
+    real.add_argument("--backend", choices=sorted(BACKENDS), help="sim: the simulated rig (default); "
+                      "udp: the robot behind `palpation-console slave`")
+    real.add_argument("--slave", metavar="HOST:PORT", type=slave_address,
+                      help="where `palpation-console slave` listens (default 127.0.0.1:47600)")
+    real.add_argument("--sensor", metavar="KIND", type=sensor_choice,
+                      help=f"the tactile array: {SENSOR_FLAG}; udp (default) is forwarded by the slave; "
+                      "other [hardware.sensor] keys of the config (calibration, baud, ...) are kept")
     run.add_argument("--screenshot", metavar="PNG", help="save the window to PNG after --screenshot-after-s, then quit")
     run.add_argument("--screenshot-after-s", type=float, default=10.0)
     run.set_defaults(func=cmd_run)

@@ -7,10 +7,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.rigs import RigSpec
+from app.rigs import BACKENDS, RigSpec
 from control.config import ConfigError, ControlConfig
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "config" / "default.toml"
+COMMAND_LINE = "command line"  # the source of load_config's overrides, as errors and session files name it
 
 
 @dataclass(frozen=True)
@@ -40,11 +41,19 @@ def _read(path: Path) -> dict[str, Any]:
         raise ConfigError(str(path), f"not valid TOML: {err}") from None
 
 
+SECTIONS = ("control", "rig", "sim", "hardware")
+
+
 def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConfig:
+    """Validate every section, whichever backend is chosen, so a typo is reported before anything starts."""
+    # Imported here: the hardware settings pull in the device drivers, which nothing needs before a config is read.
+    from hardware.sim.settings import SimSettings
+    from hardware.udp.rig import HardwareSettings
+
     where = sources[-1] if sources else "<config>"
-    unknown = set(data) - {"control", "rig", "sim"}
+    unknown = set(data) - set(SECTIONS)
     if unknown:
-        raise ConfigError(f"{where}: {sorted(unknown)[0]}", "unknown section (known: control, rig, sim)")
+        raise ConfigError(f"{where}: {sorted(unknown)[0]}", f"unknown section (known: {', '.join(SECTIONS)})")
     try:
         control = ControlConfig.from_mapping(data.get("control", {}), "control.")
         rig = data.get("rig", {})
@@ -53,11 +62,18 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
         extra = set(rig) - {"backend", "phantom", "seed"}
         if extra:
             raise ConfigError(f"rig.{sorted(extra)[0]}", "unknown key (known: backend, phantom, seed)")
+        backend = rig.get("backend", "sim")
+        if backend not in BACKENDS:
+            raise ConfigError("rig.backend", f"unknown backend {backend!r} (known: {', '.join(sorted(BACKENDS))})")
         seed = rig.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise ConfigError("rig.seed", f"must be an integer, got {seed!r}")
-        spec = RigSpec(backend=str(rig.get("backend", "sim")), phantom=str(rig.get("phantom", "flat")),
-                       sim=dict(data.get("sim", {})), seed=seed)
+        sim = data.get("sim", {})
+        SimSettings.from_mapping(sim, "sim.")
+        hardware = data.get("hardware", {})
+        HardwareSettings.from_mapping(hardware, "hardware.")
+        spec = RigSpec(backend=backend, phantom=str(rig.get("phantom", "flat")), sim=dict(sim), seed=seed,
+                       hardware=dict(hardware))
     except ConfigError as err:
         raise ConfigError(f"{where}: {err.key}", err.problem) from None
     return AppConfig(control=control, rig=spec, sources=sources, raw=data)
@@ -70,6 +86,9 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     if path is not None:
         data = _merge(data, _read(Path(path)))
         sources.append(str(path))
-    if overrides:
-        data = _merge(data, overrides)
-    return parse_config(data, tuple(sources))
+    if not overrides:
+        return parse_config(data, tuple(sources))
+    # The files alone first: a mistake in them is reported against the file, so any mistake left after
+    # merging came from the command line and is reported against it.
+    parse_config(data, tuple(sources))
+    return parse_config(_merge(data, overrides), (*sources, COMMAND_LINE))

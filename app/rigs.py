@@ -27,6 +27,7 @@ class RigSpec:
     sim: dict[str, Any] = field(default_factory=dict)  # simulated rigs: SimSettings overrides
     seed: int = 0
     master: str = "scripted"  # simulated rigs: one of SIM_MASTERS
+    hardware: dict[str, Any] = field(default_factory=dict)  # real rigs: the config's [hardware] table
 
     def __post_init__(self):
         if self.master not in SIM_MASTERS:
@@ -44,7 +45,14 @@ def _build_sim(spec: RigSpec, progress: Progress | None = None) -> Rig:
     return rig
 
 
-BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim}  # (spec, progress=None) -> Rig
+def _build_udp(spec: RigSpec, progress: Progress | None = None) -> Rig:
+    # Opening the devices is the slow part and happens later, in the controller process: nothing to report.
+    from hardware.udp.rig import build_rig as build_hardware_rig
+
+    return build_hardware_rig(spec)
+
+
+BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp}  # (spec, progress=None) -> Rig
 
 
 def prepare_rig(spec: RigSpec, progress: Progress | None = None) -> None:
