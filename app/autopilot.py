@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.config import ConfigError, ControlConfig
-from control.messages import (Command, CommandRefused, FaultRaised, Jog, LevelTimedOut, Phase, RegionAborted,
+from control.messages import (CancelJog, Command, CommandRefused, FaultRaised, Jog, LevelTimedOut, Phase, RegionAborted,
                               RegionDone, SetRegion, SetSz)
 from hardware.interfaces import TactileConstraints
 
@@ -146,7 +146,6 @@ class Autopilot:
         self.message = "ready"
         self.done_areas: list[int] = []  # indices of the areas finished in this run
         self._steps: list[_Step] = []
-        self._last_x_des: np.ndarray | None = None
 
     # ---- operator -----------------------------------------------------------------------------------
 
@@ -172,17 +171,12 @@ class Autopilot:
         return []
 
     def stop(self, reason: str = "stopped by the operator") -> list[Command]:
-        """Stop here. A move under way is cancelled: what is left of it as of the latest tick is taken back
-        (the probe may end up to one display frame's travel short of where it was); a ramp under way is left
-        to the operator, who owns S_z again."""
+        """Stop here. A move under way is cancelled where X_d is when the controller takes the command; a
+        ramp under way is left to the operator, who owns S_z again."""
         if not self.running:
             return []
-        commands: list[Command] = []
         step = self._steps[0] if self._steps else None
-        if step is not None and step.commanded and step.target_m is not None and self._last_x_des is not None:
-            left = np.asarray(step.target_m) - self._last_x_des
-            if np.abs(left).max() > 1e-9:
-                commands.append(Jog(tuple(float(v) for v in -left)))
+        commands: list[Command] = [CancelJog()] if step is not None and step.commanded else []
         self._halt(reason)
         return commands
 
@@ -190,7 +184,6 @@ class Autopilot:
 
     def update(self, tick: np.ndarray, events: Iterable = ()) -> list[Command]:
         """One display-rate update: ``tick`` is the latest TICK_DTYPE row, ``events`` those since the last call."""
-        self._last_x_des = np.array(tick["x_des_m"], dtype=float)
         if not self.running:
             return []
         for event in events:
@@ -233,7 +226,7 @@ class Autopilot:
         """Commands to issue for ``step``; pops it when it is over. None: wait for the next update."""
         phase = int(tick["phase"])
         t_s = float(tick["t_s"])
-        x_des = self._last_x_des
+        x_des = np.array(tick["x_des_m"], dtype=float)
         if step.kind is _Kind.PALPATE:
             return self._palpate(step, phase, int(tick["tick"]))
         if not step.commanded:

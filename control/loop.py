@@ -20,7 +20,7 @@ import numpy as np
 from control.analysis import PoseHistory, element_analysis
 from control.config import ControlConfig
 from control.law import HybridImpedanceLaw
-from control.messages import (AbortRegion, ClearFault, Command, CommandRefused, EStop, Event, FaultCleared,
+from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandRefused, EStop, Event, FaultCleared,
                               FaultKind, FaultRaised, Jog, Notice, Phase, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
@@ -142,6 +142,8 @@ class ControlLoop:
             else:
                 sm.region = cmd.index - 1
                 events.append(Notice(now_s, f"Next region is number {cmd.index + 1}."))
+        elif isinstance(cmd, CancelJog):
+            self._jog_pending = [0.0, 0.0, 0.0]
         elif isinstance(cmd, Jog):
             if not sm.idle:
                 self._refuse(now_s, cmd, "jog only while the operator holds position control", events)

@@ -96,13 +96,18 @@ class Jog:
 
 
 @dataclass(frozen=True, slots=True)
+class CancelJog:
+    """Stop a jog under way where X_d is now (what is left of it is dropped)."""
+
+
+@dataclass(frozen=True, slots=True)
 class SetRegion:
     """Name the area being palpated next (the index used in records and stitching)."""
 
     index: int
 
 
-Command = SetSz | AbortRegion | EStop | ClearFault | Tare | SetRamp | SetGains | Jog | SetRegion
+Command = SetSz | AbortRegion | EStop | ClearFault | Tare | SetRamp | SetGains | Jog | CancelJog | SetRegion
 
 
 # ---- events -----------------------------------------------------------------------------------------

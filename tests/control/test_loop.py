@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from control.config import ControlConfig, RampSettings, SafetyLimits
-from control.messages import (AbortRegion, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised,
+from control.messages import (AbortRegion, CancelJog, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised,
                               Jog, LevelRecorded, LevelTimedOut, Phase, PhaseChanged, RegionAborted, RegionDone,
                               SetRamp, SetSz, SzChanged, Tare)
 
@@ -241,3 +241,17 @@ def test_position_control_requested_during_the_retract_lets_the_lift_finish():
     h.run(5, until=lambda h: phase(h) == Phase.DONE)
     assert phase(h) == Phase.DONE
     assert h.plant.x[2] > 0.025 + h.config.contact.retract_height_m - 1e-3
+
+
+def test_cancel_jog_stops_the_move_where_it_is():
+    h = Harness()
+    h.run(0.1)
+    x0 = h.loop.tick["x_des_m"][0]
+    h.send(Jog((0.02, 0.0, 0.0)))
+    h.run(0.5)
+    h.send(CancelJog())
+    h.run(0.001)
+    stopped = h.loop.tick["x_des_m"][0]
+    h.run(2.0)
+    assert 0.004 < stopped - x0 < 0.006  # 0.5 s at the 10 mm/s jog speed
+    assert h.loop.tick["x_des_m"][0] == pytest.approx(stopped, abs=1e-9)
