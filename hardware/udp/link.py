@@ -38,6 +38,7 @@ from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints,
                                  TactileConstraints, TactileFrame, TactileSensor, Vec3)
 from hardware.serial_tactile.config import in_range, integer, text
 from hardware.udp import protocol as P
+from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback
 
 RTT_HISTORY = 65536  # round trips kept for the health display and benchmarks
@@ -148,8 +149,6 @@ class UdpSlaveLink(SlaveManipulator):
         self._published = -1
         self._last_state_rx: float | None = None
         self._last_echo: int | None = None
-        self._buf = bytearray(P.RECV_BUFFER)
-        self._view = memoryview(self._buf)
         self._sent_any = False
         self._holding_on_its_own = False
         self.slave_status = P.Status.NONE
@@ -159,6 +158,10 @@ class UdpSlaveLink(SlaveManipulator):
                                        "crc_errors", "invalid_values", "unexpected", "tactile_ignored", "unmapped", "link_losses",
                                        "slave_holds", "socket_errors"), 0)
         self.last_error = ""
+        self._intake = Intake(self.counters, self._set_error)
+
+    def _set_error(self, message: str) -> None:
+        self.last_error = message
 
     # ---- Device --------------------------------------------------------------------------------------
 
@@ -204,30 +207,10 @@ class UdpSlaveLink(SlaveManipulator):
             return
         if not self._sent_any:
             self.hold(now_s)  # tells the slave where we are; it answers with states from then on
-        buf, view, peer = self._buf, self._view, self._peer
+        peer = self._peer
         c = self.counters
-        for _ in range(self.settings.max_packets_per_poll):
-            try:
-                n, addr = sock.recvfrom_into(buf)
-            except BlockingIOError:
-                break
-            except OSError as err:  # e.g. an ICMP error surfacing on the socket
-                c["socket_errors"] += 1
-                self.last_error = f"socket error: {err}"
-                break
-            c["received"] += 1
-            if addr != peer:
-                c["rejected_peers"] += 1
-                continue
-            if n >= P.RECV_BUFFER:
-                c["oversize"] += 1
-                continue
-            try:
-                header, body = P.unpack(view[:n])
-            except P.PacketError as err:
-                c[err.kind] += 1
-                self.last_error = f"bad packet from the slave: {err}"
-                continue
+        for header, body, _ in self._intake.packets(sock, self.settings.max_packets_per_poll,
+                                                   lambda addr: addr == peer, lambda addr: "the slave"):
             if header.type == P.PacketType.STATE:
                 self._on_state(header, body, now_s)  # type: ignore[arg-type]
             elif header.type == P.PacketType.TACTILE:

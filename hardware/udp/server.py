@@ -38,6 +38,7 @@ from control.config import ConfigError, Settings
 from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor
 from hardware.serial_tactile.config import in_range, integer, text
 from hardware.udp import protocol as P
+from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback
 
 DEFAULT_PORT = 47600
@@ -110,12 +111,14 @@ class SlaveServer:
         self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED while the robot holds on its own
         self._held_at_start = False
         self._sent_sensor_seq: int | None = None
-        self._buf = bytearray(P.RECV_BUFFER)
-        self._view = memoryview(self._buf)
         self.counters = dict.fromkeys(("received", "rejected_peers", "oversize", "malformed", "crc_errors",
                                        "invalid_values", "unexpected", "pings", "link_timeouts", "jumps_refused",
                                        "master_changes", "sent", "send_errors", "socket_errors"), 0)
         self.last_error = ""
+        self._intake = Intake(self.counters, self._set_error)
+
+    def _set_error(self, message: str) -> None:
+        self.last_error = message
 
     @property
     def address(self) -> tuple[str, int]:
@@ -198,29 +201,9 @@ class SlaveServer:
     def _drain(self, sock: socket.socket, now_s: float) -> P.Command | None:
         c = self.counters
         newest: P.Command | None = None
-        buf, view = self._buf, self._view
-        for _ in range(self.settings.max_packets_per_step):
-            try:
-                n, addr = sock.recvfrom_into(buf)
-            except BlockingIOError:
-                break
-            except OSError as err:
-                c["socket_errors"] += 1
-                self.last_error = f"socket error: {err}"
-                break
-            c["received"] += 1
-            if not self.settings.allows(addr[0]):
-                c["rejected_peers"] += 1
-                continue
-            if n >= P.RECV_BUFFER:
-                c["oversize"] += 1
-                continue
-            try:
-                header, body = P.unpack(view[:n])
-            except P.PacketError as err:
-                c[err.kind] += 1
-                self.last_error = f"bad packet from {addr[0]}:{addr[1]}: {err}"
-                continue
+        for header, body, addr in self._intake.packets(sock, self.settings.max_packets_per_step,
+                                                      lambda addr: self.settings.allows(addr[0]),
+                                                      lambda addr: f"{addr[0]}:{addr[1]}"):
             if header.type == P.PacketType.PING:
                 c["pings"] += 1
                 self._send_state(addr, now_s, P.Status.PING_REPLY, echo=(header.seq, header.t_send_s, now_s))
