@@ -237,6 +237,8 @@ class MapPainter:
 
         px_per_m = w / (x_max - x_min)
         dashed = QtGui.QPen(QtGui.QColor("black"), 1.5, QtCore.Qt.PenStyle.DashLine)
+        painter.save()
+        painter.setClipRect(target)  # tumours outside the palpated part of the tissue stay off the page
         for truth in self.ground_truth:
             radius = float(truth.get("diameter_m", 8e-3)) / 2 * px_per_m
             painter.setPen(dashed)
@@ -246,6 +248,7 @@ class MapPainter:
             if t.source == source and lm.force_N >= t.first_level_N - 1e-9:
                 painter.setPen(ring)
                 painter.drawEllipse(to_px(t.x_m, t.y_m), 3e-3 * px_per_m, 3e-3 * px_per_m)
+        painter.restore()
         painter.setPen(QtGui.QColor("black"))
         painter.drawText(QtCore.QPointF(target.left(), target.bottom() + line),
                          f"x {x_min * 1e3:.0f}–{x_max * 1e3:.0f} mm, y {y_min * 1e3:.0f}–{y_max * 1e3:.0f} mm")
