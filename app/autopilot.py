@@ -36,6 +36,7 @@ ARRIVAL_TOLERANCE_M = 0.3e-3
 # A move is given its nominal time at the jog speed, times this, plus the fixed allowance, to arrive.
 MOVE_TIME_FACTOR = 1.5
 MOVE_ALLOWANCE_S = 3.0
+COMMAND_TIMEOUT_S = 30.0  # a jog the controller neither refused nor started within this is lost
 # Surface points under the TSI face are sampled at this spacing to find the highest one.
 _FOOTPRINT_STEP_M = 0.5e-3
 _IDLE = (Phase.APPROACH, Phase.DONE)
@@ -129,7 +130,9 @@ class _Step:
     kind: _Kind
     area: Area | None  # None: the final raise
     target_m: tuple[float, float, float] | None = None  # moves: set when commanded
-    deadline_s: float = math.inf
+    deadline_s: float = math.inf  # moves: set once the controller is seen carrying the move out
+    sent_s: float = math.inf  # moves: when the jog was sent
+    start_m: tuple[float, float, float] | None = None  # moves: X_d when the jog was sent
     commanded: bool = False
     region_done: bool = False
     done_tick: int = -1  # palpation: the first tick seen in DONE after "region done"
@@ -243,8 +246,7 @@ class Autopilot:
             if distance < 1e-6:
                 self._steps.pop(0)
                 return []
-            nominal = distance / self.plan.jog_speed_m_s
-            step.deadline_s = t_s + MOVE_TIME_FACTOR * nominal + MOVE_ALLOWANCE_S
+            step.sent_s, step.start_m = t_s, tuple(float(v) for v in x_des)
             self.message = self._describe(step)
             return [Jog(tuple(float(v) for v in delta))]
         if phase not in _IDLE:
@@ -255,7 +257,16 @@ class Autopilot:
         if arrived:
             self._steps.pop(0)
             return []
-        if t_s > step.deadline_s:
+        if step.deadline_s == math.inf:
+            if np.abs(x_des - step.start_m).max() > 1e-9:
+                # the clock starts when the controller takes the jog: commands reach it with a delay
+                # that the display rate and the host's load set, not the move
+                nominal = float(np.linalg.norm(np.subtract(step.target_m, step.start_m))) / self.plan.jog_speed_m_s
+                step.deadline_s = t_s + MOVE_TIME_FACTOR * nominal + MOVE_ALLOWANCE_S
+            elif t_s - step.sent_s > COMMAND_TIMEOUT_S:
+                self._halt(f"the controller did not start the move to {_mm3(step.target_m)} "
+                           f"within {COMMAND_TIMEOUT_S:g} s")
+        elif t_s > step.deadline_s:
             self._halt(f"the TSI did not reach {_mm3(step.target_m)} in time (it is at {_mm3(tick['x_slave_m'])})")
         return None
 

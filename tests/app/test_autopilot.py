@@ -191,3 +191,27 @@ def test_palpation_starts_only_at_the_approach_height_and_waits_for_the_retract(
     assert autopilot.update(synthetic_tick(Phase.DONE, low, tick=11)) == []
     commands = autopilot.update(synthetic_tick(Phase.DONE, (0.004, 0.015, 0.033), tick=12))
     assert commands == [Jog(pytest.approx((0.0, 0.0, 0.012)))] and autopilot.done_areas == [2]
+
+
+def test_a_move_is_timed_from_when_the_controller_takes_it_not_from_when_it_was_sent():
+    plan = AutopilotPlan((Area(0, 0.004, 0.015, 0.028),), travel_z_m=0.045, jog_speed_m_s=0.01)
+    autopilot = Autopilot(plan)
+    autopilot.start()
+
+    def at(t_s, x=(0.036, 0.015, 0.06)):
+        row = synthetic_tick(x=x)
+        row["t_s"] = t_s
+        return row
+
+    assert autopilot.update(at(0.0)) == [Jog(pytest.approx((-0.032, 0.0, -0.015)))]
+    autopilot.update(at(20.0))  # the jog is slow to arrive (a loaded host): not a timeout yet
+    assert autopilot.running
+    autopilot.update(at(20.5, x=(0.035, 0.015, 0.0595)))  # taken: now the move's own clock runs
+    autopilot.update(at(20.5 + 1.5 * 3.5 + 3.0 + 0.1, x=(0.035, 0.015, 0.0595)))
+    assert autopilot.state is AutopilotState.STOPPED and "did not reach" in autopilot.message
+
+    lost = Autopilot(plan)
+    lost.start()
+    lost.update(at(0.0))
+    lost.update(at(31.0))
+    assert lost.state is AutopilotState.STOPPED and "did not start the move" in lost.message
