@@ -203,15 +203,10 @@ class ScriptedOperator(SimDevice, MasterDevice):
         return self._latest
 
     def poll(self, now_s: float) -> None:
-        world = self.world
-        world.advance(now_s)
-        if not self.connected:
+        sample = self._next_sample(now_s, self.constraints.rate_hz, self._last_seq)
+        if sample is None:
             return
-        rate = self.constraints.rate_hz
-        m = world.instant_index(rate)
-        if m <= self._last_seq:
-            return
-        t = world.instant_s(m, rate)
+        m, t = sample
         self._run_to(t)
         position, sz = self._position_at(t)
         self._latest = MasterState(seq=m, t_s=t, position_m=position, sz_switch=sz)

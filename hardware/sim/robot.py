@@ -44,16 +44,11 @@ class SimSlave(SimDevice, SlaveManipulator):
         return self._latest
 
     def poll(self, now_s: float) -> None:
-        world = self.world
-        world.advance(now_s)
-        if not self.connected:
+        sample = self._next_sample(now_s, self.constraints.rate_hz, self._last_index)
+        if sample is None:
             return
-        rate = self.constraints.rate_hz
-        m = world.instant_index(rate)
-        if m <= self._last_index:
-            return
-        t = world.instant_s(m, rate)
-        position, velocity = world.state_at(t)
+        m, t = sample
+        position, velocity = self.world.state_at(t)
         self._latest = SlaveState(seq=m, t_s=t, position_m=position, velocity_m_s=velocity)
         self._last_index = m
 

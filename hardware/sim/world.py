@@ -233,5 +233,17 @@ class SimDevice:
         if self._connection == ConnectionState.CONNECTED:
             self._connection = ConnectionState.LOST
 
+    def _next_sample(self, now_s: float, rate_hz: float, last_index: int) -> tuple[int, float] | None:
+        """Advance the world to ``now_s``; the newest sampling instant (index, time) of a device reporting
+        at ``rate_hz``, or None when disconnected or nothing newer than ``last_index`` is due."""
+        world = self.world
+        world.advance(now_s)
+        if not self.connected:
+            return None
+        m = world.instant_index(rate_hz)
+        if m <= last_index:
+            return None
+        return m, world.instant_s(m, rate_hz)
+
     def _on_open(self) -> None:
         """What a fresh connection resets beyond the state (the sensor re-takes its zero)."""
