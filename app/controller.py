@@ -6,7 +6,11 @@ the GUI process misses its period whenever pyqtgraph paints (see DESIGN.md, "One
 Channels between the two sides:
 
 * commands, parent -> child: a ``multiprocessing.Queue`` of the typed dataclasses of
-  :mod:`control.messages` (plus :class:`Shutdown`), drained at the start of every tick;
+  :mod:`control.messages` (plus :class:`Shutdown`), and beside it a shared-memory count of the commands
+  sent. The child compares that count with the number it has received at the start of every tick and
+  reads the queue only when they differ: finding a queue empty costs a system call and an exception
+  (about 40 us with cold caches, measured), reading a shared integer well under 1 us. A command whose
+  bytes have not reached the pipe yet is read on a later tick: the count never lets one be forgotten;
 * telemetry, child -> parent: two :class:`~app.ring.SharedRing` (tick rows, frame rows) the parent creates
   and owns, so they are released even if the child is killed;
 * events, child -> parent: a one-way pipe fed by a sender thread in the child, carrying the loop's events,
@@ -15,7 +19,8 @@ Channels between the two sides:
   child shows up as end-of-file instead of a read that waits forever for half a message.
 
 Pacing: tick ``k`` is due at the absolute deadline ``t0 + k * period``; the child sleeps until
-``spin_s`` before it and spins the rest. A tick that starts more than one period late does not cause
+``spin_s`` before it and spins the rest (see :class:`PacingOptions` for why it spins most of the period
+when it runs with SCHED_FIFO). A tick that starts more than one period late does not cause
 the missed ticks to be replayed back to back: they are counted (``missed_ticks``), the deadline grid
 moves on to the current period, and the loop clamps its integration step (``ControlConfig.max_step_s``).
 """
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 import contextlib
+import ctypes
 import gc
 import logging
 import multiprocessing as mp
@@ -93,21 +99,33 @@ class ControllerStartError(RuntimeError):
 
 @dataclass(frozen=True)
 class PacingOptions:
+    """How the child waits for its deadlines.
+
+    It sleeps until ``spin_s`` before a deadline and spins the rest. Without SCHED_FIFO the spin is short
+    (``spin_s``): sleeps overshoot by ~65 us median here, and a process that spins longer loses out to the
+    scheduler. With SCHED_FIFO it spins most of the period (``rt_spin_s``): a CPU that halts between
+    ticks comes back with cold caches, and the same tick then costs 2-2.5x as much (measured: 48 us hot,
+    105-125 us after a 0.8 ms sleep, 70-80 us after 50-100 us). It still sleeps ``min_sleep_s`` each
+    period when the tick left that much time: the kernel throttles SCHED_FIFO tasks for 50 ms once they
+    have run 95 % of a second (sched_rt_runtime_us), and spinning whole periods ran into exactly that.
+    """
+
     realtime: bool = True  # ask for SCHED_FIFO
     pin_cpu: bool = True  # pin the loop to the last CPU and move the parent's threads off it
     rt_priority: int = DEFAULT_RT_PRIORITY
-    # Sleeping stops this long before a deadline and spins the rest. Measured on the 2-vCPU VM (6 s runs
-    # under load): 50 us leaves 58-68 % of ticks a little late (sleep overshoots ~65 us median);
-    # 150 us gives p99 lateness 20 us with SCHED_FIFO and 79 us without; spinning longer buys little with
-    # SCHED_FIFO and makes things worse without it (the busier process loses out to the scheduler).
     spin_s: float = 150e-6
+    rt_spin_s: float = 10e-3  # longer than a period: with SCHED_FIFO, sleep only min_sleep_s
+    min_sleep_s: float = 100e-6
     health_interval_s: float = 0.5
 
     def __post_init__(self):
         if not 1 <= self.rt_priority <= 99:
             raise ValueError(f"rt_priority must be within 1..99, got {self.rt_priority}")
-        if not 0 <= self.spin_s < 0.01:
-            raise ValueError(f"spin_s must be within [0, 0.01) s, got {self.spin_s}")
+        for name in ("spin_s", "rt_spin_s"):
+            if not 0 <= getattr(self, name) <= 0.01:
+                raise ValueError(f"{name} must be within [0, 0.01] s, got {getattr(self, name)}")
+        if not 0 <= self.min_sleep_s < 1e-3:
+            raise ValueError(f"min_sleep_s must be within [0, 1) ms, got {self.min_sleep_s}")
         if self.health_interval_s <= 0:
             raise ValueError(f"health_interval_s must be > 0, got {self.health_interval_s}")
 
@@ -147,6 +165,8 @@ class ControllerProcess:
         self.stopped_info: ControllerStopped | None = None  # set after a clean stop
         self._process: mp.process.BaseProcess | None = None
         self._commands: mp.queues.Queue | None = None
+        self._sent = None  # shared count of the commands put on the queue (see the module docstring)
+        self._send_lock = threading.Lock()
         self._events: Connection | None = None
         self._pending: list = []
         self._cpu_reservation: _CpuReservation | None = None
@@ -169,11 +189,12 @@ class ControllerProcess:
             self.ticks = SharedRing.create(TICK_DTYPE, self._capacities[0])
             self.frames = SharedRing.create(FRAME_DTYPE, self._capacities[1])
             self._commands = ctx.Queue()
+            self._sent = ctx.RawValue(ctypes.c_uint64, 0)
             self._events, child_end = ctx.Pipe(duplex=False)
             process = ctx.Process(
                 target=_child_main,
                 args=(self.config, self.rig_spec, self.options, self.ticks.handle, self.frames.handle,
-                      self._commands, child_end),
+                      _CommandInbox(self._commands, self._sent), child_end),
                 name="palpation-controller",
                 daemon=True,  # a parent that exits without stop() still takes the child down (SIGTERM: hold)
             )
@@ -221,8 +242,8 @@ class ControllerProcess:
             self._release()
             return None
         if process.is_alive():
-            with contextlib.suppress(ValueError, OSError):  # the queue is closed already
-                self._commands.put(Shutdown())
+            with contextlib.suppress(ValueError, OSError, AttributeError):  # the queue is closed already
+                self._put(Shutdown())
             deadline = time.monotonic() + timeout_s
             # Keep reading while waiting: a child blocked on a full event pipe could not finish otherwise.
             while process.is_alive() and time.monotonic() < deadline:
@@ -284,10 +305,15 @@ class ControllerProcess:
         """Queue a command for the next tick (thread-safe)."""
         if not isinstance(command, Command):
             raise TypeError(f"not a control command: {command!r} (see control.messages.Command)")
-        commands = self._commands
-        if commands is None or not self.is_alive:
+        if self._commands is None or not self.is_alive:
             raise RuntimeError(f"the controller process is not running; {type(command).__name__} was not sent")
-        commands.put(command)
+        self._put(command)
+
+    def _put(self, command) -> None:
+        # Under one lock, so the count never runs ahead of a command another thread has yet to put.
+        with self._send_lock:
+            self._commands.put(command)
+            self._sent.value += 1
 
     def drain_events(self) -> list:
         """The loop's events (control.messages) received since the last call, oldest first.
@@ -500,23 +526,40 @@ class _Stats:
         return health
 
 
-def _drain_commands(commands: mp.queues.Queue) -> list:
-    out = []
-    while True:
-        try:
-            out.append(commands.get_nowait())
-        except queue.Empty:
-            return out
+class _CommandInbox:
+    """The child's end of the command channel: the queue, read only when the shared count says so."""
+
+    def __init__(self, commands: mp.queues.Queue, sent):
+        self._commands = commands
+        self._sent = sent
+        self._received = 0
+
+    def take(self) -> list:
+        """The commands that have arrived, oldest first (usually none, at the cost of one shared read)."""
+        if self._sent.value == self._received:
+            return _NOTHING
+        out = []
+        while self._received < self._sent.value:
+            try:
+                out.append(self._commands.get_nowait())
+            except queue.Empty:
+                break  # counted, but its bytes are still on their way: the next tick reads it
+            self._received += 1
+        return out
 
 
-def _child_main(config, rig_spec, options, tick_handle: RingHandle, frame_handle: RingHandle, commands, events_conn):
+_NOTHING: list = []  # never mutated: run_tick only iterates over the commands
+
+
+def _child_main(config, rig_spec, options, tick_handle: RingHandle, frame_handle: RingHandle,
+                commands: _CommandInbox, events_conn):
     """Entry point of the controller process."""
     sys.exit(_ControllerChild(config, rig_spec, options, tick_handle, frame_handle, commands, events_conn).run())
 
 
 class _ControllerChild:
     def __init__(self, config: ControlConfig, rig_spec: RigSpec, options: PacingOptions, tick_handle: RingHandle,
-                 frame_handle: RingHandle, commands, events_conn: Connection):
+                 frame_handle: RingHandle, commands: _CommandInbox, events_conn: Connection):
         self.config = config
         self.rig_spec = rig_spec
         self.options = options
@@ -571,10 +614,11 @@ class _ControllerChild:
 
     def _pace(self) -> int:
         """Tick on absolute deadlines until told to stop or orphaned; returns the exit code."""
-        loop, rig, sender, stats = self.loop, self.rig, self.sender, self.stats
+        loop, rig, sender, stats, commands = self.loop, self.rig, self.sender, self.stats, self.commands
         ticks, frames = self.rings
         period_s = self.config.period_s
-        spin_s = self.options.spin_s
+        spin_s = self.options.rt_spin_s if self.rt_info[0] else self.options.spin_s
+        min_sleep_s = self.options.min_sleep_s
         health_interval_s = self.options.health_interval_s
         monotonic = time.monotonic
         tick_row = loop.tick
@@ -585,8 +629,9 @@ class _ControllerChild:
         while True:
             deadline = t0 + k * period_s
             remaining = deadline - monotonic()
-            if remaining > spin_s:
-                time.sleep(remaining - spin_s)
+            pause = max(remaining - spin_s, min(min_sleep_s, remaining - min_sleep_s))
+            if pause > 0:
+                time.sleep(pause)
             now = monotonic()
             while now < deadline:
                 now = monotonic()
@@ -597,7 +642,7 @@ class _ControllerChild:
                 skipped = int(late / period_s)
                 missed += skipped
                 k += skipped
-            pending = _drain_commands(self.commands)
+            pending = commands.take()
             if any(isinstance(command, Shutdown) for command in pending):
                 return EXIT_OK  # run() holds the slave; commands queued with the shutdown are moot
             result = run_tick(loop, rig, now, pending)
