@@ -17,6 +17,12 @@ the sample index as ``seq`` (a jump in ``seq`` is a frame the host never saw). P
 
 On connection the array takes its first frame as zero, as acquisition software does on start-up;
 :meth:`tare` takes the latest frame's reading instead.
+
+A frame is computed half-way through its latency (at the first poll after ``t_s + latency_s / 2``), not
+at its sampling instant: what it describes is fixed by ``t_s`` alone (the world keeps its recent
+trajectory), and at the default 100 frames/s with 10 ms latency the sampling instant of one frame is the
+delivery instant of the one before, so computing it then would put the simulator's heaviest work on the
+same control tick as the loop's frame analysis.
 """
 
 from __future__ import annotations
@@ -38,8 +44,9 @@ class SimTactileSensor(SimDevice, TactileSensor):
         s = world.settings.sensor
         self.settings = s
         self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz)
-        self._cover_weight = cover_weight(s.cover_spread_m, self.constraints.pitch_m)
         shape = self.constraints.shape
+        self._cover_rows, self._cover_cols = cover_operators(
+            cover_weight(s.cover_spread_m, self.constraints.pitch_m), shape)
         made = np.random.default_rng(s.seed)
         # log-normal: a relative spread that can never make an element's sensitivity negative
         self._gain = np.exp(s.gain_spread * made.standard_normal(shape))
@@ -47,8 +54,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
         self._noise = np.random.default_rng(seed)
         self._area_m2 = self.constraints.element_area_m2
         self._raw_max_pa = s.full_scale_pa + s.zero_offset_pa
-        # frames in flight: (readable at, seq, sampling instant, raw reading)
-        self._in_flight: deque[tuple[float, int, float, np.ndarray]] = deque()
+        # frames in flight: [readable at, seq, sampling instant, raw reading (None until computed)]
+        self._in_flight: deque[list] = deque()
         self._backlog = int(math.ceil(s.latency_s * s.frame_rate_hz)) + 1
         self._next_index: int | None = None
         self._creep_pa = np.zeros(shape)
@@ -78,7 +85,7 @@ class SimTactileSensor(SimDevice, TactileSensor):
         through the cover, before creep, gain, noise and the converter (the first stage of every frame)."""
         x, y, z = self.world.state_at(t_s)[0]
         forces = np.asarray(self.world.tissue.element_forces_N(x, y, z), dtype=float)
-        if forces.shape != self.constraints.shape or not np.isfinite(forces).all():
+        if forces.shape != self.constraints.shape or not math.isfinite(forces.sum()):
             problem = "non-finite forces" if forces.shape == self.constraints.shape else f"shape {forces.shape}"
             raise DeviceError(f"sim tactile sensor: the tissue model {type(self.world.tissue).__name__} returned "
                               f"{problem} at ({x:.4f}, {y:.4f}, {z:.4f}) m; it must return finite "
@@ -94,44 +101,68 @@ class SimTactileSensor(SimDevice, TactileSensor):
         newest = world.instant_index(rate)
         if self._next_index is None:
             self._next_index = newest
+        latency = self.settings.latency_s
+        in_flight = self._in_flight
         # frames sampled long before now are superseded by newer ones before the host could read them
         for k in range(max(self._next_index, newest - self._backlog), newest + 1):
             t = world.instant_s(k, rate)
-            self._in_flight.append((t + self.settings.latency_s, k, t, self._sample(t)))
+            in_flight.append([t + latency, k, t, None])
         self._next_index = max(self._next_index, newest + 1)
-        while self._in_flight and self._in_flight[0][0] <= now_s:
-            _, seq, t, raw = self._in_flight.popleft()
+        # in sampling order: the creep state carries from one frame to the next
+        for frame in in_flight:
+            if frame[3] is None:
+                if frame[2] + 0.5 * latency > now_s and frame[0] > now_s:
+                    break
+                frame[3] = self._sample(frame[2])
+        while in_flight and in_flight[0][0] <= now_s:
+            _, seq, t, raw = in_flight.popleft()
             if self._zero_pa is None:
                 self._zero_pa = raw.copy()
             self._latest_raw = raw
             self._latest = TactileFrame(seq=seq, t_s=t, pressure_pa=raw - self._zero_pa)
 
     def _sample(self, t_s: float) -> np.ndarray:
+        # in place where it can be: this runs on a control tick, and every temporary costs a microsecond
         s = self.settings
         p = self.true_pressure_pa(t_s)
+        creep = self._creep_pa
         if self._creep_t is not None:
             # exact first-order update, taking the load over the interval to be the one sampled at its end
             decay = math.exp(-max(t_s - self._creep_t, 0.0) / s.creep_time_constant_s)
-            self._creep_pa = self._creep_pa * decay + s.creep_fraction * p * (1.0 - decay)
+            creep *= decay
+            creep += (s.creep_fraction * (1.0 - decay)) * p
         self._creep_t = t_s
-        raw = self._offset_pa + self._gain * (p + self._creep_pa)
+        raw = np.add(p, creep, out=p)
+        raw *= self._gain
+        raw += self._offset_pa
         if s.noise_std_pa > 0:
-            raw = raw + s.noise_std_pa * self._noise.standard_normal(raw.shape)
+            raw += s.noise_std_pa * self._noise.standard_normal(raw.shape)
         if s.quantisation_pa > 0:
-            raw = np.round(raw / s.quantisation_pa) * s.quantisation_pa
-        return np.clip(raw, 0.0, self._raw_max_pa)
+            raw /= s.quantisation_pa
+            np.round(raw, out=raw)
+            raw *= s.quantisation_pa
+        return np.clip(raw, 0.0, self._raw_max_pa, out=raw)
 
     def _through_cover(self, p: np.ndarray) -> np.ndarray:
         """Spread each element's load to its neighbours along both axes; edge elements keep what would
         leave the array, so the total force is unchanged."""
-        w = self._cover_weight
-        if w == 0.0:
-            return p
-        for axis in (0, 1):
-            padded = np.concatenate([np.take(p, [0], axis), p, np.take(p, [-1], axis)], axis=axis)
-            n = p.shape[axis]
-            p = (1.0 - 2.0 * w) * p + w * (np.take(padded, range(0, n), axis) + np.take(padded, range(2, n + 2), axis))
-        return p
+        return self._cover_rows @ p @ self._cover_cols
+
+
+def cover_operators(weight: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) matrices with ``left @ p @ right`` = the cover's spread of ``p``: each element passes
+    ``weight`` of its load to each neighbour along both axes, and an edge element keeps the share that
+    would leave the array (so every column of either matrix sums to one and the total force is kept)."""
+    mats = []
+    for n in shape:
+        m = np.eye(n) * (1.0 - 2.0 * weight)
+        idx = np.arange(n - 1)
+        m[idx, idx + 1] = weight
+        m[idx + 1, idx] = weight
+        m[0, 0] += weight
+        m[n - 1, n - 1] += weight
+        mats.append(m)
+    return mats[0], mats[1].T
 
 
 def cover_weight(spread_m: float, pitch_m: float) -> float:

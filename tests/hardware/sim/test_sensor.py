@@ -237,13 +237,13 @@ def test_a_tissue_model_returning_garbage_is_reported():
 
 
 def test_the_cover_spreads_an_edge_peak_to_its_neighbours_and_keeps_the_total_force():
-    from hardware.sim.sensor import cover_weight
+    from hardware.sim.sensor import cover_operators, cover_weight
 
     w = cover_weight(0.5e-3, 2e-3)
     assert w == pytest.approx(0.0997, abs=5e-4)  # Q(4) + (phi(0) - phi(4)) / 4
     assert cover_weight(0.0, 2e-3) == 0.0
     sensor = SimTactileSensor.__new__(SimTactileSensor)
-    sensor._cover_weight = w
+    sensor._cover_rows, sensor._cover_cols = cover_operators(w, (4, 15))
     p = np.zeros((4, 15))
     p[:, 0] = 10e3  # the rigid face's edge peak along one end of the array
     p[:, 1:] = 2e3
