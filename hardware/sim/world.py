@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from scipy.linalg import expm
+
 from hardware.interfaces import ConnectionState, Vec3
 from hardware.sim.phantom import Phantom
 from hardware.sim.settings import RobotSimSettings, SimSettings
@@ -31,6 +34,9 @@ _GRID_EPS = 1e-6  # fraction of a step: absorbs rounding when a time lies on the
 # planned profile, and the headroom lets it follow without overshooting the target (0.08 mm on a 50 mm
 # move, against 1.1 mm when braking is planned at the full limit).
 BRAKE_FRACTION = 0.6
+# Semi-implicit Euler follows the continuous inner loop within ~1 % of its step response while the
+# velocity-loop gain times the step stays below this (measured: 0.044 gives 1.2 %, 0.088 gives 2.3 %).
+EULER_GAIN_STEP = 0.05
 
 
 def _norm(x: float, y: float, z: float) -> float:
@@ -48,6 +54,12 @@ class RobotBody:
     acceleration limit (planned at ``BRAKE_FRACTION`` of it), and the acceleration to its limit. The
     limits act on the vector norm (a Cartesian controller's limits do not depend on the direction of
     travel).
+
+    A step with no limit active is integrated exactly (the closed loop is then linear: the zero-order-hold
+    transition matrix, computed once per step length); one where a limit acts is integrated with
+    semi-implicit Euler sub-steps short enough to follow the continuous loop (``EULER_GAIN_STEP``). Near
+    the reference, where the loop spends most of its time, a 1 ms step then costs one update instead of
+    four.
     """
 
     def __init__(self, settings: RobotSimSettings):
@@ -63,6 +75,17 @@ class RobotBody:
         self.velocity: list[float] = [0.0, 0.0, 0.0]
         self.reference: list[float] = list(settings.home_m)
         self.reference_velocity: list[float] = [0.0, 0.0, 0.0]
+        self._exact: dict[float, tuple[float, float, float, float]] = {}
+
+    def _transition(self, dt: float) -> tuple[float, float, float, float]:
+        """Exact transition over ``dt`` of one axis' (error - equilibrium error, velocity) when no limit
+        acts: d(e)/dt = -v, dv/dt = kv * (kp * e - v), with e measured from its equilibrium -vr / kp."""
+        phi = self._exact.get(dt)
+        if phi is None:
+            a = np.array([[0.0, -1.0], [self._kv * self._kp, -self._kv]])
+            m = expm(a * dt)
+            phi = self._exact[dt] = (float(m[0, 0]), float(m[0, 1]), float(m[1, 0]), float(m[1, 1]))
+        return phi
 
     def set_reference(self, position_m: Vec3, velocity_m_s: Vec3) -> None:
         """Track a new reference; it is clamped into the workspace with its velocity zeroed there."""
@@ -90,7 +113,45 @@ class RobotBody:
         self.reference_velocity = [0.0, 0.0, 0.0]
 
     def step(self, dt: float) -> None:
-        # plain floats, no helpers: this runs 4000 times per simulated second
+        if self._step_exact(dt):
+            return
+        n = max(1, math.ceil(dt * self._kv / EULER_GAIN_STEP))
+        for _ in range(n):
+            self._euler(dt / n)
+
+    def _within_limits(self, x, v) -> bool:
+        """True if the linear loop's commanded velocity and acceleration at (x, v) touch no limit."""
+        r, vr, kp = self.reference, self.reference_velocity, self._kp
+        ex, ey, ez = r[0] - x[0], r[1] - x[1], r[2] - x[2]
+        err2 = ex * ex + ey * ey + ez * ez
+        if kp * kp * err2 > self._vmax * self._vmax or kp * kp * math.sqrt(err2) > 2.0 * self._brake:
+            return False
+        cx, cy, cz = vr[0] + kp * ex, vr[1] + kp * ey, vr[2] + kp * ez
+        if cx * cx + cy * cy + cz * cz > self._vmax * self._vmax:
+            return False
+        ax, ay, az = cx - v[0], cy - v[1], cz - v[2]
+        return self._kv * self._kv * (ax * ax + ay * ay + az * az) <= self._amax * self._amax
+
+    def _step_exact(self, dt: float) -> bool:
+        """One exact step if no limit acts at its start or its end; False (nothing changed) otherwise."""
+        x, v = self.position, self.velocity
+        if not self._within_limits(x, v):
+            return False
+        p00, p01, p10, p11 = self._transition(dt)
+        r, vr, kp = self.reference, self.reference_velocity, self._kp
+        new_x, new_v = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        for i in range(3):
+            e_eq = -vr[i] / kp
+            e = r[i] - x[i] - e_eq
+            new_x[i] = r[i] - e_eq - (p00 * e + p01 * v[i])
+            new_v[i] = p10 * e + p11 * v[i]
+        if not self._within_limits(new_x, new_v):
+            return False
+        self.position, self.velocity = new_x, new_v
+        return True
+
+    def _euler(self, dt: float) -> None:
+        # plain floats, no helpers: this runs thousands of times per simulated second
         x, v, r, vr = self.position, self.velocity, self.reference, self.reference_velocity
         vmax, amax = self._vmax, self._amax
         ex, ey, ez = r[0] - x[0], r[1] - x[1], r[2] - x[2]

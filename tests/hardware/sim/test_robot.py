@@ -178,3 +178,23 @@ def test_unplugging_stops_the_readings_and_the_watchdog_brakes_the_robot():
     x, v = slave.world.state_at(T0 + 1.0)
     assert np.linalg.norm(v) < 1e-6
     assert x[0] < home[0] + 0.05
+
+
+@pytest.mark.parametrize("move_m", [(2e-4, 0.0, -1e-4), (0.005, 0.0, -0.003), (0.05, 0.01, -0.03)])
+def test_the_1ms_world_grid_moves_the_robot_as_a_fine_grid_does(move_m):
+    # exact steps where no limit acts, Euler sub-steps where one does: either way the trajectory must not
+    # depend on the world's grid
+    trajectories = []
+    for substep in (1e-3, 5e-5):
+        phantom = load_phantom("flat")
+        world = SimWorld(phantom, WinklerTissue(phantom), SimSettings(substep_s=substep))
+        slave = SimSlave(world)
+        slave.open()
+        slave.poll(T0)
+        home = np.array(slave.latest().position_m)
+        slave.command(tuple(home + np.array(move_m)), (0.0, 0.0, 0.0), T0)
+        trajectories.append(np.array([r.position_m for r in run(slave, T0, 0.6)]) - home)
+    coarse, fine = trajectories
+    scale = np.linalg.norm(move_m)
+    assert np.abs(coarse - fine).max() < 0.005 * scale  # 1 ms Euler steps in the limited phase: 1 %
+    assert np.linalg.norm(coarse[-1] - move_m) < 1e-3 * scale
