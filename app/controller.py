@@ -646,10 +646,8 @@ class _ControllerChild:
             if any(isinstance(command, Shutdown) for command in pending):
                 return EXIT_OK  # run() holds the slave; commands queued with the shutdown are moot
             result = run_tick(loop, rig, now, pending)
-            compute = monotonic() - now
 
             tick_row["late_s"] = late
-            tick_row["compute_s"] = compute
             tick_row["missed_ticks"] = missed
             ticks.write(tick_row)
             if result.new_frame:

@@ -6,6 +6,7 @@ The real-time controller process, the fast-forward driver and the tests all call
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
 
 from control.config import ControlConfig
@@ -19,9 +20,18 @@ def make_loop(config: ControlConfig, rig: Rig) -> ControlLoop:
 
 
 def run_tick(loop: ControlLoop, rig: Rig, now_s: float, commands: Iterable[Command] = ()) -> StepResult:
-    """One control period at host time ``now_s``."""
+    """One control period at host time ``now_s``.
+
+    Writes into the tick row how long the loop computed (``compute_s``) and how long the devices took
+    (``io_s``: polling them and applying the step's output). They are kept apart because on the
+    simulated rig ``io_s`` is mostly the simulation of the world, work a real robot and sensor do on
+    their own hardware, while on a real rig it is reading and writing buffers.
+    """
+    perf = time.perf_counter
+    t0 = perf()
     rig.poll(now_s)
     master = rig.master
+    t1 = perf()
     result = loop.step(
         now_s,
         rig.sensor.latest(),
@@ -29,6 +39,7 @@ def run_tick(loop: ControlLoop, rig: Rig, now_s: float, commands: Iterable[Comma
         master.latest() if master is not None else None,
         commands,
     )
+    t2 = perf()
     if result.hold:
         rig.slave.hold(now_s)
     else:
@@ -37,4 +48,7 @@ def run_tick(loop: ControlLoop, rig: Rig, now_s: float, commands: Iterable[Comma
         rig.sensor.tare()
     if master is not None and result.feedback is not None:
         master.feedback(result.feedback)
+    row = loop.tick
+    row["compute_s"] = t2 - t1
+    row["io_s"] = (t1 - t0) + (perf() - t2)
     return result

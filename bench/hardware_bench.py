@@ -191,7 +191,6 @@ def _run_loop(rig: Rig, config: ControlConfig, seconds: float) -> tuple[np.ndarr
         ticks[n] = loop.tick
         row = ticks[n]
         row["late_s"] = late
-        row["compute_s"] = monotonic() - now
         row["missed_ticks"] = missed
         events += result.events
         n += 1

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
+from functools import cached_property
 from typing import Any, ClassVar
 
 Vec3 = tuple[float, float, float]
@@ -142,7 +143,7 @@ class RampSettings(Settings):
         if self.level_timeout_s <= self.min_settle_s:
             raise ConfigError("level_timeout_s", f"must exceed min_settle_s ({self.min_settle_s:g} s)")
 
-    @property
+    @cached_property  # read on every control tick; the settings are frozen
     def n_levels(self) -> int:
         span = self.force_max_N - self.force_min_N
         return int(math.floor(span / self.force_step_N + 1e-9)) + 1 + (0 if _is_multiple(span, self.force_step_N) else 1)

@@ -332,7 +332,13 @@ class ControlLoop:
             return
         if sm.idle:
             self._advance_jog(dt)
-        x_d = self._xd = (self._x_d(0), self._x_d(1), self._x_d(2))
+        off, master = self._offset, self._master_pos
+        if master is None:
+            x_d = (off[0], off[1], off[2])
+        else:
+            k = self.config.master.scale
+            x_d = (k * master[0] + off[0], k * master[1] + off[1], k * master[2] + off[2])
+        self._xd = x_d
         f_d_z = -sm.force_desired_N if sm.force_control else 0.0
         if sm.phase in (Phase.RETRACT, Phase.HOLD):
             z, vz, finished = sm.retract_setpoint(now_s)
@@ -371,7 +377,7 @@ class ControlLoop:
         sm, law, ages, x_d = self.sm, self.law, self._ages, self._xd
         t = self.tick
         self.tick[()] = (
-            self._ticks, now_s, t["late_s"], t["compute_s"], t["missed_ticks"],
+            self._ticks, now_s, t["late_s"], t["compute_s"], t["io_s"], t["missed_ticks"],
             sm.phase, law.sz, sm.region_done, self.safety.fault, sm.region, sm.level, sm.n_levels,
             sm.force_desired_N, self._force_N, sm.rmse_N,
             law.x_r, law.v_r, x_d, self._x_s,

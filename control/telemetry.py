@@ -18,7 +18,10 @@ TICK_DTYPE = np.dtype(
         ("tick", np.int64),  # index of the control period since the loop started
         ("t_s", np.float64),  # loop clock at the start of the tick
         ("late_s", np.float64),  # how late the tick started against its absolute deadline (driver)
-        ("compute_s", np.float64),  # time spent in poll + step + command (driver)
+        ("compute_s", np.float64),  # the loop's own computation: ControlLoop.step (driver)
+        # reading the devices and applying the step's output; on the simulated rig mostly the simulation
+        # of the world up to this tick (driver)
+        ("io_s", np.float64),
         ("missed_ticks", np.int64),  # cumulative periods skipped by the stall policy (driver)
         ("phase", np.int8),
         ("sz", np.int8),

@@ -37,6 +37,9 @@ _TABLES: dict[str, np.dtype] = {
     "levels": LEVEL_DTYPE,
     "events": EVENT_DTYPE,
 }
+# Columns added to a table after files were first written without them: such a file still opens, and
+# reads them as NaN (format version 1 files from before the loop's time was split into compute and I/O).
+_ADDED_COLUMNS = {"stream/ticks": {"io_s"}}
 _TAIL_WINDOWS = 64  # how far back (in chunks) a damaged stream tail is looked for
 _READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
 
@@ -170,7 +173,7 @@ class Session:
             if name not in f or not isinstance(f[name], h5py.Dataset):
                 self._fail(f"the file is damaged: the dataset /{name} is missing")
             ds = f[name]
-            problem = _dtype_problem(ds.dtype, dtype)
+            problem = _dtype_problem(ds.dtype, dtype, _ADDED_COLUMNS.get(name, set()))
             if problem or ds.ndim != 1:
                 self._fail(f"the file is damaged: /{name} does not hold the expected rows ({problem or 'not 1-D'})")
             self._ds[name] = ds
@@ -202,10 +205,17 @@ class Session:
 
     def _read_rows(self, name: str, start: int, stop: int, fields: list[str] | None = None) -> np.ndarray:
         ds = self._ds[name]
+        stored = fields
+        if any(f not in ds.dtype.names for f in (fields or _TABLES[name].names)):
+            stored = [f for f in (fields or _TABLES[name].names) if f in ds.dtype.names]
         try:
-            return ds.fields(fields)[start:stop] if fields else ds[start:stop]
+            rows = ds.fields(stored)[start:stop] if stored else ds[start:stop]
         except _READ_ERRORS as err:
             self._fail(f"{self._damage}: HDF5 could not read rows {start}-{stop} of /{name} ({_first_line(err)})")
+        if stored is not fields:  # an older file: give its rows the columns added since, as NaN
+            wanted = _TABLES[name] if not fields else np.dtype([(f, _TABLES[name][f]) for f in fields])
+            rows = _conform(rows, wanted)
+        return rows
 
     def _valid_stream_length(self, name: str) -> int:
         """Rows up to the last one that reached the disk (later ones read as zeros or fail to read)."""
@@ -475,14 +485,16 @@ def _as_str(value: Any) -> str:
     return str(value)
 
 
-def _dtype_problem(actual: np.dtype, expected: np.dtype) -> str | None:
-    """None if every expected field is present with a compatible type and shape."""
+def _dtype_problem(actual: np.dtype, expected: np.dtype, optional: set[str] = frozenset()) -> str | None:
+    """None if every expected field (but those ``optional``) is present with a compatible type and shape."""
     if actual.names is None:
         return "not a table of named columns"
-    missing = [name for name in expected.names if name not in actual.names]
+    missing = [name for name in expected.names if name not in actual.names and name not in optional]
     if missing:
         return f"missing column(s) {', '.join(missing)}"
     for name in expected.names:
+        if name not in actual.names:
+            continue
         a, e = actual.fields[name][0], expected.fields[name][0]
         if a.shape != e.shape or a.base.kind != e.base.kind:
             return f"column {name} is {a}, expected {e}"
@@ -494,5 +506,5 @@ def _conform(rows: np.ndarray, dtype: np.dtype) -> np.ndarray:
         return rows
     out = np.empty(len(rows), dtype)
     for name in dtype.names:
-        out[name] = rows[name]
+        out[name] = rows[name] if name in rows.dtype.names else np.nan
     return out

@@ -51,7 +51,7 @@ def test_streams_ticks_frames_and_health_then_stops_cleanly(controller, qtbot):
     assert lost == 0
     assert np.all(np.diff(rows["tick"]) == 1)
     assert np.all(np.diff(rows["t_s"]) > 0)
-    assert np.all(rows["compute_s"] > 0) and np.all(rows["late_s"] >= 0)
+    assert np.all(rows["compute_s"] > 0) and np.all(rows["io_s"] > 0) and np.all(rows["late_s"] >= 0)
     assert np.all(np.diff(rows["missed_ticks"]) >= 0)
     frames, _, _ = controller.frames.read_since(0)
     assert np.all(np.diff(frames["sensor_seq"]) > 0)

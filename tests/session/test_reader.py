@@ -57,6 +57,26 @@ def test_an_overview_missing_its_tail_is_completed_from_the_ticks(tmp_path):
         assert overview["t_end_s"][-1] == pytest.approx(2.499)
 
 
+def test_a_file_from_before_the_io_column_opens_and_reads_it_as_nan(tmp_path):
+    rec = SessionRecorder(tmp_path / "old.h5", INFO)
+    rec.add_ticks(tick_rows(0, 2500))
+    rec.close()
+    with h5py.File(tmp_path / "old.h5", "r+") as f:  # the tick table as the first version wrote it
+        ticks = f["stream/ticks"][()]
+        old = np.dtype([(n, ticks.dtype[n]) for n in ticks.dtype.names if n != "io_s"])
+        del f["stream/ticks"]
+        f.create_dataset("stream/ticks", data=np.array(ticks[list(old.names)], dtype=old), maxshape=(None,),
+                         chunks=(512,))
+    with open_session(tmp_path / "old.h5") as s:
+        assert s.n_ticks == 2500
+        rows = s.tick_rows(0, 100)
+        assert np.isnan(rows["io_s"]).all() and np.allclose(rows["compute_s"], 30e-6)
+        window = s.ticks_between(1.0, 1.5, ["io_s", "force_measured_N"])
+        assert window.dtype.names == ("io_s", "force_measured_N") and len(window) == 501
+        assert np.isnan(window["io_s"]).all()
+        assert len(s.overview()) == 3
+
+
 # ---- bad input ---------------------------------------------------------------------------------------
 
 
