@@ -53,7 +53,7 @@ PRIMARY = "gui_rt"
 REPORTED = ("late_over_0_5ms_pct", "late_over_1ms_pct", "p99_abs_jitter_us", "longest_stall_ms", "compute_p50_us",
             "compute_p99_us", "io_p50_us", "io_p99_us", "tick_work_p50_us", "tick_work_p99_us",
             "late_over_0_5ms_after_overrun_pct", "missed_ticks", "ticks", "lost_rows", "rt_priority",
-            "paints_per_s", "load_avg_1min", "steal_pct")
+            "paints_per_s", "load_avg_1min", "steal_pct", "late_total_ms", "loop_cpu_steal_ms")
 
 
 def duration_s() -> float:
@@ -95,6 +95,7 @@ def tick_statistics(ticks: np.ndarray, period_s: float) -> dict:
         "tick_work_p50_us": float(np.percentile(work, 50) * 1e6),
         "tick_work_p99_us": float(np.percentile(work, 99) * 1e6),
         "missed_ticks": int(ticks["missed_ticks"][-1] - ticks["missed_ticks"][0]),
+        "late_total_ms": float(late[late > 0.5e-3].sum() * 1e3),
     }
 
 
@@ -185,14 +186,14 @@ def _run_with_gui(process: ControllerProcess, seconds: float) -> tuple[list[np.n
     return chunks, paints / elapsed
 
 
-def _cpu_counters() -> tuple[int, int] | None:
-    """(steal, total) jiffies of all CPUs, or None where /proc/stat does not exist."""
+def _cpu_counters() -> dict[str, tuple[int, int]] | None:
+    """(steal, total) jiffies per /proc/stat line ("cpu" for all CPUs, "cpu1", ...), or None without it."""
     try:
         with open("/proc/stat") as stat:
-            values = [int(v) for v in stat.readline().split()[1:]]
-    except (OSError, ValueError):
+            lines = [line.split() for line in stat if line.startswith("cpu")]
+        return {line[0]: (int(line[8]), sum(int(v) for v in line[1:])) for line in lines}
+    except (OSError, ValueError, IndexError):
         return None
-    return values[7], sum(values)
 
 
 def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
@@ -210,15 +211,22 @@ def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
                            f"{process.failure}")
     after = _cpu_counters()
     # Time the hypervisor ran something else on our virtual CPUs: no priority inside the guest helps.
-    steal_pct = (100.0 * (after[0] - before[0]) / max(1, after[1] - before[1])) if before and after else None
+    # Compare the loop CPU's share with late_total_ms, the time the late ticks lost.
     info = process.started_info
+    steal_pct = loop_cpu_steal_ms = None
+    if before and after:
+        steal_pct = 100.0 * (after["cpu"][0] - before["cpu"][0]) / max(1, after["cpu"][1] - before["cpu"][1])
+        line = f"cpu{info.cpu}"
+        if info.cpu is not None and line in before and line in after:
+            loop_cpu_steal_ms = (after[line][0] - before[line][0]) * 1e3 / os.sysconf("SC_CLK_TCK")
     ticks = np.concatenate(chunks)
     # rows overwritten before the display read them show up as gaps in the tick index
     lost = int(ticks["tick"][-1] - ticks["tick"][0] + 1 - len(ticks))
     ticks = ticks[ticks["t_s"] >= ticks["t_s"][0] + WARMUP_S]
     stats = tick_statistics(ticks, config.period_s)
     stats.update(lost_rows=lost, rt_priority=bool(info.rt_priority), cpu=info.cpu, warning=info.warning,
-                 paints_per_s=float(paints_per_s), load_avg_1min=load_1min, steal_pct=steal_pct)
+                 paints_per_s=float(paints_per_s), load_avg_1min=load_1min, steal_pct=steal_pct,
+                 loop_cpu_steal_ms=loop_cpu_steal_ms)
     return stats
 
 
@@ -267,7 +275,8 @@ def _table(results: dict) -> str:
                ("io_p50us", "io_p50_us", "{:.0f}"), ("work_p50us", "tick_work_p50_us", "{:.0f}"),
                ("work_p99us", "tick_work_p99_us", "{:.0f}"),
                ("missed", "missed_ticks", "{}"), ("RT", "rt_priority", "{}"), ("paints/s", "paints_per_s", "{:.0f}"),
-               ("load", "load_avg_1min", "{:.1f}"), ("steal%", "steal_pct", "{:.2f}")]
+               ("load", "load_avg_1min", "{:.1f}"), ("steal%", "steal_pct", "{:.2f}"),
+               ("late_ms", "late_total_ms", "{:.1f}"), ("cpu_steal_ms", "loop_cpu_steal_ms", "{:.0f}")]
 
     def cell(fmt: str, value) -> str:
         return "n/a" if value is None else fmt.format(value)
