@@ -20,6 +20,7 @@ physics) brings the device up to ``now_s`` and must return within a small fracti
 from __future__ import annotations
 
 import enum
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -30,6 +31,18 @@ Vec3 = tuple[float, float, float]
 
 class DeviceError(RuntimeError):
     """A device failed in a way the caller should report (open failed, unplugged, bad frame)."""
+
+
+def finite_vec3(what: str, value) -> Vec3:
+    """``value`` as three finite floats, or a DeviceError "<what> must be three (finite) numbers, got ...":
+    a reference that reaches the robot must never be NaN, inf or the wrong shape."""
+    try:
+        items = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise DeviceError(f"{what} must be three numbers, got {value!r}") from None
+    if len(items) != 3 or not all(math.isfinite(v) for v in items):
+        raise DeviceError(f"{what} must be three finite numbers, got {value!r}")
+    return items  # type: ignore[return-value]
 
 
 class ConnectionState(enum.IntEnum):

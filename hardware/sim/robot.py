@@ -9,20 +9,8 @@ link is down nothing reaches the robot, and its controller's watchdog has alread
 
 from __future__ import annotations
 
-import math
-
-from hardware.interfaces import DeviceError, SlaveConstraints, SlaveManipulator, SlaveState, Vec3
+from hardware.interfaces import SlaveConstraints, SlaveManipulator, SlaveState, Vec3, finite_vec3
 from hardware.sim.world import SimDevice, SimWorld
-
-
-def _finite3(name: str, value: Vec3) -> Vec3:
-    try:
-        items = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise DeviceError(f"sim slave: {name} must be three numbers, got {value!r}") from None
-    if len(items) != 3 or not all(math.isfinite(v) for v in items):
-        raise DeviceError(f"sim slave: {name} must be three finite numbers, got {value!r}")
-    return items  # type: ignore[return-value]
 
 
 class SimSlave(SimDevice, SlaveManipulator):
@@ -54,8 +42,8 @@ class SimSlave(SimDevice, SlaveManipulator):
 
     def command(self, position_m: Vec3, velocity_m_s: Vec3, now_s: float) -> None:
         """Applies from ``now_s`` on; ignored while disconnected (it never reaches the robot)."""
-        position = _finite3("reference position", position_m)
-        velocity = _finite3("reference velocity", velocity_m_s)
+        position = finite_vec3("sim slave: reference position", position_m)
+        velocity = finite_vec3("sim slave: reference velocity", velocity_m_s)
         self.world.advance(now_s)
         if self.connected:
             self.world.robot.set_reference(position, velocity)

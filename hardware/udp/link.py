@@ -35,7 +35,7 @@ import numpy as np
 
 from control.config import ConfigError, Settings
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
-                                 TactileConstraints, TactileFrame, TactileSensor, Vec3)
+                                 TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3)
 from hardware.serial_tactile.config import in_range, integer, text
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
@@ -232,8 +232,8 @@ class UdpSlaveLink(SlaveManipulator):
         return self._latest
 
     def command(self, position_m: Vec3, velocity_m_s: Vec3, now_s: float) -> None:
-        position = _finite3("reference position", position_m)
-        velocity = _finite3("reference velocity", velocity_m_s)
+        position = finite_vec3("UDP link: the reference position", position_m)
+        velocity = finite_vec3("UDP link: the reference velocity", velocity_m_s)
         self._send(P.Command(P.Mode.TRACK, position, velocity), now_s)
 
     def hold(self, now_s: float) -> None:
@@ -377,12 +377,3 @@ class UdpTactileSensor(TactileSensor):
         self._latest = TactileFrame(seq=self.frames, t_s=min(tac.t_sample_s - offset, now_s),
                                     pressure_pa=tac.pressure_pa - self._zero)
 
-
-def _finite3(name: str, value: Vec3) -> Vec3:
-    try:
-        items = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise DeviceError(f"UDP link: the {name} must be three numbers, got {value!r}") from None
-    if len(items) != 3 or not all(math.isfinite(v) for v in items):
-        raise DeviceError(f"UDP link: the {name} must be three finite numbers, got {value!r}")
-    return items  # type: ignore[return-value]
