@@ -119,23 +119,39 @@ class RobotBody:
         for _ in range(n):
             self._euler(dt / n)
 
-    def _within_limits(self, x, v) -> bool:
-        """True if the linear loop's commanded velocity and acceleration at (x, v) touch no limit."""
-        r, vr, kp = self.reference, self.reference_velocity, self._kp
+    def _acceleration(self, x, v) -> tuple[float, float, float, bool]:
+        """The cascade's commanded acceleration at position ``x``, velocity ``v``, and whether a speed,
+        braking or acceleration limit shaped it (False: the loop is linear there)."""
+        # plain floats, no helpers: this runs at least twice per simulated millisecond
+        r, vr = self.reference, self.reference_velocity
+        vmax, amax = self._vmax, self._amax
         ex, ey, ez = r[0] - x[0], r[1] - x[1], r[2] - x[2]
-        err2 = ex * ex + ey * ey + ez * ez
-        if kp * kp * err2 > self._vmax * self._vmax or kp * kp * math.sqrt(err2) > 2.0 * self._brake:
-            return False
-        cx, cy, cz = vr[0] + kp * ex, vr[1] + kp * ey, vr[2] + kp * ez
-        if cx * cx + cy * cy + cz * cz > self._vmax * self._vmax:
-            return False
-        ax, ay, az = cx - v[0], cy - v[1], cz - v[2]
-        return self._kv * self._kv * (ax * ax + ay * ay + az * az) <= self._amax * self._amax
+        err = math.sqrt(ex * ex + ey * ey + ez * ez)
+        gain = self._kp
+        limited = False
+        if gain * err > vmax or gain * gain * err > 2.0 * self._brake:
+            limit = min(vmax, math.sqrt(2.0 * self._brake * err))
+            gain = min(gain, limit / err)
+            limited = True
+        cx, cy, cz = vr[0] + gain * ex, vr[1] + gain * ey, vr[2] + gain * ez
+        speed = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if speed > vmax:
+            k = vmax / speed
+            cx, cy, cz = cx * k, cy * k, cz * k
+            limited = True
+        kv = self._kv
+        ax, ay, az = kv * (cx - v[0]), kv * (cy - v[1]), kv * (cz - v[2])
+        acc = math.sqrt(ax * ax + ay * ay + az * az)
+        if acc > amax:
+            k = amax / acc
+            ax, ay, az = ax * k, ay * k, az * k
+            limited = True
+        return ax, ay, az, limited
 
     def _step_exact(self, dt: float) -> bool:
         """One exact step if no limit acts at its start or its end; False (nothing changed) otherwise."""
         x, v = self.position, self.velocity
-        if not self._within_limits(x, v):
+        if self._acceleration(x, v)[3]:
             return False
         p00, p01, p10, p11 = self._transition(dt)
         r, vr, kp = self.reference, self.reference_velocity, self._kp
@@ -145,32 +161,14 @@ class RobotBody:
             e = r[i] - x[i] - e_eq
             new_x[i] = r[i] - e_eq - (p00 * e + p01 * v[i])
             new_v[i] = p10 * e + p11 * v[i]
-        if not self._within_limits(new_x, new_v):
+        if self._acceleration(new_x, new_v)[3]:
             return False
         self.position, self.velocity = new_x, new_v
         return True
 
     def _euler(self, dt: float) -> None:
-        # plain floats, no helpers: this runs thousands of times per simulated second
-        x, v, r, vr = self.position, self.velocity, self.reference, self.reference_velocity
-        vmax, amax = self._vmax, self._amax
-        ex, ey, ez = r[0] - x[0], r[1] - x[1], r[2] - x[2]
-        err = math.sqrt(ex * ex + ey * ey + ez * ez)
-        gain = self._kp
-        if gain * err > vmax or gain * gain * err > 2.0 * self._brake:
-            limit = min(vmax, math.sqrt(2.0 * self._brake * err))
-            gain = min(gain, limit / err)
-        cx, cy, cz = vr[0] + gain * ex, vr[1] + gain * ey, vr[2] + gain * ez
-        speed = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if speed > vmax:
-            k = vmax / speed
-            cx, cy, cz = cx * k, cy * k, cz * k
-        kv = self._kv
-        ax, ay, az = kv * (cx - v[0]), kv * (cy - v[1]), kv * (cz - v[2])
-        acc = math.sqrt(ax * ax + ay * ay + az * az)
-        if acc > amax:
-            k = amax / acc
-            ax, ay, az = ax * k, ay * k, az * k
+        x, v = self.position, self.velocity
+        ax, ay, az, _ = self._acceleration(x, v)
         v[0] += ax * dt
         v[1] += ay * dt
         v[2] += az * dt
