@@ -27,7 +27,7 @@ moves on to the current period, and the loop clamps its integration step (``Cont
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 import contextlib
 import ctypes
 import gc
@@ -534,10 +534,10 @@ class _CommandInbox:
         self._sent = sent
         self._received = 0
 
-    def take(self) -> list:
+    def take(self) -> Sequence:
         """The commands that have arrived, oldest first (usually none, at the cost of one shared read)."""
         if self._sent.value == self._received:
-            return _NOTHING
+            return ()
         out = []
         while self._received < self._sent.value:
             try:
@@ -546,9 +546,6 @@ class _CommandInbox:
                 break  # counted, but its bytes are still on their way: the next tick reads it
             self._received += 1
         return out
-
-
-_NOTHING: list = []  # never mutated: run_tick only iterates over the commands
 
 
 def _child_main(config, rig_spec, options, tick_handle: RingHandle, frame_handle: RingHandle,
@@ -629,6 +626,8 @@ class _ControllerChild:
         while True:
             deadline = t0 + k * period_s
             remaining = deadline - monotonic()
+            # sleep until spin_s before the deadline, and at least min_sleep_s (less when the tick left
+            # under twice that, so the wake-up still comes before the deadline)
             pause = max(remaining - spin_s, min(min_sleep_s, remaining - min_sleep_s))
             if pause > 0:
                 time.sleep(pause)

@@ -88,8 +88,13 @@ class ControlLoop:
     def _master_term(self, i: int) -> float:
         return self.config.master.scale * self._master_pos[i] if self._master_pos is not None else 0.0
 
-    def _x_d(self, i: int) -> float:
-        return self._master_term(i) + self._offset[i]
+    def _desired(self) -> Vec3:
+        """X_d = scale * master + offset (the offset alone without a master)."""
+        off, master = self._offset, self._master_pos
+        if master is None:
+            return off[0], off[1], off[2]
+        k = self.config.master.scale
+        return k * master[0] + off[0], k * master[1] + off[1], k * master[2] + off[2]
 
     def _clutch(self, axes: Iterable[int]) -> None:
         """Re-anchor X_d on X_r for these axes so handing them to the operator moves nothing."""
@@ -332,13 +337,7 @@ class ControlLoop:
             return
         if sm.idle:
             self._advance_jog(dt)
-        off, master = self._offset, self._master_pos
-        if master is None:
-            x_d = (off[0], off[1], off[2])
-        else:
-            k = self.config.master.scale
-            x_d = (k * master[0] + off[0], k * master[1] + off[1], k * master[2] + off[2])
-        self._xd = x_d
+        x_d = self._xd = self._desired()
         f_d_z = -sm.force_desired_N if sm.force_control else 0.0
         if sm.phase in (Phase.RETRACT, Phase.HOLD):
             z, vz, finished = sm.retract_setpoint(now_s)
@@ -352,7 +351,7 @@ class ControlLoop:
             if sm.phase == Phase.RETRACT and finished and abs(law.x_r[Z] - z) < 2e-4:
                 sm.retract_finished(now_s)
                 self._clutch((Z,))
-                self._xd = (self._xd[0], self._xd[1], self._x_d(Z))  # this tick's row shows the handed-back X_d
+                self._xd = (self._xd[0], self._xd[1], self._desired()[Z])  # this tick's row shows the handed-back X_d
         else:
             law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), (0.0, 0.0, -self._force_N), (0.0, 0.0, f_d_z))
         result.position_ref_m = (law.x_r[0], law.x_r[1], law.x_r[2])
