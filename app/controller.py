@@ -617,23 +617,14 @@ class _ControllerChild:
         spin_s = self.options.rt_spin_s if self.rt_info[0] else self.options.spin_s
         min_sleep_s = self.options.min_sleep_s
         health_interval_s = self.options.health_interval_s
-        monotonic = time.monotonic
         tick_row = loop.tick
-        t0 = monotonic()
+        t0 = time.monotonic()
         k = 0
         missed = 0
         next_health = t0 + health_interval_s
         while True:
             deadline = t0 + k * period_s
-            remaining = deadline - monotonic()
-            # sleep until spin_s before the deadline, and at least min_sleep_s (less when the tick left
-            # under twice that, so the wake-up still comes before the deadline)
-            pause = max(remaining - spin_s, min(min_sleep_s, remaining - min_sleep_s))
-            if pause > 0:
-                time.sleep(pause)
-            now = monotonic()
-            while now < deadline:
-                now = monotonic()
+            now = wait_until(deadline, spin_s, min_sleep_s)
             late = now - deadline
             if late >= period_s:
                 # A stall: skip the periods it swallowed instead of running them back to back, and move
@@ -662,6 +653,51 @@ class _ControllerChild:
                                             "stopped"))
                 return EXIT_ORPHANED
             k += 1
+
+
+def wait_until(deadline: float, spin_s: float, min_sleep_s: float) -> float:
+    """Sleep until ``spin_s`` before ``deadline`` (monotonic clock), then spin; returns when it returned.
+
+    It sleeps at least ``min_sleep_s``, less when under twice that is left, so that the wake-up still
+    comes before the deadline (see :class:`PacingOptions`).
+    """
+    remaining = deadline - time.monotonic()
+    pause = max(remaining - spin_s, min(min_sleep_s, remaining - min_sleep_s))
+    if pause > 0:
+        time.sleep(pause)
+    now = time.monotonic()
+    while now < deadline:
+        now = time.monotonic()
+    return now
+
+
+@dataclass(frozen=True)
+class PacingFloor:
+    """Empty ticks paced like the controller's: when each started and how late (monotonic clock, s)."""
+
+    started_s: np.ndarray
+    late_s: np.ndarray
+    rt_priority: bool
+    cpu: int | None
+    pid: int
+
+
+def pacing_floor(options: PacingOptions, period_s: float, seconds: float) -> PacingFloor:
+    """Pace empty ticks exactly as the controller paces its own, with the same priority and CPU. No tick
+    does any work, so their lateness is what this machine's scheduler and hypervisor add: the best the
+    loop can do here. Meant for a process of its own (it changes the calling thread's scheduling)."""
+    rt, cpu, _ = _claim_realtime(options)
+    spin_s = options.rt_spin_s if rt else options.spin_s
+    n = max(1, round(seconds / period_s))
+    started, late = np.empty(n), np.empty(n)
+    t0 = time.monotonic()
+    k = 0
+    for i in range(n):
+        deadline = t0 + k * period_s
+        started[i] = wait_until(deadline, spin_s, options.min_sleep_s)
+        late[i] = started[i] - deadline
+        k += 1 + int(late[i] / period_s)  # the controller's stall policy: skip, do not replay
+    return PacingFloor(started, late, rt, cpu, os.getpid())
 
 
 def _raise_terminated(signum, frame):

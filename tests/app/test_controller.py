@@ -3,13 +3,14 @@
 import multiprocessing as mp
 import os
 import signal
+import time
 from multiprocessing import shared_memory
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from app.controller import ControllerProcess, ControllerStartError, PacingOptions
+from app.controller import ControllerProcess, ControllerStartError, PacingOptions, pacing_floor, wait_until
 from app.rigs import RigSpec
 from app.ring import NAME_PREFIX
 from control.config import ControlConfig
@@ -177,3 +178,18 @@ def test_the_controller_holds_and_exits_when_the_console_dies(qtbot):
             shm = shared_memory.SharedMemory(name=name)
             shm.close()
             shm.unlink()
+
+
+def test_waiting_for_a_deadline_never_returns_before_it():
+    for spin_s in (0.0, 150e-6, 10e-3):
+        deadline = time.monotonic() + 1.5e-3
+        assert wait_until(deadline, spin_s, 100e-6) >= deadline
+
+
+def test_the_pacing_floor_paces_empty_ticks_in_a_process_of_its_own():
+    options = PacingOptions(realtime=False, pin_cpu=False)
+    with mp.get_context("spawn").Pool(1) as pool:
+        floor = pool.apply(pacing_floor, (options, 1e-3, 0.05))
+    assert len(floor.late_s) == 50 and (floor.late_s >= 0).all()
+    assert (np.diff(floor.started_s) > 0).all()
+    assert (floor.rt_priority, floor.cpu) == (False, None) and floor.pid != os.getpid()
