@@ -13,11 +13,19 @@ devices and applying the result, which on the simulated rig is mostly simulating
 tissue, sensor, operator) up to the tick; ``tick_work_*`` is the two together, the time the tick
 actually took. Also measures the same split on the fast-forward driver, where no other process and no
 idle CPU cools the caches between ticks.
+
+Two figures say what the late ticks are made of. ``late_cause_*_pct`` splits them by cause (host steal,
+a late wake-up of an idle CPU, other kernel work on the loop's CPU, or nothing the guest records), read
+from an ftrace record of the loop's CPU (:mod:`bench.stall_trace`; needs root, else ``late_attribution``
+says why).
+``floor_*`` paces empty ticks the same way in a process of their own: the lateness this machine adds
+to a loop that does nothing, the floor under ``late_over_0_5ms_pct``.
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 import os
 import time
 from dataclasses import dataclass
@@ -25,9 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from app.controller import ControllerProcess, PacingOptions
+from app.controller import ControllerProcess, PacingOptions, pacing_floor
 from app.fastforward import FastForward
 from app.rigs import RigSpec, build_rig
+from bench import stall_trace
 from control.config import ControlConfig
 from control.telemetry import TICK_DTYPE
 
@@ -53,7 +62,8 @@ PRIMARY = "gui_rt"
 REPORTED = ("late_over_0_5ms_pct", "late_over_1ms_pct", "p99_abs_jitter_us", "longest_stall_ms", "compute_p50_us",
             "compute_p99_us", "io_p50_us", "io_p99_us", "tick_work_p50_us", "tick_work_p99_us",
             "late_over_0_5ms_after_overrun_pct", "missed_ticks", "ticks", "lost_rows", "rt_priority",
-            "paints_per_s", "load_avg_1min", "steal_pct", "late_total_ms", "loop_cpu_steal_ms")
+            "paints_per_s", "load_avg_1min", "steal_pct", "late_total_ms", "loop_cpu_steal_ms",
+            *(f"late_cause_{cause}_pct" for cause in stall_trace.CAUSES), "late_attribution")
 
 
 def duration_s() -> float:
@@ -99,9 +109,10 @@ def tick_statistics(ticks: np.ndarray, period_s: float) -> dict:
     }
 
 
-def _run_without_gui(process: ControllerProcess, seconds: float) -> tuple[list[np.ndarray], float]:
+def _run_without_gui(process: ControllerProcess, seconds: float, on_started) -> tuple[list[np.ndarray], float]:
     """Drain the ring at display rate, as the bridge would, with nothing else running here."""
     process.start()
+    on_started()
     chunks, cursor = [], 0
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -113,7 +124,7 @@ def _run_without_gui(process: ControllerProcess, seconds: float) -> tuple[list[n
     return chunks, 0.0
 
 
-def _run_with_gui(process: ControllerProcess, seconds: float) -> tuple[list[np.ndarray], float]:
+def _run_with_gui(process: ControllerProcess, seconds: float, on_started) -> tuple[list[np.ndarray], float]:
     """The console's stack: the bridge's worker thread drains the rings, a pyqtgraph window in this
     process is fed and repainted on every snapshot (60 Hz)."""
     import pyqtgraph as pg
@@ -170,6 +181,7 @@ def _run_with_gui(process: ControllerProcess, seconds: float) -> tuple[list[np.n
     if problems:
         bridge.shutdown()
         raise RuntimeError(problems[0])
+    on_started()
     started = time.monotonic()
     QTimer.singleShot(round(seconds * 1000.0), waiting.quit)
     waiting.exec()
@@ -201,11 +213,16 @@ def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
     before = _cpu_counters()
     options = PacingOptions(realtime=setup.realtime, pin_cpu=True)
     process = ControllerProcess(config, RigSpec(), options, tick_capacity=65536)
+    tracing: dict = {"trace": None, "why_not": ""}
     try:
         drive = _run_with_gui if setup.gui else _run_without_gui
-        chunks, paints_per_s = drive(process, seconds)
+        chunks, paints_per_s = drive(process, seconds, lambda: _start_trace(tracing, process.started_info.cpu))
+        if tracing["trace"] is not None:
+            tracing["text"], tracing["lost"] = tracing["trace"].stop()
     finally:
         process.stop()
+        if tracing["trace"] is not None:
+            tracing["trace"].close()
     if process.exitcode != 0:
         raise RuntimeError(f"{setup.key}: the controller process exited with code {process.exitcode}: "
                            f"{process.failure}")
@@ -224,10 +241,63 @@ def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
     lost = int(ticks["tick"][-1] - ticks["tick"][0] + 1 - len(ticks))
     ticks = ticks[ticks["t_s"] >= ticks["t_s"][0] + WARMUP_S]
     stats = tick_statistics(ticks, config.period_s)
+    stats.update(_attribution(ticks, tracing, process.started_info.pid, config.period_s, setup.key))
     stats.update(lost_rows=lost, rt_priority=bool(info.rt_priority), cpu=info.cpu, warning=info.warning,
                  paints_per_s=float(paints_per_s), load_avg_1min=load_1min, steal_pct=steal_pct,
                  loop_cpu_steal_ms=loop_cpu_steal_ms)
     return stats
+
+
+def _start_trace(tracing: dict, cpu: int | None) -> None:
+    try:
+        trace = stall_trace.open_trace(cpu).start()
+    except (stall_trace.TraceUnavailable, OSError) as err:
+        tracing["why_not"] = str(err)
+        return
+    tracing.update(trace=trace, since=time.monotonic())
+
+
+def _attribution(ticks: np.ndarray, tracing: dict, loop_pid: int, period_s: float, key: str) -> dict:
+    """Each late tick's cause, from the trace of the loop's CPU; the causes' shares are None without one."""
+    empty = {f"late_cause_{cause}_pct": None for cause in stall_trace.CAUSES}
+    if tracing["trace"] is None:
+        return {**empty, "late_attribution": f"none: {tracing['why_not']}"}
+    if tracing["since"] > ticks["t_s"][0]:
+        return {**empty, "late_attribution": "none: the trace started after the first tick analysed"}
+    if tracing["lost"]:
+        return {**empty, "late_attribution": f"none: the trace buffer dropped {tracing['lost']} events"}
+    timeline = stall_trace.parse(tracing["text"], loop_pid)
+    late_ticks = stall_trace.attribute(ticks, timeline, period_s)
+    if late_ticks:
+        print(f"loop: {key}: late ticks and their causes (ms)\n{stall_trace.report(late_ticks)}")
+    return {**stall_trace.summary(late_ticks, len(ticks)), "late_attribution": f"ftrace, {timeline.events} events"}
+
+
+def floor_run(config: ControlConfig, seconds: float) -> dict:
+    """The machine's own floor: empty ticks paced like the loop's (SCHED_FIFO, its CPU), in a process of
+    their own, traced like the loop. Late ticks here cannot be the loop's doing."""
+    options = PacingOptions()
+    tracing: dict = {"trace": None, "why_not": ""}
+    with mp.get_context("spawn").Pool(1) as pool:
+        pending = pool.apply_async(pacing_floor, (options, config.period_s, seconds))
+        # the floor's process pins itself to the last CPU, as the controller does
+        _start_trace(tracing, sorted(os.sched_getaffinity(0))[-1] if options.pin_cpu else None)
+        try:
+            floor = pending.get()
+            if tracing["trace"] is not None:
+                tracing["text"], tracing["lost"] = tracing["trace"].stop()
+        finally:
+            if tracing["trace"] is not None:
+                tracing["trace"].close()
+    ticks = np.zeros(len(floor.late_s), dtype=[("t_s", "f8"), ("late_s", "f8")])
+    ticks["t_s"], ticks["late_s"] = floor.started_s, floor.late_s
+    ticks = ticks[round(WARMUP_S / config.period_s):]
+    late = ticks["late_s"]
+    stats = {"late_over_0_5ms_pct": float(100.0 * np.mean(late > 0.5e-3)),
+             "late_over_1ms_pct": float(100.0 * np.mean(late > 1e-3)),
+             "longest_stall_ms": float(late.max() * 1e3), "rt_priority": bool(floor.rt_priority), "cpu": floor.cpu,
+             **_attribution(ticks, tracing, floor.pid, config.period_s, "floor")}
+    return {f"floor_{key}": value for key, value in stats.items()}
 
 
 def compute_split(config: ControlConfig, seconds: float = 5.0) -> dict:
@@ -258,8 +328,16 @@ def run(out_dir: Path) -> dict:
     for key, stats in results.items():
         flat.update({f"{key}_{k}": stats[k] for k in REPORTED})
     flat.update(compute_split(config))
+    print(f"loop: pacing floor (empty ticks) for {seconds:g} s ...", flush=True)
+    floor = floor_run(config, seconds)
+    flat.update(floor)
 
     print(_table(results))
+    causes = ", ".join(f"{cause} {floor[f'floor_late_cause_{cause}_pct']:.3f} %" for cause in stall_trace.CAUSES
+                       if floor[f"floor_late_cause_{cause}_pct"] is not None)
+    print(f"floor (empty ticks paced the same way): late>0.5ms {floor['floor_late_over_0_5ms_pct']:.3f} %, "
+          f"late>1ms {floor['floor_late_over_1ms_pct']:.3f} %, longest stall {floor['floor_longest_stall_ms']:.1f} ms, "
+          f"RT {floor['floor_rt_priority']}; causes: {causes or floor['floor_late_attribution']}")
     if not primary["rt_priority"]:
         print(f"loop: real-time priority was NOT granted: {primary['warning']}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -276,7 +354,8 @@ def _table(results: dict) -> str:
                ("work_p99us", "tick_work_p99_us", "{:.0f}"),
                ("missed", "missed_ticks", "{}"), ("RT", "rt_priority", "{}"), ("paints/s", "paints_per_s", "{:.0f}"),
                ("load", "load_avg_1min", "{:.1f}"), ("steal%", "steal_pct", "{:.2f}"),
-               ("late_ms", "late_total_ms", "{:.1f}"), ("cpu_steal_ms", "loop_cpu_steal_ms", "{:.0f}")]
+               ("late_ms", "late_total_ms", "{:.1f}"), ("cpu_steal_ms", "loop_cpu_steal_ms", "{:.0f}"),
+               *((f"{cause}%", f"late_cause_{cause}_pct", "{:.3f}") for cause in stall_trace.CAUSES)]
 
     def cell(fmt: str, value) -> str:
         return "n/a" if value is None else fmt.format(value)
