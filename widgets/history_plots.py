@@ -24,6 +24,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from widgets.plot_style import follow_palette
 from widgets.tactile_map import nice_step
 
 SAMPLE_HZ = 50.0
@@ -176,14 +177,9 @@ class HistoryPlots(QtWidgets.QWidget):
         return ys
 
     def _apply_palette(self) -> None:
-        palette = self.palette()
-        text = palette.color(QtGui.QPalette.ColorRole.WindowText)
-        for plot in (self._force_plot, self._depth_plot):
-            plot.setBackground(palette.color(QtGui.QPalette.ColorRole.Base))
-            for side in ("left", "bottom"):
-                axis = plot.getPlotItem().getAxis(side)
-                axis.setPen(pg.mkPen(text))
-                axis.setTextPen(pg.mkPen(text))
+        plots = (self._force_plot, self._depth_plot)
+        follow_palette(self, plots, [plot.getPlotItem().getAxis(side) for plot in plots for side in ("left", "bottom")],
+                       background=QtGui.QPalette.ColorRole.Base)
 
     def changeEvent(self, event: QtCore.QEvent) -> None:
         if event.type() == QtCore.QEvent.Type.PaletteChange:

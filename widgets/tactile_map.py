@@ -23,6 +23,7 @@ from scipy import ndimage
 from control.telemetry import COLS, ROWS
 from widgets.colormaps import CONTOUR_COLORMAP
 from widgets.colour_image import ColourImageItem
+from widgets.plot_style import follow_palette
 
 UPSAMPLE = 8  # contour pixels per element along each axis
 MARKER_ARM_MM = 1.6
@@ -326,15 +327,9 @@ class TactileMapWidget(QtWidgets.QWidget):
         layout.addWidget(self._plot, 1)
 
     def _apply_palette(self) -> None:
-        """Draw the plot in the widget's Qt palette, so the map sits in a dark or light window alike."""
-        palette = self.palette()
-        text = palette.color(QtGui.QPalette.ColorRole.WindowText)
-        self._plot.setBackground(palette.color(QtGui.QPalette.ColorRole.Window))
         axes = [self._plot.getPlotItem().getAxis(side) for side in ("bottom", "left")]
         axes += [self._bar.getAxis(side) for side in ("left", "right", "top", "bottom")]
-        for axis in axes:
-            axis.setPen(pg.mkPen(text))
-            axis.setTextPen(pg.mkPen(text))
+        follow_palette(self, [self._plot], axes)
 
     def changeEvent(self, event: QtCore.QEvent) -> None:
         if event.type() == QtCore.QEvent.Type.PaletteChange:

@@ -25,7 +25,8 @@ from app.session.recorder import LEVEL_DTYPE, level_row
 from app.session.stitch import StitchParams, StitchResult, stitch
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
-from widgets.colormaps import CONTOUR_COLORMAP, CONTOUR_LUT, NO_DATA_RGB
+from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.plot_style import add_map_layers, follow_palette, map_view
 from widgets.tactile_map import auto_levels
 
 CELL_M = 1e-3
@@ -96,22 +97,9 @@ class WholeTissueView(QtWidgets.QWidget):
         self._plot = pg.PlotWidget()
         self._plot.setObjectName("tissuePlot")
         item = self._plot.getPlotItem()
-        item.setMenuEnabled(False)
-        item.hideButtons()
-        item.setLabel("bottom", "y (mm)")
-        item.setLabel("left", "x (mm)")
-        self._view = item.getViewBox()
-        self._view.setAspectLocked(True)
+        self._view = map_view(self._plot, "y (mm)", "x (mm)")
         self._view.setMouseEnabled(x=False, y=False)
-        self._no_data = QtWidgets.QGraphicsRectItem(0, 0, 1, 1)
-        self._no_data.setBrush(pg.mkBrush(NO_DATA_RGB))
-        self._no_data.setPen(pg.mkPen(None))
-        self._no_data.setZValue(-10)
-        self._view.addItem(self._no_data)
-        self._image = pg.ImageItem(axisOrder="row-major")
-        self._image.setObjectName("tissueImage")
-        self._image.setLookupTable(CONTOUR_LUT)
-        self._view.addItem(self._image)
+        self._no_data, self._image = add_map_layers(self._view, "tissueImage")
         for k, (x, y) in enumerate(areas):
             label = pg.TextItem(str(k + 1), color=(255, 255, 255, 150), anchor=(0.5, 0.5))
             label.setPos(y * 1e3, x * 1e3)
@@ -134,14 +122,8 @@ class WholeTissueView(QtWidgets.QWidget):
         self._apply_palette()
 
     def _apply_palette(self) -> None:
-        palette = self.palette()
-        text = palette.color(QtGui.QPalette.ColorRole.WindowText)
-        self._plot.setBackground(palette.color(QtGui.QPalette.ColorRole.Window))
         axes = [self._plot.getPlotItem().getAxis(side) for side in ("bottom", "left")]
-        axes += [self._bar.getAxis(side) for side in ("left", "right")]
-        for axis in axes:
-            axis.setPen(pg.mkPen(text))
-            axis.setTextPen(pg.mkPen(text))
+        follow_palette(self, [self._plot], axes + [self._bar.getAxis(side) for side in ("left", "right")])
 
     def changeEvent(self, event: QtCore.QEvent) -> None:
         if event.type() == QtCore.QEvent.Type.PaletteChange:

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtGui, QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from app.session.export import colour_range
-from widgets.colormaps import CONTOUR_COLORMAP, CONTOUR_LUT, NO_DATA_RGB
+from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.plot_style import add_map_layers, follow_palette, map_view
 
 FOUND_RING_MM = 6.0
 
@@ -43,21 +44,9 @@ class GridMapView(QtWidgets.QWidget):
         self._plot = pg.PlotWidget()
         self._plot.setObjectName("plot")
         item = self._plot.getPlotItem()
-        item.setMenuEnabled(False)
-        item.hideButtons()
-        item.setLabel("bottom", "x (mm)" if x_horizontal else "y (mm)")
-        item.setLabel("left", "y (mm)" if x_horizontal else "x (mm)")
-        self._view = item.getViewBox()
-        self._view.setAspectLocked(True)
-        self._no_data = QtWidgets.QGraphicsRectItem(0, 0, 1, 1)
-        self._no_data.setBrush(pg.mkBrush(NO_DATA_RGB))
-        self._no_data.setPen(pg.mkPen(None))
-        self._no_data.setZValue(-10)
-        self._view.addItem(self._no_data)
-        self._image = pg.ImageItem(axisOrder="row-major")
-        self._image.setObjectName("mapImage")
-        self._image.setLookupTable(CONTOUR_LUT)
-        self._view.addItem(self._image)
+        bottom, left = ("x (mm)", "y (mm)") if x_horizontal else ("y (mm)", "x (mm)")
+        self._view = map_view(self._plot, bottom, left)
+        self._no_data, self._image = add_map_layers(self._view, "mapImage")
         self._truth = pg.ScatterPlotItem(pxMode=False, brush=None,
                                          pen=pg.mkPen((20, 20, 20), width=2, style=QtCore.Qt.PenStyle.DashLine))
         self._truth.setObjectName("truthMarkers")
@@ -79,7 +68,7 @@ class GridMapView(QtWidgets.QWidget):
         self._apply_palette()
 
     def _apply_palette(self) -> None:
-        self._plot.setBackground(self.palette().color(QtGui.QPalette.ColorRole.Window))
+        follow_palette(self, [self._plot], [])
 
     def set_title(self, text: str) -> None:
         self._title.setText(text)

@@ -1,0 +1,48 @@
+"""How the console's pyqtgraph plots are set up and coloured, written once for every map and plot."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import pyqtgraph as pg
+from PySide6 import QtGui, QtWidgets
+
+from widgets.colormaps import CONTOUR_LUT, NO_DATA_RGB
+
+
+def map_view(plot: pg.PlotWidget, bottom: str, left: str) -> pg.ViewBox:
+    """A map's axes: labelled, square pixels, no context menu or auto-range button (a map has one scale)."""
+    item = plot.getPlotItem()
+    item.setMenuEnabled(False)
+    item.hideButtons()
+    item.setLabel("bottom", bottom)
+    item.setLabel("left", left)
+    view = item.getViewBox()
+    view.setAspectLocked(True)
+    return view
+
+
+def add_map_layers(view: pg.ViewBox, image_name: str) -> tuple[QtWidgets.QGraphicsRectItem, pg.ImageItem]:
+    """A grey no-data backdrop (place it with ``setRect``) under an image drawn in the contour scale."""
+    no_data = QtWidgets.QGraphicsRectItem(0, 0, 1, 1)
+    no_data.setBrush(pg.mkBrush(NO_DATA_RGB))
+    no_data.setPen(pg.mkPen(None))
+    no_data.setZValue(-10)
+    view.addItem(no_data)
+    image = pg.ImageItem(axisOrder="row-major")
+    image.setObjectName(image_name)
+    image.setLookupTable(CONTOUR_LUT)
+    view.addItem(image)
+    return no_data, image
+
+
+def follow_palette(widget: QtWidgets.QWidget, plots: Iterable[pg.PlotWidget], axes: Iterable[pg.AxisItem],
+                   background: QtGui.QPalette.ColorRole = QtGui.QPalette.ColorRole.Window) -> None:
+    """Paint plots and axes in ``widget``'s Qt palette, so they sit in a dark or light window alike."""
+    palette = widget.palette()
+    text = palette.color(QtGui.QPalette.ColorRole.WindowText)
+    for plot in plots:
+        plot.setBackground(palette.color(background))
+    for axis in axes:
+        axis.setPen(pg.mkPen(text))
+        axis.setTextPen(pg.mkPen(text))
