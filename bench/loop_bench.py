@@ -213,16 +213,13 @@ def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
     before = _cpu_counters()
     options = PacingOptions(realtime=setup.realtime, pin_cpu=True)
     process = ControllerProcess(config, RigSpec(), options, tick_capacity=65536)
-    tracing: dict = {"trace": None, "why_not": ""}
-    try:
-        drive = _run_with_gui if setup.gui else _run_without_gui
-        chunks, paints_per_s = drive(process, seconds, lambda: _start_trace(tracing, process.started_info.cpu))
-        if tracing["trace"] is not None:
-            tracing["text"], tracing["lost"] = tracing["trace"].stop()
-    finally:
-        process.stop()
-        if tracing["trace"] is not None:
-            tracing["trace"].close()
+    with stall_trace.Recording() as recording:
+        try:
+            drive = _run_with_gui if setup.gui else _run_without_gui
+            chunks, paints_per_s = drive(process, seconds, lambda: recording.start(process.started_info.cpu))
+            recording.stop()
+        finally:
+            process.stop()
     if process.exitcode != 0:
         raise RuntimeError(f"{setup.key}: the controller process exited with code {process.exitcode}: "
                            f"{process.failure}")
@@ -241,54 +238,31 @@ def run_setup(setup: Setup, config: ControlConfig, seconds: float) -> dict:
     lost = int(ticks["tick"][-1] - ticks["tick"][0] + 1 - len(ticks))
     ticks = ticks[ticks["t_s"] >= ticks["t_s"][0] + WARMUP_S]
     stats = tick_statistics(ticks, config.period_s)
-    stats.update(_attribution(ticks, tracing, process.started_info.pid, config.period_s, setup.key))
+    stats.update(_attribution(recording, ticks, process.started_info.pid, config.period_s, setup.key))
     stats.update(lost_rows=lost, rt_priority=bool(info.rt_priority), cpu=info.cpu, warning=info.warning,
                  paints_per_s=float(paints_per_s), load_avg_1min=load_1min, steal_pct=steal_pct,
                  loop_cpu_steal_ms=loop_cpu_steal_ms)
     return stats
 
 
-def _start_trace(tracing: dict, cpu: int | None) -> None:
-    try:
-        trace = stall_trace.open_trace(cpu).start()
-    except (stall_trace.TraceUnavailable, OSError) as err:
-        tracing["why_not"] = str(err)
-        return
-    tracing.update(trace=trace, since=time.monotonic())
-
-
-def _attribution(ticks: np.ndarray, tracing: dict, loop_pid: int, period_s: float, key: str) -> dict:
-    """Each late tick's cause, from the trace of the loop's CPU; the causes' shares are None without one."""
-    empty = {f"late_cause_{cause}_pct": None for cause in stall_trace.CAUSES}
-    if tracing["trace"] is None:
-        return {**empty, "late_attribution": f"none: {tracing['why_not']}"}
-    if tracing["since"] > ticks["t_s"][0]:
-        return {**empty, "late_attribution": "none: the trace started after the first tick analysed"}
-    if tracing["lost"]:
-        return {**empty, "late_attribution": f"none: the trace buffer dropped {tracing['lost']} events"}
-    timeline = stall_trace.parse(tracing["text"], loop_pid)
-    late_ticks = stall_trace.attribute(ticks, timeline, period_s)
+def _attribution(recording: stall_trace.Recording, ticks: np.ndarray, loop_pid: int, period_s: float,
+                 key: str) -> dict:
+    keys, late_ticks = recording.attribute(ticks, loop_pid, period_s)
     if late_ticks:
         print(f"loop: {key}: late ticks and their causes (ms)\n{stall_trace.report(late_ticks)}")
-    return {**stall_trace.summary(late_ticks, len(ticks)), "late_attribution": f"ftrace, {timeline.events} events"}
+    return keys
 
 
 def floor_run(config: ControlConfig, seconds: float) -> dict:
     """The machine's own floor: empty ticks paced like the loop's (SCHED_FIFO, its CPU), in a process of
     their own, traced like the loop. Late ticks here cannot be the loop's doing."""
     options = PacingOptions()
-    tracing: dict = {"trace": None, "why_not": ""}
-    with mp.get_context("spawn").Pool(1) as pool:
+    with mp.get_context("spawn").Pool(1) as pool, stall_trace.Recording() as recording:
         pending = pool.apply_async(pacing_floor, (options, config.period_s, seconds))
         # the floor's process pins itself to the last CPU, as the controller does
-        _start_trace(tracing, sorted(os.sched_getaffinity(0))[-1] if options.pin_cpu else None)
-        try:
-            floor = pending.get()
-            if tracing["trace"] is not None:
-                tracing["text"], tracing["lost"] = tracing["trace"].stop()
-        finally:
-            if tracing["trace"] is not None:
-                tracing["trace"].close()
+        recording.start(sorted(os.sched_getaffinity(0))[-1] if options.pin_cpu else None)
+        floor = pending.get()
+        recording.stop()
     ticks = np.zeros(len(floor.late_s), dtype=[("t_s", "f8"), ("late_s", "f8")])
     ticks["t_s"], ticks["late_s"] = floor.started_s, floor.late_s
     ticks = ticks[round(WARMUP_S / config.period_s):]
@@ -296,7 +270,7 @@ def floor_run(config: ControlConfig, seconds: float) -> dict:
     stats = {"late_over_0_5ms_pct": float(100.0 * np.mean(late > 0.5e-3)),
              "late_over_1ms_pct": float(100.0 * np.mean(late > 1e-3)),
              "longest_stall_ms": float(late.max() * 1e3), "rt_priority": bool(floor.rt_priority), "cpu": floor.cpu,
-             **_attribution(ticks, tracing, floor.pid, config.period_s, "floor")}
+             **_attribution(recording, ticks, floor.pid, config.period_s, "floor")}
     return {f"floor_{key}": value for key, value in stats.items()}
 
 

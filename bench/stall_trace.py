@@ -30,9 +30,11 @@ says why not when either is missing, and the bench reports the run without an at
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import subprocess
+import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -115,6 +117,51 @@ def open_trace(cpu: int | None) -> CpuTrace:
             subprocess.run(["umount", str(TRACEFS)], check=False, capture_output=True)
         raise TraceUnavailable(f"this kernel lacks the trace events {', '.join(missing)}")
     return CpuTrace(TRACEFS, cpu, mounted_here)
+
+
+class Recording:
+    """One run's trace of the loop's CPU, or the reason there is none. Use it in a ``with`` block, so the
+    trace instance is removed however the run ends."""
+
+    def __init__(self):
+        self._trace: CpuTrace | None = None
+        self._why_not = "the trace was not started"
+        self._since = math.inf
+        self._text: str | None = None
+        self._lost = 0
+
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._trace is not None:
+            self._trace.close()
+
+    def start(self, cpu: int | None) -> None:
+        """Start recording ``cpu``; when that is not possible, remember why."""
+        try:
+            self._trace = open_trace(cpu).start()
+        except (TraceUnavailable, OSError) as err:
+            self._why_not = str(err)
+            return
+        self._since = time.monotonic()
+
+    def stop(self) -> None:
+        if self._trace is not None and self._text is None:
+            self._text, self._lost = self._trace.stop()
+
+    def attribute(self, ticks: np.ndarray, loop_pid: int, period_s: float) -> tuple[dict, list[LateTick]]:
+        """The flat bench keys (causes' shares None without a usable trace) and the late ticks."""
+        keys = {f"late_cause_{cause}_pct": None for cause in CAUSES}
+        if self._text is None:
+            return {**keys, "late_attribution": f"none: {self._why_not}"}, []
+        if self._since > ticks["t_s"][0]:
+            return {**keys, "late_attribution": "none: the trace started after the first tick analysed"}, []
+        if self._lost:
+            return {**keys, "late_attribution": f"none: the trace buffer dropped {self._lost} events"}, []
+        timeline = parse(self._text, loop_pid)
+        late_ticks = attribute(ticks, timeline, period_s)
+        return {**summary(late_ticks, len(ticks)), "late_attribution": f"ftrace, {timeline.events} events"}, late_ticks
 
 
 @dataclass

@@ -102,3 +102,12 @@ def test_summary_counts_every_late_tick_once_and_ignores_ticks_on_time():
 def test_lines_that_are_not_events_are_skipped():
     timeline = stall_trace.parse("# tracer: nop\n\ngarbage line\n" + switch(1.0, PYTHON, WORKER), LOOP)
     assert timeline.events == 1
+
+
+def test_a_run_without_a_trace_reports_why_and_no_shares():
+    with stall_trace.Recording() as recording:
+        recording.stop()
+        keys, late_ticks = recording.attribute(ticks((1.0, 0.0), (1.003, 2e-3)), LOOP, 1e-3)
+    assert late_ticks == []
+    assert keys["late_attribution"] == "none: the trace was not started"
+    assert all(keys[f"late_cause_{cause}_pct"] is None for cause in stall_trace.CAUSES)
