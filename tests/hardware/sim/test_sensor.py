@@ -164,19 +164,20 @@ def test_creep_rises_by_its_fraction_with_its_time_constant_and_recovers():
     assert residue[-1] < 0.12 * residue[0]
 
 
-def loaded_frames(settings_seed=0, run_seed=0, duration_s=0.1, **sensor):
-    """Frames of a sensor zeroed unloaded, then loaded with 10 kPa on every element."""
+def loaded_frames(settings_seed=0, run_seed=0, sim_span_s=0.1, **sensor):
+    """Frames of a sensor zeroed unloaded, then loaded with 10 kPa on every element for ``sim_span_s`` of
+    simulated time (the run is stepped on the simulator's clock, not the wall clock)."""
     sensor = make_sensor(run_seed=run_seed, **{**IDEAL, **sensor, "seed": settings_seed})
     run(sensor, T0, 0.05)
     sensor.world.tissue.force_N[:] = 10e3 * AREA
-    frames, _ = run(sensor, T0 + 0.051, duration_s)
+    frames, _ = run(sensor, T0 + 0.051, sim_span_s)
     return np.array([f.pressure_pa for f in frames[3:]])
 
 
 def test_the_noise_comes_from_the_run_seed():
-    a = loaded_frames(run_seed=0, duration_s=2.0, noise_std_pa=50.0)
-    assert np.array_equal(a, loaded_frames(run_seed=0, duration_s=2.0, noise_std_pa=50.0))
-    b = loaded_frames(run_seed=1, duration_s=2.0, noise_std_pa=50.0)
+    a = loaded_frames(run_seed=0, sim_span_s=2.0, noise_std_pa=50.0)
+    assert np.array_equal(a, loaded_frames(run_seed=0, sim_span_s=2.0, noise_std_pa=50.0))
+    b = loaded_frames(run_seed=1, sim_span_s=2.0, noise_std_pa=50.0)
     assert not np.array_equal(a, b)
     assert (a - a.mean(axis=0)).std() == pytest.approx(50.0, rel=0.05)
     assert (b - b.mean(axis=0)).std() == pytest.approx(50.0, rel=0.05)
