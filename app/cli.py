@@ -11,10 +11,10 @@ import numpy as np
 
 from app.config import AppConfig, load_config
 from app.rigs import BACKENDS
-from control.config import ConfigError
-from control.messages import (CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice, RegionAborted,
-                              RegionDone)
+from control.messages import (CommandApplied, CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice,
+                              RegionAborted, RegionDone)
 from hardware.interfaces import DeviceError
+from hardware.settings import ConfigError
 from hardware.sim.mechanics.progress import TextProgressBar
 from hardware.sim.phantom import PhantomError
 
@@ -130,7 +130,7 @@ def cmd_simulate(args) -> int:
                 elif isinstance(event, (FaultRaised, LevelTimedOut, RegionAborted)):
                     failures += 1
                     print(f"  ! {getattr(event, 'message', None) or getattr(event, 'reason', '')}")
-                elif isinstance(event, (CommandRefused, Notice)) and args.verbose:
+                elif isinstance(event, (CommandApplied, CommandRefused, Notice)) and args.verbose:
                     print(f"  {event}")
             ff.clear()  # the rows are not needed here: keep memory flat over long runs
             printed = 0

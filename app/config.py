@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from app.rigs import BACKENDS, RigSpec
-from control.config import ConfigError, ControlConfig
+from control.config import ControlConfig
+from hardware.settings import ConfigError
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "config" / "default.toml"
 COMMAND_LINE = "command line"  # the source of load_config's overrides, as errors and session files name it

@@ -15,8 +15,9 @@ import numpy as np
 
 from app.runtime import make_loop, run_tick
 from control.config import ControlConfig
-from control.messages import Command, Phase
+from control.messages import Command
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from hardware.interfaces import Phase
 from hardware.rig import Rig
 
 

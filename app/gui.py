@@ -176,7 +176,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     configuration directory (:func:`widgets.live_window.console_settings`)."""
     from PySide6 import QtCore, QtWidgets
 
-    from app.autopilot import plan_for_rig
+    from app.rigs import plan_for_rig
     from app.bridge import ControllerBridge
     from widgets.live_window import LiveWindow
 

@@ -1,7 +1,8 @@
 """Which hardware to build, as a small picklable description, and the one function that builds it.
 
 The controller process receives a :class:`RigSpec` (not a built rig: devices hold OS handles that do
-not cross a process boundary) and calls :func:`build_rig` on its own side.
+not cross a process boundary) and calls :func:`build_rig` on its own side. What the composition root needs
+to know of a simulated rig before it runs (its autopilot plan) is taken from its phantom here too.
 """
 
 from __future__ import annotations
@@ -10,8 +11,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from control.config import ConfigError
+from control.autopilot import AutopilotError, AutopilotPlan, plan_from_surface
+from control.config import ControlConfig
+from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
+from hardware.settings import ConfigError
 
 Progress = Callable[[float, str], None]  # (fraction done, what is being done)
 
@@ -70,3 +74,21 @@ def build_rig(spec: RigSpec, progress: Progress | None = None) -> Rig:
     if builder is None:
         raise ConfigError("rig.backend", f"unknown backend {spec.backend!r} (known: {', '.join(sorted(BACKENDS))})")
     return builder(spec, progress=progress)
+
+
+def plan_for_rig(spec: RigSpec, config: ControlConfig,
+                 sensor: TactileConstraints | None = None) -> AutopilotPlan | None:
+    """The autopilot's plan for a simulated rig's phantom, with the simulated operator's clearance and travel
+    height; None for other backends (no phantom file to take the areas from)."""
+    if spec.backend != "sim":
+        return None
+    from hardware.sim.phantom import load_phantom
+    from hardware.sim.settings import SimSettings
+
+    operator = SimSettings.from_mapping(dict(spec.sim)).operator
+    try:
+        return plan_from_surface(load_phantom(spec.phantom), sensor or TactileConstraints(),
+                                 clearance_m=operator.clearance_m, travel_z_m=operator.travel_height_m,
+                                 jog_speed_m_s=config.master.jog_speed_m_s)
+    except AutopilotError as err:
+        raise ConfigError("sim.operator.travel_height_m", str(err)) from None

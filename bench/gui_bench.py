@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 from PySide6 import QtCore, QtWidgets
 
-from app.autopilot import plan_for_rig
 from app.bridge import ControllerBridge
 from app.config import load_config
 from app.controller import ControllerProcess, PacingOptions
 from app.gui import console_rig
+from app.rigs import plan_for_rig
 from bench.loop_bench import WARMUP_S, duration_s, tick_statistics
 from control.messages import FaultRaised, LevelRecorded
 from widgets.live_window import LiveWindow

@@ -41,8 +41,9 @@ import numpy as np
 from app.runtime import make_loop, run_tick
 from bench.loop_bench import WARMUP_S, tick_statistics
 from control.config import ControlConfig
-from control.messages import ClearFault, FaultRaised, Jog, LevelRecorded, Phase, RegionDone, SetSz
+from control.messages import ClearFault, FaultRaised, Jog, LevelRecorded, RegionDone, SetSz
 from control.telemetry import TICK_DTYPE
+from hardware.interfaces import Phase
 from hardware.rig import Rig
 from hardware.serial_tactile import SerialTactileSensor, SerialTactileSettings
 from hardware.udp import protocol as P

@@ -20,13 +20,13 @@ import numpy as np
 from control.analysis import PoseHistory, element_analysis
 from control.config import ControlConfig
 from control.law import HybridImpedanceLaw
-from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandRefused, EStop, Event, FaultCleared,
-                              FaultKind, FaultRaised, Jog, Notice, Phase, SetGains, SetRamp, SetRegion, SetSz,
+from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
+                              FaultCleared, FaultKind, FaultRaised, Jog, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
 from control.safety import RETRACT_FAULTS, SafetySupervisor
 from control.telemetry import empty_frame, empty_tick
-from hardware.interfaces import MasterFeedback, MasterState, SlaveState, TactileConstraints, TactileFrame, Vec3
+from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
@@ -109,7 +109,7 @@ class ControlLoop:
     # ---- commands ------------------------------------------------------------------------------------
 
     def _refuse(self, now_s: float, cmd: Command, reason: str, events: list) -> None:
-        events.append(CommandRefused(now_s, type(cmd).__name__, reason))
+        events.append(CommandRefused(now_s, cmd, reason))
 
     def _command(self, now_s: float, cmd: Command, events: list, result: StepResult) -> None:
         sm = self.sm
@@ -131,26 +131,26 @@ class ControlLoop:
                 self._refuse(now_s, cmd, "tare only with the probe off the tissue (not during a ramp)", events)
             else:
                 result.tare = True
-                events.append(Notice(now_s, "Tactile sensor tared: the current reading is the new zero."))
+                events.append(CommandApplied(now_s, cmd, "Tactile sensor tared: the current reading is the new zero."))
         elif isinstance(cmd, (SetRamp, SetGains, SetRegion)):
-            if not (sm.idle or sm.phase == Phase.HOLD):
+            if not (sm.phase.idle or sm.phase == Phase.HOLD):
                 self._refuse(now_s, cmd, "settings can change only between regions", events)
             elif isinstance(cmd, SetRamp):
                 sm.set_ramp(cmd.ramp)
                 r = cmd.ramp
-                events.append(Notice(now_s, f"Ramp set: {r.force_min_N:g} to {r.force_max_N:g} N in "
-                                            f"{r.force_step_N:g} N steps ({r.n_levels} levels), eps = "
-                                            f"{r.rmse_threshold_N:g} N over {r.settle_window_s:g} s."))
+                events.append(CommandApplied(now_s, cmd, f"Ramp set: {r.force_min_N:g} to {r.force_max_N:g} N in "
+                                                         f"{r.force_step_N:g} N steps ({r.n_levels} levels), eps = "
+                                                         f"{r.rmse_threshold_N:g} N over {r.settle_window_s:g} s."))
             elif isinstance(cmd, SetGains):
                 self.law.set_gains(cmd.gains)
-                events.append(Notice(now_s, "Impedance gains changed."))
+                events.append(CommandApplied(now_s, cmd, "Impedance gains changed."))
             else:
                 sm.region = cmd.index - 1
-                events.append(Notice(now_s, f"Next region is number {cmd.index + 1}."))
+                events.append(CommandApplied(now_s, cmd, f"Next region is number {cmd.index + 1}."))
         elif isinstance(cmd, CancelJog):
             self._jog_pending = [0.0, 0.0, 0.0]
         elif isinstance(cmd, Jog):
-            if not sm.idle:
+            if not sm.phase.idle:
                 self._refuse(now_s, cmd, "jog only while the operator holds position control", events)
             else:
                 for i in range(3):
@@ -335,7 +335,7 @@ class ControlLoop:
             result.position_ref_m = self._x_s
             result.hold = True
             return
-        if sm.idle:
+        if sm.phase.idle:
             self._advance_jog(dt)
         x_d = self._xd = self._desired()
         f_d_z = -sm.force_desired_N if sm.force_control else 0.0

@@ -1,7 +1,9 @@
 """Typed commands into the control loop and events out of it.
 
 Commands and events are small frozen dataclasses that cross the process boundary by pickling; the loop
-dispatches on their type, never on strings.
+dispatches on their type, never on strings. Every command the loop does not simply carry out is answered
+with an event naming it: :class:`CommandApplied` for settings and tare, :class:`CommandRefused` with the
+reason for a refusal, so the console never matches on message text.
 """
 
 from __future__ import annotations
@@ -12,19 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from control.config import ImpedanceGains, RampSettings
+from hardware.interfaces import Phase
 
 Vec3 = tuple[float, float, float]
-
-
-class Phase(enum.IntEnum):
-    """States of the Fig. 4 flowchart as the operator sees them."""
-
-    APPROACH = 0  # S_z = 1: the operator positions the TSI under position control
-    SEEK_CONTACT = 1  # S_z = 0: force control at F_min, no element in contact yet
-    SETTLING = 2  # S_z = 0: at level k, waiting for RMSE(F_d - F_ts) < eps
-    RETRACT = 3  # S_z = 1: lifting the TSI off the tissue after the ramp, an abort or a fault
-    DONE = 4  # region done: the ramp reached F_max; the operator may move to the next area
-    HOLD = 5  # a fault latched a safe hold; cleared only by the operator
 
 
 class FaultKind(enum.IntEnum):
@@ -193,15 +185,30 @@ class FaultCleared:
 
 
 @dataclass(frozen=True, slots=True)
-class CommandRefused:
+class CommandApplied:
+    """The loop took a command that changes its settings or the sensor (ramp, gains, next region, tare)."""
+
     t_s: float
-    command: str
+    command: Command
+    message: str  # what changed, in words, for the messages pane
+
+
+@dataclass(frozen=True, slots=True)
+class CommandRefused:
+    """The loop refused a command; nothing changed. A refused ``SetSz`` means S_z stays as it was."""
+
+    t_s: float
+    command: Command
     reason: str
+
+    @property
+    def command_name(self) -> str:
+        return type(self.command).__name__
 
 
 @dataclass(frozen=True, slots=True)
 class Notice:
-    """Anything else the operator should read in the messages pane (tare done, settings applied...)."""
+    """Anything else the operator should read in the messages pane (a display that fell behind...)."""
 
     t_s: float
     message: str
@@ -209,4 +216,4 @@ class Notice:
 
 
 Event = (SzChanged | PhaseChanged | LevelRecorded | LevelTimedOut | RegionDone | RegionAborted | FaultRaised
-         | FaultCleared | CommandRefused | Notice)
+         | FaultCleared | CommandApplied | CommandRefused | Notice)

@@ -22,8 +22,8 @@ import numpy as np
 
 from control.analysis import ContactTracker, element_analysis
 from control.config import ContactSettings, RampSettings
-from control.messages import (LevelRecord, LevelRecorded, LevelTimedOut, Phase, PhaseChanged, RegionAborted,
-                              RegionDone)
+from control.messages import LevelRecord, LevelRecorded, LevelTimedOut, PhaseChanged, RegionAborted, RegionDone
+from hardware.interfaces import Phase
 
 FRAME_BUFFER = 512  # frames held for the settle window: 5 s at 100 frames/s
 
@@ -67,11 +67,6 @@ class PalpationStateMachine:
     @property
     def force_control(self) -> bool:
         return self.phase in (Phase.SEEK_CONTACT, Phase.SETTLING)
-
-    @property
-    def idle(self) -> bool:
-        """The operator owns the z axis and may start a region or change settings."""
-        return self.phase in (Phase.APPROACH, Phase.DONE)
 
     def take_events(self) -> list:
         events, self._events = self._events, []

@@ -52,6 +52,22 @@ class ConnectionState(enum.IntEnum):
     LOST = 3  # was connected, stopped answering or was unplugged
 
 
+class Phase(enum.IntEnum):
+    """States of the Fig. 4 flowchart as the operator sees them."""
+
+    APPROACH = 0  # S_z = 1: the operator positions the TSI under position control
+    SEEK_CONTACT = 1  # S_z = 0: force control at F_min, no element in contact yet
+    SETTLING = 2  # S_z = 0: at level k, waiting for RMSE(F_d - F_ts) < eps
+    RETRACT = 3  # S_z = 1: lifting the TSI off the tissue after the ramp, an abort or a fault
+    DONE = 4  # region done: the ramp reached F_max; the operator may move to the next area
+    HOLD = 5  # a fault latched a safe hold; cleared only by the operator
+
+    @property
+    def idle(self) -> bool:
+        """The operator owns the z axis: the TSI may be moved and settings changed (between areas)."""
+        return self in (Phase.APPROACH, Phase.DONE)
+
+
 @dataclass(frozen=True, slots=True)
 class TactileConstraints:
     rows: int = 4
@@ -123,7 +139,7 @@ class MasterFeedback:
     """What the operator is told back through the master each tick (a haptic master may render it)."""
 
     t_s: float
-    phase: int
+    phase: Phase
     region_done: bool
     force_measured_N: float
     faulted: bool

@@ -16,7 +16,7 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.config import RampSettings
-from control.messages import Phase
+from hardware.interfaces import Phase
 
 # Phase -> (headline, colour, what the operator should do now)
 PHASES: dict[Phase, tuple[str, str, str]] = {

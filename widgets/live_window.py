@@ -16,6 +16,9 @@ through ``send(command)`` and the signals ``snapshot(LiveSnapshot)`` (display ra
 ``started()``, ``stopped()`` and ``crashed(str)``. It never touches hardware. Each snapshot updates every
 view once; views redraw only what changed. Commands are the typed dataclasses of
 :mod:`control.messages`; the window shows the state the controller reports, never the one it asked for.
+What may be shown and offered (the fault banner's text, whether the TSI may be jogged or the sensor tared,
+settings pending, applied or refused) is decided by a :class:`control.console_state.ConsoleState`, which the
+window feeds and reads; it keeps no rules of the loop's itself.
 
 Settings. Dock layout and geometry, the maps' view mode and colour locks, the jog step, the whole-tissue
 choices, the autopilot's start area and the last ramp the controller accepted are stored in the given
@@ -33,19 +36,20 @@ from pathlib import Path
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from app.autopilot import Autopilot, AutopilotError, AutopilotPlan, AutopilotState
-from control.config import ConfigError, ControlConfig, RampSettings
-from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised, Jog,
-                              LevelRecorded, LevelTimedOut, Notice, Phase, RegionAborted, SetGains, SetRamp, SetSz,
-                              Tare)
+from control.autopilot import Autopilot, AutopilotError, AutopilotPlan, AutopilotState
+from control.config import ControlConfig, RampSettings
+from control.console_state import ConsoleState
+from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop, FaultKind, Jog,
+                              LevelRecorded, LevelTimedOut, Notice, RegionAborted, SetGains, SetRamp, SetSz, Tare)
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import TactileConstraints
+from hardware.settings import ConfigError
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.flowchart import FlowchartPanel
 from widgets.health import HealthPanel, health_degraded, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
-from widgets.messages import MessagesPane, Severity, fault_name
+from widgets.messages import MessagesPane, Severity
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.session_panel import SessionPanel
 from widgets.settings_panel import GainsEditor, RampEditor
@@ -64,7 +68,6 @@ PRESSURE_FLOOR_FACTOR = 1.5
 STIFFNESS_FLOOR_PA = 100e3
 # The TSI may only be sent to a double-clicked point while it carries less than this (off the tissue).
 MOVE_TO_MAX_FORCE_N = 0.05
-_IDLE = (Phase.APPROACH, Phase.DONE)
 
 _SIDE_STYLE = """
 QLabel { color: #ececec; }
@@ -153,13 +156,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.autopilot = Autopilot(plan) if plan is not None else None
         self._texts: dict[QtWidgets.QLabel, str] = {}
         self._frame_seq: int | None = None
-        self._fault_messages: dict[int, str] = {}
+        self._state = ConsoleState(self._config)
         self._fault_shown: tuple[int, str] | None = None
-        self._controller_failure: str | None = None
         self._health_degraded: bool | None = None
-        self._tick: np.ndarray | None = None
         self._ramp_to_restore: RampSettings | None = None
-        self._controller_running = False
 
         self.setWindowTitle("Palpation Console")
         screen = QtGui.QGuiApplication.primaryScreen()
@@ -242,7 +242,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         col.setSpacing(6)
 
         self._sz = SzSwitch()
-        self._sz.toggled.connect(lambda position_control: self._send(SetSz(position_control)))
+        self._sz.toggled.connect(lambda position_control: self._request(SetSz(position_control)))
         col.addWidget(self._sz)
         col.addSpacing(8)
         self._flow = FlowchartPanel(self._config.ramp)
@@ -339,9 +339,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         jog_dock = self._dock("Jog and autopilot", "jogDock", jog_page, left)
 
         self._ramp_editor = RampEditor(cfg.ramp)
-        self._ramp_editor.apply_requested.connect(lambda ramp: self._send(SetRamp(ramp)))
+        self._ramp_editor.apply_requested.connect(lambda ramp: self._request(SetRamp(ramp)))
         self._gains_editor = GainsEditor(cfg.gains)
-        self._gains_editor.apply_requested.connect(lambda gains: self._send(SetGains(gains)))
+        self._gains_editor.apply_requested.connect(lambda gains: self._request(SetGains(gains)))
         settings_page = QtWidgets.QWidget()
         settings_layout = QtWidgets.QVBoxLayout(settings_page)
         settings_layout.setContentsMargins(0, 0, 0, 0)
@@ -498,7 +498,7 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def reset_layout(self) -> None:
         self.restoreState(self._default_state, SETTINGS_VERSION)
-        self._banner_bar.setVisible(self._fault_shown is not None and self._fault_shown[0] != 0)
+        self._banner_bar.setVisible(self._fault_shown is not None)
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:
         self.save_settings()
@@ -517,18 +517,19 @@ class LiveWindow(QtWidgets.QMainWindow):
     @QtCore.Slot(object)
     def show_snapshot(self, snapshot: LiveSnapshot) -> None:
         """Update every view from one snapshot; only what changed is redrawn (called at ~60 Hz)."""
-        if self._ramp_to_restore is not None and self._controller_running:
+        if self._ramp_to_restore is not None and self._state.running:
             ramp, self._ramp_to_restore = self._ramp_to_restore, None
             self._messages.add(f"Restoring the ramp applied in the last run: {ramp.force_min_N:g} to "
                                f"{ramp.force_max_N:g} N in {ramp.force_step_N:g} N steps.")
             self._ramp_editor.request(ramp)
-        for event in snapshot.events:
-            self._handle_event(event)
         tick = snapshot.tick
-        if self._tick is None:  # the first tick is t = 0 for the operator
+        if self._state.tick is None:  # the first tick is t = 0 for the operator
             self._messages.set_time_origin(float(snapshot.ticks[0]["t_s"]) if len(snapshot.ticks)
                                            else float(tick["t_s"]))
-        self._tick = tick
+        self._state.on_tick(tick)
+        for event in snapshot.events:
+            self._handle_event(event)
+        self._show_settings()
         if self.autopilot is not None:
             for command in self.autopilot.update(tick, snapshot.events):
                 self._send(command)
@@ -574,7 +575,7 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def latest_tick(self) -> np.ndarray | None:
         """The newest tick row shown (None before the first snapshot)."""
-        return self._tick
+        return self._state.tick
 
     def _open_session_dialog(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open a recorded session", str(self._sessions_folder),
@@ -587,6 +588,11 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _send(self, command) -> None:
         self._controller.send(command)
 
+    def _request(self, command) -> None:
+        """Send a command that changes a setting; it shows as pending until the controller answers."""
+        self._send(self._state.request(command))
+        self._show_settings()
+
     def _estop(self) -> None:
         self._send(EStop())
         if self.autopilot is not None and self.autopilot.running:
@@ -596,23 +602,23 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     @QtCore.Slot()
     def _on_started(self) -> None:
-        self._controller_running = True
-        self._controller_failure = None
+        self._state.started()
         self._messages.add("Controller running.", Severity.OK)
 
     @QtCore.Slot()
     def _on_stopped(self) -> None:
-        self._controller_running = False
+        self._state.stopped()
+        self._show_settings()
         self._messages.add("Controller stopped.")
 
     @QtCore.Slot(str)
     def _on_crashed(self, message: str) -> None:
-        self._controller_running = False
-        self._controller_failure = message
+        self._state.crashed(message)
+        self._show_settings()
         if self.autopilot is not None and self.autopilot.running:
             self.autopilot.stop("the controller stopped")
         self._messages.add(f"CONTROLLER STOPPED: {message}", Severity.ERROR)
-        self._show_fault(int(FaultKind.CONTROLLER))
+        self._show_fault()
         self._update_controls()
 
     def start_autopilot(self, first_area: int = 0) -> None:
@@ -640,10 +646,10 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def _move_to(self, x_m: float, y_m: float) -> None:
         """Double-click on the whole-tissue view: move the TSI there at its current height."""
-        tick = self._tick
+        tick = self._state.tick
         if not self._jog.available() or tick is None:
             self.statusBar().showMessage("The TSI cannot be moved from here now: "
-                                         f"{self._jog_unavailable(tick) or 'no reading yet'}", STATUS_MESSAGE_MS)
+                                         f"{self._jog_unavailable() or 'no reading yet'}", STATUS_MESSAGE_MS)
             return
         if float(tick["force_measured_N"]) > MOVE_TO_MAX_FORCE_N:
             self.statusBar().showMessage("Lift the TSI off the tissue before moving it across", STATUS_MESSAGE_MS)
@@ -655,44 +661,37 @@ class LiveWindow(QtWidgets.QMainWindow):
     # ---- events --------------------------------------------------------------------------------------
 
     def _handle_event(self, event) -> None:
+        self._state.on_event(event)
         self._messages.add_event(event)
-        if isinstance(event, FaultRaised):
-            self._fault_messages[int(event.kind)] = event.message
-            self._fault_shown = None  # re-render the banner with the new text
-        elif isinstance(event, FaultCleared):
-            self._fault_messages.pop(int(event.kind), None)
-        elif isinstance(event, LevelRecorded):
+        if isinstance(event, LevelRecorded):
             self._history.mark_recorded(event.record.t_s, event.record.force_measured_N)
             self._tissue.add_record(event.record)
         elif isinstance(event, CommandRefused):
-            self.statusBar().showMessage(f"{event.command} refused: {event.reason}", STATUS_MESSAGE_MS)
-            if event.command == "SetRamp":
-                self._ramp_editor.refuse(event.reason)
-            elif event.command == "SetGains":
-                self._gains_editor.refuse(event.reason)
+            self.statusBar().showMessage(f"{event.command_name} refused: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, LevelTimedOut):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
         elif isinstance(event, RegionAborted):
             self.statusBar().showMessage(f"Region {event.region + 1} aborted: {event.reason}", STATUS_MESSAGE_MS)
-        elif isinstance(event, Notice):
+        elif isinstance(event, (Notice, CommandApplied)):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
-            # The loop confirms settings with a notice; a refusal would have come as CommandRefused.
-            if event.message.startswith("Ramp set") and self._ramp_editor.pending() is not None:
-                self._ramp_editor.confirm()
-                self.set_ramp(self._ramp_editor.applied())
-            elif event.message.startswith("Impedance gains"):
-                self._gains_editor.confirm()
+
+    def _show_settings(self) -> None:
+        """The S_z switch, ramp and gains as the controller has them, with what is pending or refused."""
+        state = self._state
+        self._sz.set_state(state.sz.applied, state.sz.pending)
+        if state.ramp.applied != self._ramp_editor.applied():
+            self.set_ramp(state.ramp.applied)
+        self._ramp_editor.show_setting(state.ramp)
+        self._gains_editor.show_setting(state.gains)
 
     # ---- display -------------------------------------------------------------------------------------
 
     def _show_tick(self, tick: np.ndarray) -> None:
         self._flow.show_tick(tick)
-        self._sz.set_state(int(tick["sz"]) == 1)
         self._set_text(self._force_desired, _fmt(tick["force_desired_N"], "N"))
         self._set_text(self._force_measured, _fmt(tick["force_measured_N"], "N"))
         self._show_indentation(float(tick["indentation_m"]))
-        if self._controller_failure is None:
-            self._show_fault(int(tick["fault"]))
+        self._show_fault()
         self._health_panel.show_ages(tick)
         self._show_health_chip()
         position = tick["x_slave_m"]
@@ -716,28 +715,13 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._contact.show_metrics(metrics, frame["tsi_position_m"])
         self._pressure.set_marker_m(metrics.centre_m)
 
-    def _jog_unavailable(self, tick: np.ndarray | None) -> str | None:
-        if self._controller_failure is not None:
-            return "the controller is not running"
-        if tick is None:
-            return "waiting for the controller"
-        if not math.isnan(float(tick["master_age_s"])):
-            return "a master device is attached: move the TSI with it"
-        if int(tick["fault"]) != 0:
-            return "a fault holds the robot"
-        if self.autopilot is not None and self.autopilot.running:
-            return "the autopilot is driving the TSI"
-        phase = int(tick["phase"])
-        if phase not in _IDLE:
-            return "the TSI moves only between areas (S_z = position, not during a ramp)"
-        return None
+    def _jog_unavailable(self) -> str | None:
+        return self._state.jog_unavailable(self.autopilot is not None and self.autopilot.running)
 
     def _update_controls(self) -> None:
-        tick = self._tick
-        reason = self._jog_unavailable(tick)
+        reason = self._jog_unavailable()
         self._jog.set_unavailable(reason)
-        idle = tick is not None and int(tick["phase"]) in _IDLE and int(tick["fault"]) == 0
-        self._tare.setEnabled(idle and self._controller_failure is None)
+        self._tare.setEnabled(self._state.can_tare())
         if self.autopilot is None:
             self._autopilot_panel.show_state("unavailable", "this rig has no phantom file to plan the areas from",
                                              can_start=False)
@@ -747,22 +731,17 @@ class LiveWindow(QtWidgets.QMainWindow):
         message = ap.message if ap.state is not AutopilotState.IDLE or blocked is None else blocked
         self._autopilot_panel.show_state(ap.state.value, message, can_start=blocked is None)
 
-    def _show_fault(self, fault: int) -> None:
-        message = self._controller_failure if fault == FaultKind.CONTROLLER else self._fault_messages.get(fault)
-        key = (fault, message or "")
-        if key == self._fault_shown:
+    def _show_fault(self) -> None:
+        shown = self._state.fault()
+        if shown == self._fault_shown:
             return
-        self._fault_shown = key
-        if fault == 0:
+        self._fault_shown = shown
+        if shown is None:
             self._banner_bar.hide()
             return
-        if fault == FaultKind.CONTROLLER:
-            text = (f"CONTROLLER STOPPED — {message}. The robot was left holding (or was never commanded); "
-                    "restart the console to go on.")
-        else:
-            text = f"FAULT: {fault_name(fault)}" + (f" — {message}" if message else "")
+        kind, text = shown
         self._fault_text.setText(text)
-        self._clear_fault.setVisible(fault != FaultKind.CONTROLLER)
+        self._clear_fault.setVisible(kind != FaultKind.CONTROLLER)
         self._banner_bar.show()
 
     def _show_health_chip(self) -> None:

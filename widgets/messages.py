@@ -14,8 +14,9 @@ from datetime import datetime
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from control.messages import (CommandRefused, FaultCleared, FaultKind, FaultRaised, LevelRecorded, LevelTimedOut,
-                              Notice, PhaseChanged, RegionAborted, RegionDone, Source, SzChanged)
+from control.console_state import fault_name
+from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultRaised, LevelRecorded,
+                              LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, Source, SzChanged)
 
 MAX_LINES = 2000
 
@@ -29,13 +30,6 @@ class Severity(enum.Enum):
 
 COLOURS = {Severity.INFO: "#e0e0e0", Severity.OK: "#6ee07a", Severity.WARNING: "#ffc37a",
            Severity.ERROR: "#ff7b7b"}
-
-
-def fault_name(kind: int) -> str:
-    try:
-        return FaultKind(kind).name.replace("_", " ").lower()
-    except ValueError:
-        return f"fault {kind}"
 
 
 def describe_event(event) -> tuple[str, Severity] | None:
@@ -67,7 +61,9 @@ def describe_event(event) -> tuple[str, Severity] | None:
     if isinstance(event, FaultCleared):
         return f"Fault cleared ({fault_name(event.kind)})", Severity.OK
     if isinstance(event, CommandRefused):
-        return f"Refused {event.command}: {event.reason}", Severity.WARNING
+        return f"Refused {event.command_name}: {event.reason}", Severity.WARNING
+    if isinstance(event, CommandApplied):
+        return event.message, Severity.INFO
     if isinstance(event, Notice):
         return event.message, Severity.WARNING if event.level == "warning" else Severity.INFO
     return None

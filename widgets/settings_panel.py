@@ -5,14 +5,18 @@ Every edit is checked at once with the same validation the configuration file go
 refused with the reason, in words, next to the fields, and cannot be applied. A valid one is sent as a
 request; the controller may still refuse it (settings change only between areas), and the panel shows
 what it answered. The gains are shown at all times but can only be edited once unlocked, and lock again
-once applied: they change how the robot responds to the tissue.
+once applied: they change how the robot responds to the tissue. What is applied, pending or refused is
+the console's state (:class:`control.console_state.Setting`), shown here with :meth:`RampEditor.show_setting`.
 """
 
 from __future__ import annotations
 
 from PySide6 import QtCore, QtWidgets
 
-from control.config import ConfigError, ImpedanceGains, RampSettings
+from control.config import ImpedanceGains, RampSettings
+from control.console_state import Setting
+
+from hardware.settings import ConfigError
 
 # (field, label, unit, decimals, maximum)
 RAMP_FIELDS = (
@@ -70,7 +74,7 @@ class RampEditor(QtWidgets.QWidget):
     def __init__(self, ramp: RampSettings, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._applied = ramp
-        self._pending: RampSettings | None = None
+        self._shown: tuple | None = None
         self._spins: dict[str, QtWidgets.QDoubleSpinBox] = {}
         form = QtWidgets.QFormLayout()
         form.setLabelAlignment(QtCore.Qt.AlignmentFlag.AlignRight)
@@ -102,8 +106,20 @@ class RampEditor(QtWidgets.QWidget):
     def applied(self) -> RampSettings:
         return self._applied
 
-    def pending(self) -> RampSettings | None:
-        return self._pending
+    def show_setting(self, setting: Setting) -> None:
+        """What the controller has in force, what it was asked for and has not answered, and a refusal."""
+        shown = (setting.applied, setting.pending, setting.refusal)
+        if shown == self._shown:
+            return
+        self._shown = shown
+        self._applied = setting.applied
+        if setting.pending is not None:
+            self._set_status("Sent; waiting for the controller…", OK_STYLE)
+        elif setting.refusal is not None:
+            self._set_status(f"Not applied — the controller refused: {setting.refusal}", ERROR_STYLE)
+        elif self._status.text():
+            self._set_status("Applied.", OK_STYLE)
+        self._validate()
 
     def show_ramp(self, ramp: RampSettings) -> None:
         """Put ``ramp`` into the fields (without applying it)."""
@@ -140,27 +156,8 @@ class RampEditor(QtWidgets.QWidget):
 
     def _request(self) -> None:
         ramp = self._validate()
-        if ramp is None:
-            return
-        self._pending = ramp
-        self._set_status("Sent; waiting for the controller…", OK_STYLE)
-        self.apply_requested.emit(ramp)
-
-    def confirm(self) -> None:
-        """The controller took the pending ramp."""
-        if self._pending is None:
-            return
-        self._applied, self._pending = self._pending, None
-        self._set_status("Applied.", OK_STYLE)
-        self._validate()
-
-    def refuse(self, reason: str) -> None:
-        """The controller refused the pending ramp."""
-        if self._pending is None:
-            return
-        self._pending = None
-        self._set_status(f"Not applied — the controller refused: {reason}", ERROR_STYLE)
-        self._validate()
+        if ramp is not None:
+            self.apply_requested.emit(ramp)
 
     def _set_status(self, text: str, style: str) -> None:
         self._status.setText(text)
@@ -176,7 +173,8 @@ class GainsEditor(QtWidgets.QWidget):
     def __init__(self, gains: ImpedanceGains, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._applied = gains
-        self._pending: ImpedanceGains | None = None
+        self._waiting = False  # a request is pending: keep showing what was sent
+        self._shown: tuple | None = None
         self._spins: dict[tuple[str, int], QtWidgets.QDoubleSpinBox] = {}
         grid = QtWidgets.QGridLayout()
         for i, axis in enumerate(AXES):
@@ -231,7 +229,7 @@ class GainsEditor(QtWidgets.QWidget):
             blocked = self._unlock.blockSignals(True)
             self._unlock.setChecked(False)
             self._unlock.blockSignals(blocked)
-        if not on and self._pending is None:
+        if not on and not self._waiting:
             self.show_gains(self._applied)  # locking drops edits that were not applied
         self._validate()
 
@@ -252,24 +250,26 @@ class GainsEditor(QtWidgets.QWidget):
         gains = self._validate()
         if gains is None or not self._unlock.isChecked():
             return
-        self._pending = gains
-        self._status.setText("Sent; waiting for the controller…")
-        self._status.setStyleSheet(OK_STYLE)
+        self._waiting = True
         self._set_editable(False)
         self.apply_requested.emit(gains)
 
-    def confirm(self) -> None:
-        if self._pending is None:
+    def show_setting(self, setting: Setting) -> None:
+        """What the controller has in force, what it was asked for and has not answered, and a refusal."""
+        shown = (setting.applied, setting.pending, setting.refusal)
+        if shown == self._shown:
             return
-        self._applied, self._pending = self._pending, None
-        self._status.setText("Applied.")
-        self._status.setStyleSheet(OK_STYLE)
-        self.show_gains(self._applied)
-
-    def refuse(self, reason: str) -> None:
-        if self._pending is None:
+        self._shown = shown
+        self._applied = setting.applied
+        self._waiting = setting.pending is not None
+        if self._waiting:
+            self._status.setText("Sent; waiting for the controller…")
+            self._status.setStyleSheet(OK_STYLE)
             return
-        self._pending = None
-        self._status.setText(f"Not applied — the controller refused: {reason}")
-        self._status.setStyleSheet(ERROR_STYLE)
+        if setting.refusal is not None:
+            self._status.setText(f"Not applied — the controller refused: {setting.refusal}")
+            self._status.setStyleSheet(ERROR_STYLE)
+        elif self._status.text():
+            self._status.setText("Applied.")
+            self._status.setStyleSheet(OK_STYLE)
         self.show_gains(self._applied)

@@ -1,16 +1,15 @@
 """The S_z switch: position control (S_z = 1) or force control (S_z = 0) in the palpation direction.
 
 It shows the state the controller reports, never the state it asked for: a click or the shortcut only
-emits a request, and the request is shown as pending until a report confirms it or it lapses (the
-controller may refuse it, e.g. while a fault holds the robot). The shortcut is ``S``, not Space: Space
-also presses whichever button has focus, and a stray keystroke must not hand the robot to force control.
+emits a request, and the owner shows it as pending (:meth:`SzSwitch.set_state`) until the controller
+applies or refuses it (:class:`control.console_state.ConsoleState` decides which). The shortcut is ``S``,
+not Space: Space also presses whichever button has focus, and a stray keystroke must not hand the robot to
+force control.
 """
 
 from __future__ import annotations
 
 from PySide6 import QtCore, QtGui, QtWidgets
-
-PENDING_TIMEOUT_MS = 1500  # a request not confirmed by then was refused or lost; stop showing it
 
 _STYLE = """
 QPushButton { font-size: 17pt; font-weight: bold; padding: 10px 16px; border: 2px solid #5a5a5a;
@@ -28,14 +27,14 @@ class SzSwitch(QtWidgets.QFrame):
     """Two-segment switch "S_z: POSITION | FORCE".
 
     ``toggled(bool position_control)`` is the operator's request; call :meth:`set_state` with what the
-    controller reports (``None`` while unknown, which disables the switch). Child objectNames:
+    controller reports (``None`` while unknown, which disables the switch) and the request still pending,
+    if any. Child objectNames:
     ``szTitle``, ``szPosition``, ``szForce``, ``szHint``.
     """
 
     toggled = QtCore.Signal(bool)
 
-    def __init__(self, parent: QtWidgets.QWidget | None = None, shortcut: str = "S",
-                 pending_timeout_ms: int = PENDING_TIMEOUT_MS):
+    def __init__(self, parent: QtWidgets.QWidget | None = None, shortcut: str = "S"):
         super().__init__(parent)
         self.setObjectName("szSwitch")
         self.setStyleSheet(_STYLE)
@@ -67,9 +66,6 @@ class SzSwitch(QtWidgets.QFrame):
         self._shortcut = QtGui.QShortcut(QtGui.QKeySequence(shortcut), self)
         self._shortcut.setContext(QtCore.Qt.ShortcutContext.WindowShortcut)
         self._shortcut.activated.connect(self._toggle_requested)
-
-        self._pending_timer = QtCore.QTimer(self, singleShot=True, interval=pending_timeout_ms)
-        self._pending_timer.timeout.connect(lambda: self._set_pending(None))
         self._refresh()
 
     def state(self) -> bool | None:
@@ -80,16 +76,16 @@ class SzSwitch(QtWidgets.QFrame):
         """The requested state not yet confirmed, if any."""
         return self._pending
 
-    def set_state(self, position_control: bool | None) -> None:
-        """What the controller reports; cheap when unchanged (called at display rate)."""
+    def set_state(self, position_control: bool | None, pending: bool | None = None) -> None:
+        """What the controller reports and the request it has not answered yet; cheap when unchanged (called
+        at display rate)."""
         if position_control is not None:
             position_control = bool(position_control)
-        if self._pending is not None and position_control == self._pending:
-            self._pending_timer.stop()
-            self._pending = None
-        elif position_control == self._state:
+        if pending is not None:
+            pending = bool(pending)
+        if (position_control, pending) == (self._state, self._pending):
             return
-        self._state = position_control
+        self._state, self._pending = position_control, pending
         self._refresh()
 
     def _toggle_requested(self) -> None:
@@ -99,13 +95,7 @@ class SzSwitch(QtWidgets.QFrame):
     def _request(self, position_control: bool) -> None:
         if self._state is None or position_control == self._state:
             return
-        self._set_pending(position_control)
-        self._pending_timer.start()
         self.toggled.emit(position_control)
-
-    def _set_pending(self, pending: bool | None) -> None:
-        self._pending = pending
-        self._refresh()
 
     def _refresh(self) -> None:
         known = self._state is not None

@@ -73,8 +73,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from control.messages import (CommandRefused, FaultCleared, FaultRaised, LevelRecord, LevelRecorded, LevelTimedOut,
-                              Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
+from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultRaised, LevelRecord, LevelRecorded,
+                              LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
 from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
 
 log = logging.getLogger(__name__)
@@ -144,6 +144,7 @@ class EventKind:
     REGION_ABORTED = "region_aborted"  # region, text = why
     FAULT = "fault"  # code = FaultKind, text = message
     FAULT_CLEARED = "fault_cleared"  # code = FaultKind
+    APPLIED = "applied"  # text = "<command>: <what changed>"
     REFUSED = "refused"  # text = "<command>: <reason>"
     NOTICE = "notice"  # code = 0 info / 1 warning, text
     NOTE = "note"  # text = the operator's note
@@ -291,7 +292,9 @@ def rows_for_event(event) -> tuple[tuple | None, tuple | None]:
     elif isinstance(event, FaultCleared):
         row = event_row(event.t_s, k.FAULT_CLEARED, code=int(event.kind), text=event.kind.name)
     elif isinstance(event, CommandRefused):
-        row = event_row(event.t_s, k.REFUSED, text=f"{event.command}: {event.reason}")
+        row = event_row(event.t_s, k.REFUSED, text=f"{event.command_name}: {event.reason}")
+    elif isinstance(event, CommandApplied):
+        row = event_row(event.t_s, k.APPLIED, text=f"{type(event.command).__name__}: {event.message}")
     elif isinstance(event, Notice):
         row = event_row(event.t_s, k.NOTICE, code=1 if event.level == "warning" else 0, text=event.message)
     else:

@@ -12,8 +12,8 @@ from app.config import AppConfig
 from app.fastforward import FastForward, FastForwardTimeout
 from app.rigs import build_rig
 from app.session.recorder import RecorderStatus, SessionInfo, SessionRecorder
-from control.config import ConfigError
 from hardware.rig import Rig
+from hardware.settings import ConfigError
 
 
 def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = None, max_time_s: float = 900.0,

@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from control.messages import LevelRecord, Phase
+from control.messages import LevelRecord
 from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
 
 
 def tick_rows(start_tick: int, n: int, period_s: float = 1e-3) -> np.ndarray:

@@ -21,12 +21,12 @@ from typing import Any
 
 import serial
 
-from control.config import ConfigError
 from hardware.interfaces import ConnectionState, DeviceError, TactileFrame, TactileSensor
 from hardware.serial_tactile.calibration import Calibration
 from hardware.serial_tactile.config import integer, text
 from hardware.serial_tactile.driver import frame_size
 from hardware.serial_tactile.stream import TactileSettings, TactileStream
+from hardware.settings import ConfigError
 
 BITS_PER_BYTE = 10  # 8N1 framing on the wire
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from control.config import ConfigError, number
+from hardware.settings import ConfigError, number
 
 
 def in_range(key: str, value: Any, lo: float, hi: float, why: str = "") -> float:

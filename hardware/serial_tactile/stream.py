@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.config import ConfigError, Settings
 from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame
 from hardware.serial_tactile.calibration import Calibration, CalibrationError, load_equilibration
 from hardware.serial_tactile.clock import DeviceClock
 from hardware.serial_tactile.config import boolean, in_range, optional_path
 from hardware.serial_tactile.driver import U32, FrameParser, RawFrame
+from hardware.settings import ConfigError, Settings
 
 CONVERTER_BITS = 12  # an uncalibrated device: full scale over a 12-bit converter
 

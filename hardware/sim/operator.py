@@ -24,16 +24,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
-from control.config import ConfigError
-from control.messages import Phase
-from hardware.interfaces import MasterConstraints, MasterDevice, MasterFeedback, MasterState, TactileConstraints, Vec3
+from hardware.interfaces import (MasterConstraints, MasterDevice, MasterFeedback, MasterState, Phase,
+                                 TactileConstraints, Vec3)
+from hardware.settings import ConfigError
 from hardware.sim.world import SimDevice, SimWorld
 
 _MIN_JERK_PEAK = 1.875  # peak speed of a minimum-jerk move = 1.875 * distance / duration
 _ENGAGED = frozenset({Phase.SEEK_CONTACT, Phase.SETTLING, Phase.RETRACT, Phase.HOLD})
-_FOOTPRINT_STEP_M = 0.5e-3  # resolution at which the operator "sees" the surface under the TSI
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +66,9 @@ class ScriptedOperator(SimDevice, MasterDevice):
         self._sensor = sensor if sensor is not None else TactileConstraints()
         self.regions = world.phantom.palpation_regions(self._sensor.size_m[0])
         self.home_m: Vec3 = world.settings.robot.home_m
-        self.approach_heights_m = tuple(self._approach_height_m(x, y) for x, y in self.regions)
+        face = self._sensor.size_m
+        self.approach_heights_m = tuple(world.phantom.highest_surface_m(x, y, face) + self.settings.clearance_m
+                                        for x, y in self.regions)
         self._check_heights()
         self._steps = self._plan()
         self._index = 0
@@ -87,14 +86,6 @@ class ScriptedOperator(SimDevice, MasterDevice):
         self.outcomes: list[RegionOutcome] = []
 
     # ---- planning ------------------------------------------------------------------------------------
-
-    def _approach_height_m(self, x: float, y: float) -> float:
-        """Clearance above the highest surface point under the TSI's face centred at (x, y)."""
-        sx, sy = self._sensor.size_m
-        gx = np.linspace(x - sx / 2, x + sx / 2, int(math.ceil(sx / _FOOTPRINT_STEP_M)) + 1)
-        gy = np.linspace(y - sy / 2, y + sy / 2, int(math.ceil(sy / _FOOTPRINT_STEP_M)) + 1)
-        top = float(np.max(self.world.phantom.surface_height_m(*np.meshgrid(gx, gy, indexing="ij"))))
-        return top + self.settings.clearance_m
 
     def _check_heights(self) -> None:
         travel = self.settings.travel_height_m

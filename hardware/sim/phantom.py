@@ -51,6 +51,7 @@ import numpy as np
 
 PHANTOM_DIR = Path(__file__).resolve().parents[2] / "resources" / "phantoms"
 MIN_SURFACE_HEIGHT_M = 1e-3  # a thinner layer is no phantom, and the mesh needs room
+FACE_SAMPLE_M = 0.5e-3
 
 
 class PhantomError(ValueError):
@@ -114,6 +115,15 @@ class Phantom:
             h = h + feature.height_m(x, y)
         outside = (x < 0) | (x > self.length_m) | (y < 0) | (y > self.width_m)
         return np.where(outside, 0.0, h)
+
+    def highest_surface_m(self, x_m: float, y_m: float, face_size_m: tuple[float, float]) -> float:
+        """The highest surface point under a face of ``face_size_m`` (along x, y) centred at (x, y): what an
+        operator aims to clear before handing z to force control (sampled every 0.5 mm, the detail a
+        camera shows)."""
+        sx, sy = face_size_m
+        gx = np.linspace(x_m - sx / 2, x_m + sx / 2, int(math.ceil(sx / FACE_SAMPLE_M)) + 1)
+        gy = np.linspace(y_m - sy / 2, y_m + sy / 2, int(math.ceil(sy / FACE_SAMPLE_M)) + 1)
+        return float(np.max(self.surface_height_m(*np.meshgrid(gx, gy, indexing="ij"))))
 
     def inclusion_depth_m(self, inc: Inclusion) -> float:
         """Depth of the inclusion's top below the surface directly above its centre."""

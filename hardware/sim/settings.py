@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from control.config import ConfigError, Settings, non_negative, positive, vec3
+from hardware.settings import ConfigError, Settings, non_negative, positive, vec3
 
 Vec3 = tuple[float, float, float]
 

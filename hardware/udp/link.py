@@ -33,10 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from control.config import ConfigError, Settings
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
                                  TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3)
 from hardware.serial_tactile.config import in_range, integer, text
+from hardware.settings import ConfigError, Settings
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback

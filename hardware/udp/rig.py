@@ -21,12 +21,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from control.config import ConfigError
 from hardware.rig import Rig
 from hardware.serial_tactile.adapter import SerialTactileSensor, SerialTactileSettings
+from hardware.settings import ConfigError
+from hardware.udp.link import UdpLinkSettings, UdpSlaveLink
 from hardware.usb.spacemouse import SpaceMouseMaster, SpaceMouseSettings
 from hardware.usb.tactile import UsbTactileSensor, UsbTactileSettings
-from hardware.udp.link import UdpLinkSettings, UdpSlaveLink
 
 SENSOR_KINDS = {"udp": None, "serial": SerialTactileSettings, "usb": UsbTactileSettings}
 MASTER_KINDS = {"none": None, "spacemouse": SpaceMouseSettings}

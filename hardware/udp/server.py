@@ -34,9 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from control.config import ConfigError, Settings
 from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor
 from hardware.serial_tactile.config import in_range, integer, text
+from hardware.settings import ConfigError, Settings
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback

@@ -31,10 +31,10 @@ from typing import Any
 
 import usb.core
 
-from control.config import ConfigError, Settings
-from control.messages import Phase
-from hardware.interfaces import ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback, MasterState, Vec3
+from hardware.interfaces import (ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback,
+                                 MasterState, Phase, Vec3)
 from hardware.serial_tactile.config import format_vid_pid, in_range, integer, text, vid_pid
+from hardware.settings import ConfigError, Settings
 from hardware.usb.transport import Attached, Lost, UsbInPipe
 
 KNOWN_SPACEMICE: dict[tuple[int, int], str] = {

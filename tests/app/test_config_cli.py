@@ -4,7 +4,7 @@ import pytest
 
 from app.cli import main
 from app.config import load_config
-from control.config import ConfigError
+from hardware.settings import ConfigError
 
 
 def test_defaults_load_and_validate():

@@ -6,8 +6,9 @@ import pytest
 from app.fastforward import FastForward, FastForwardTimeout
 from app.rigs import RigSpec, build_rig
 from control.config import ControlConfig
-from control.messages import ClearFault, EStop, FaultCleared, FaultKind, FaultRaised, Notice, Phase, Tare
+from control.messages import ClearFault, CommandApplied, EStop, FaultCleared, FaultKind, FaultRaised, Tare
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from hardware.interfaces import Phase
 
 
 @pytest.fixture
@@ -105,4 +106,4 @@ def test_the_tick_applies_a_tare_the_loop_asks_for(ff, monkeypatch):
     ff.send(Tare())
     ff.step()
     assert tared == [pytest.approx(0.1)]
-    assert any(isinstance(e, Notice) and "tared" in e.message for e in ff.events)
+    assert any(isinstance(e, CommandApplied) and isinstance(e.command, Tare) and "tared" in e.message for e in ff.events)

@@ -14,7 +14,7 @@ from PySide6 import QtCore, QtGui
 from app.config import load_config
 from app.gui import console_rig, run_gui
 from app.rigs import RigSpec, build_rig
-from control.config import ConfigError
+from hardware.settings import ConfigError
 from hardware.sim.phantom import PhantomError
 
 ROOT = Path(__file__).resolve().parents[2]

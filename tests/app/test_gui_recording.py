@@ -13,11 +13,10 @@ import numpy as np
 import pytest
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from app.autopilot import plan_for_rig
 from app.bridge import ControllerBridge
 from app.config import AppConfig
 from app.gui import SessionRecording, session_info, wire_recording
-from app.rigs import RigSpec
+from app.rigs import RigSpec, plan_for_rig
 from app.session.reader import SessionFileError, open_session
 from app.session.recorder import EventKind, sessions_dir
 from control.config import ControlConfig, MasterMapping, RampSettings

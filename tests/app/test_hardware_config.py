@@ -10,10 +10,10 @@ from app.cli import build_parser, config_overrides, main
 from app.config import COMMAND_LINE, load_config
 from app.rigs import build_rig
 from app.runtime import make_loop, run_tick
-from control.config import ConfigError
 from hardware.interfaces import ConnectionState
 from hardware.serial_tactile import SerialTactileSensor
 from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
+from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig
 from hardware.udp import SlaveServer, SlaveServerSettings, UdpSlaveLink, UdpTactileSensor
 

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from control.config import ControlConfig, RampSettings, SafetyLimits
-from control.messages import (AbortRegion, CancelJog, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised,
-                              Jog, LevelRecorded, LevelTimedOut, Phase, PhaseChanged, RegionAborted, RegionDone,
-                              SetRamp, SetSz, SzChanged, Tare)
+from control.messages import (AbortRegion, CancelJog, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind,
+                              FaultRaised, Jog, LevelRecorded, LevelTimedOut, PhaseChanged, RegionAborted,
+                              RegionDone, SetRamp, SetSz, SzChanged, Tare)
+from hardware.interfaces import Phase
 
 from .plant import Harness, LayerPlant
 
@@ -217,7 +218,7 @@ def test_settings_only_between_regions_and_tare_only_off_tissue():
     assert h.loop.sm.n_levels == 3
     h.send(Tare(), SetRamp(RampSettings()))
     h.run(0.001)
-    refused = [e.command for e in h.of(CommandRefused)]
+    refused = [e.command_name for e in h.of(CommandRefused)]
     assert refused == ["Tare", "SetRamp"] and not h.last.tare
 
 

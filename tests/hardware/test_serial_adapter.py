@@ -10,13 +10,15 @@ import select
 import numpy as np
 import pytest
 
-from control.config import ConfigError, ControlConfig
+from control.config import ControlConfig
+
 from control.loop import ControlLoop
 from control.messages import FaultKind, FaultRaised
 from hardware.interfaces import ConnectionState, DeviceError, SlaveState
 from hardware.serial_tactile import Calibration, SerialTactileSensor, SerialTactileSettings
 from hardware.serial_tactile.driver import encode_frame
 from hardware.serial_tactile.emulator import SerialSensorEmulator
+from hardware.settings import ConfigError
 
 T0 = 500.0
 RNG = np.random.default_rng(3)

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from app.runtime import make_loop, run_tick
-from control.config import ConfigError, ControlConfig
-from control.messages import ClearFault, FaultCleared, FaultKind, FaultRaised
+from control.config import ControlConfig
 from control.loop import ControlLoop
+from control.messages import ClearFault, FaultCleared, FaultKind, FaultRaised
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
                                  TactileConstraints)
 from hardware.rig import Rig
+from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig
-from hardware.udp import SlaveServer, SlaveServerSettings, UdpLinkSettings, UdpSlaveLink
-from hardware.udp import protocol as P
+from hardware.udp import SlaveServer, SlaveServerSettings, UdpLinkSettings, UdpSlaveLink, protocol as P
 from hardware.udp.relay import TO_MASTER, TO_SLAVE, FaultyRelay, Faults
 
 T0 = 100.0

@@ -8,10 +8,11 @@ from types import SimpleNamespace
 import pytest
 
 from app.runtime import make_loop, run_tick
-from control.config import ConfigError, ControlConfig
+from control.config import ControlConfig
 from hardware.interfaces import ConnectionState
 from hardware.serial_tactile import SerialTactileSensor
 from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
+from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig
 from hardware.udp import SlaveServer, SlaveServerSettings, UdpSlaveLink, UdpTactileSensor, slave_main
 from hardware.udp.rig import HardwareSettings, build_hardware_rig, build_rig

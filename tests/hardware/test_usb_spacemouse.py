@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
-from control.config import ConfigError, ControlConfig
+from control.config import ControlConfig
 from control.loop import ControlLoop
-from control.messages import FaultKind, FaultRaised, Phase
-from hardware.interfaces import (ConnectionState, DeviceError, MasterFeedback, SlaveState, TactileConstraints,
+from control.messages import FaultKind, FaultRaised
+from hardware.interfaces import (ConnectionState, DeviceError, MasterFeedback, Phase, SlaveState, TactileConstraints,
                                  TactileFrame)
+from hardware.settings import ConfigError
 from hardware.usb.emulator import EmulatedBackend, SpaceMouseDevice
 from hardware.usb.spacemouse import ReportDecoder, SpaceMouseMaster, SpaceMouseSettings, pack_axes
 

@@ -25,10 +25,10 @@ from app.session.recorder import (EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVE
                                   EventKind, RecorderError, SessionInfo, SessionRecorder, calibration_of,
                                   new_session_path, sessions_dir)
 from app.session.synthetic import frame_rows, level_record, tick_rows
-from control.messages import (FaultKind, FaultRaised, LevelRecorded, Notice, Phase, PhaseChanged, RegionDone, Source,
+from control.messages import (FaultKind, FaultRaised, LevelRecorded, Notice, PhaseChanged, RegionDone, Source,
                               SzChanged)
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
 
 from tests.session.conftest import RAMP, REGIONS_XY_M
 

@@ -13,11 +13,11 @@ import pytest
 import pytestqt.exceptions
 from PySide6 import QtCore, QtWidgets
 
-from app.autopilot import AutopilotState, plan_for_rig
 from app.bridge import ControllerBridge
-from app.rigs import RigSpec
+from app.rigs import RigSpec, plan_for_rig
+from control.autopilot import AutopilotState
 from control.config import ControlConfig, MasterMapping, RampSettings
-from control.messages import Phase
+from hardware.interfaces import Phase
 from widgets.flowchart import LevelLadder
 from widgets.live_window import LiveWindow
 from widgets.sz_switch import SzSwitch

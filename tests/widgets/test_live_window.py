@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from PySide6 import QtCore, QtWidgets
 
-from app.autopilot import Area, AutopilotPlan
+from control.autopilot import Area, AutopilotPlan
 from control.config import ControlConfig, RampSettings, SafetyLimits
-from control.messages import (ClearFault, CommandRefused, EStop, FaultCleared, FaultKind, FaultRaised, Jog,
-                              LevelRecord, LevelRecorded, Notice, Phase, SetRamp, SetSz)
+from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop, FaultCleared, FaultKind,
+                              FaultRaised, Jog, LevelRecord, LevelRecorded, Notice, SetRamp, SetSz)
 from control.telemetry import LiveSnapshot, LoopHealth, empty_frame, empty_tick
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
 from widgets.flowchart import LevelLadder
 from widgets.health import HealthPanel
 from widgets.history_plots import HistoryPlots
@@ -271,7 +271,7 @@ def test_loop_health_reaches_the_status_bar_and_the_panel(window, controller):
     push(controller, make_tick(), health=warned)
     assert "SCHED_FIFO not permitted" in health.text() and health.property("degraded") is True
 
-    push(controller, make_tick(), events=[CommandRefused(3.0, "SetSz", "a fault holds the robot")])
+    push(controller, make_tick(), events=[CommandRefused(3.0, SetSz(False), "a fault holds the robot")])
     assert window.statusBar().currentMessage() == "SetSz refused: a fault holds the robot"
     assert window.messages().lines()[-1].endswith("Refused SetSz: a fault holds the robot")
 
@@ -338,7 +338,7 @@ def test_invalid_ramp_is_refused_with_the_reason_and_never_sent(qtbot, window, c
     qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
     assert controller.sent == [SetRamp(RampSettings(force_min_N=2.0, rmse_threshold_N=0.1))]
     status = label(window, "rampStatus")
-    push(controller, make_tick(), events=[CommandRefused(1.0, "SetRamp", "settings can change only between regions")])
+    push(controller, make_tick(), events=[CommandRefused(1.0, controller.sent[-1], "settings can change only between regions")])
     assert status.text() == "Not applied — the controller refused: settings can change only between regions"
     assert window.findChild(LevelLadder, "levelLadder").forces() == [1, 2, 3, 4, 5, 6, 7]
 
@@ -357,7 +357,7 @@ def test_gains_are_shown_locked_and_sent_only_once_unlocked(qtbot, window, contr
     sent = controller.sent[-1]
     assert sent.gains.stiffness_N_m == (1600.0, 1600.0, 2000.0)
     assert not k_z.isEnabled()  # locked again at once
-    push(controller, make_tick(), events=[Notice(1.0, "Impedance gains changed.")])
+    push(controller, make_tick(), events=[CommandApplied(1.0, sent, "Impedance gains changed.")])
     assert label(window, "gainsStatus").text() == "Applied."
 
 
@@ -371,7 +371,7 @@ def test_layout_and_settings_are_restored_on_the_next_run(qtbot, controller, set
     # a ramp the controller accepted
     first.findChild(QtWidgets.QDoubleSpinBox, "force_max_N").setValue(3.0)
     qtbot.mouseClick(button(first, "rampApply"), QtCore.Qt.MouseButton.LeftButton)
-    push(controller, make_tick(), events=[Notice(1.0, "Ramp set: 1 to 3 N ...")])
+    push(controller, make_tick(), events=[CommandApplied(1.0, controller.sent[-1], "Ramp set: 1 to 3 N ...")])
     assert first.findChild(LevelLadder, "levelLadder").forces() == [1, 2, 3]
     first.close()
 
@@ -394,7 +394,7 @@ def test_a_changed_configuration_wins_over_the_restored_ramp(qtbot, controller, 
     first = open_window(qtbot, controller, settings)
     first.findChild(QtWidgets.QDoubleSpinBox, "force_max_N").setValue(3.0)
     qtbot.mouseClick(button(first, "rampApply"), QtCore.Qt.MouseButton.LeftButton)
-    push(controller, make_tick(), events=[Notice(1.0, "Ramp set: 1 to 3 N ...")])
+    push(controller, make_tick(), events=[CommandApplied(1.0, controller.sent[-1], "Ramp set: 1 to 3 N ...")])
     first.close()
     second_controller = FakeController()
     edited = ControlConfig(ramp=RampSettings(force_max_N=5.0))  # the configuration file changed meanwhile

@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-from control.config import ConfigError
-from control.messages import Phase
-from hardware.interfaces import ConnectionState, MasterFeedback
+from hardware.interfaces import ConnectionState, MasterFeedback, Phase
+from hardware.settings import ConfigError
 from hardware.sim.operator import ScriptedOperator
 from hardware.sim.phantom import load_phantom, parse_phantom
 from hardware.sim.settings import OperatorSimSettings, SimSettings

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from control.config import ConfigError
 from hardware.interfaces import ConnectionState, TactileConstraints
 from hardware.rig import Rig
+from hardware.settings import ConfigError
 from hardware.sim.operator import ScriptedOperator
 from hardware.sim.phantom import PhantomError, load_phantom, parse_phantom
 from hardware.sim.rig import build_sim_rig

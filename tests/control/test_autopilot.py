@@ -7,14 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from app.autopilot import (ARRIVAL_TOLERANCE_M, Area, Autopilot, AutopilotError, AutopilotPlan, AutopilotState,
-                           plan_for_rig, plan_from_phantom)
 from app.fastforward import FastForward
-from app.rigs import RigSpec, build_rig
-from control.config import ConfigError, ControlConfig, MasterMapping, RampSettings
-from control.messages import CancelJog, CommandRefused, EStop, Jog, LevelRecorded, Phase, RegionDone, SetRegion, SetSz
+from app.rigs import RigSpec, build_rig, plan_for_rig
+from control.autopilot import (ARRIVAL_TOLERANCE_M, Area, Autopilot, AutopilotError, AutopilotPlan, AutopilotState,
+                               plan_from_surface)
+from control.config import ControlConfig, MasterMapping, RampSettings
+from control.messages import CancelJog, CommandRefused, EStop, Jog, LevelRecorded, RegionDone, SetRegion, SetSz
 from control.telemetry import empty_tick
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
+from hardware.settings import ConfigError
 from hardware.sim.phantom import load_phantom
 
 CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force_step_N=0.5),
@@ -46,7 +47,7 @@ def ff():
 
 
 def test_plan_from_the_flat_phantom_covers_it_in_strips():
-    plan = plan_from_phantom(load_phantom("flat"), TactileConstraints(), clearance_m=0.003, travel_z_m=0.045,
+    plan = plan_from_surface(load_phantom("flat"), TactileConstraints(), clearance_m=0.003, travel_z_m=0.045,
                              jog_speed_m_s=0.01)
     assert len(plan.areas) == 9 and [a.index for a in plan.areas] == list(range(9))
     assert [a.x_m for a in plan.areas] == pytest.approx([0.004 + 0.008 * k for k in range(9)])
@@ -57,7 +58,7 @@ def test_plan_from_the_flat_phantom_covers_it_in_strips():
 
 def test_the_approach_height_clears_the_highest_point_under_the_face():
     phantom = load_phantom("uneven")
-    plan = plan_from_phantom(phantom, TactileConstraints(), clearance_m=0.003, travel_z_m=0.09, jog_speed_m_s=0.01)
+    plan = plan_from_surface(phantom, TactileConstraints(), clearance_m=0.003, travel_z_m=0.09, jog_speed_m_s=0.01)
     sensor = TactileConstraints()
     for area in plan.areas:
         x = np.linspace(area.x_m - 0.004, area.x_m + 0.004, 17)
@@ -165,7 +166,7 @@ def test_a_refused_command_or_someone_else_driving_stops_it():
     autopilot = Autopilot(plan)
     autopilot.start()
     assert autopilot.update(synthetic_tick()) == [Jog(pytest.approx((-0.032, 0.0, -0.015)))]
-    refusal = CommandRefused(1.0, "Jog", "jog only while the operator holds position control")
+    refusal = CommandRefused(1.0, Jog((0.0, 0.0, 0.0)), "jog only while the operator holds position control")
     autopilot.update(synthetic_tick(), [refusal])
     assert autopilot.state is AutopilotState.STOPPED
     assert autopilot.message == "the controller refused Jog: jog only while the operator holds position control"

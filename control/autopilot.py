@@ -13,8 +13,9 @@ is at the target and the robot has followed. Anything unexpected stops the autop
 fault, a refused command, an area aborted or timed out, a phase it did not cause, a move that does not
 arrive. It never retries on its own: the operator reads why and decides.
 
-Plans come from the phantom file of a simulated rig (:func:`plan_for_rig`); real hardware has no phantom
-file, so the autopilot is unavailable there unless a plan is built by hand.
+Plans are built from a map of the tissue's surface (:func:`plan_from_surface`): the composition root makes
+one from a simulated rig's phantom file (:func:`app.rigs.plan_for_rig`); real hardware has no phantom file,
+so the autopilot is unavailable there unless a plan is built by hand.
 """
 
 from __future__ import annotations
@@ -23,13 +24,13 @@ import enum
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from control.config import ConfigError, ControlConfig
-from control.messages import (CancelJog, Command, CommandRefused, FaultRaised, Jog, LevelTimedOut, Phase, RegionAborted,
+from control.messages import (CancelJog, Command, CommandRefused, FaultRaised, Jog, LevelTimedOut, RegionAborted,
                               RegionDone, SetRegion, SetSz)
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
 
 # A move has arrived when X_d is at the target (to rounding) and the robot is within this of it.
 ARRIVAL_TOLERANCE_M = 0.3e-3
@@ -37,10 +38,7 @@ ARRIVAL_TOLERANCE_M = 0.3e-3
 MOVE_TIME_FACTOR = 1.5
 MOVE_ALLOWANCE_S = 3.0
 COMMAND_TIMEOUT_S = 30.0  # a jog the controller neither refused nor started within this is lost
-# Surface points under the TSI face are sampled at this spacing to find the highest one.
-_FOOTPRINT_STEP_M = 0.5e-3
-_IDLE = (Phase.APPROACH, Phase.DONE)
-_OUR_COMMANDS = ("Jog", "SetRegion", "SetSz")
+_OUR_COMMANDS = (Jog, SetRegion, SetSz)
 
 
 class AutopilotError(ValueError):
@@ -78,37 +76,26 @@ class AutopilotPlan:
                                  f"height {highest * 1e3:.1f} mm")
 
 
-def approach_height_m(phantom, x_m: float, y_m: float, sensor: TactileConstraints, clearance_m: float) -> float:
-    """``clearance_m`` above the highest surface point under the TSI face centred at (x, y)."""
-    sx, sy = sensor.size_m
-    gx = np.linspace(x_m - sx / 2, x_m + sx / 2, int(math.ceil(sx / _FOOTPRINT_STEP_M)) + 1)
-    gy = np.linspace(y_m - sy / 2, y_m + sy / 2, int(math.ceil(sy / _FOOTPRINT_STEP_M)) + 1)
-    return float(np.max(phantom.surface_height_m(*np.meshgrid(gx, gy, indexing="ij")))) + clearance_m
+class SurfaceMap(Protocol):
+    """What a plan needs to know of the tissue (a simulated rig's phantom; on a real rig, a surface map from
+    imaging): where the areas are, how high the surface is under the face, and the tissue's extent."""
+
+    length_m: float
+    width_m: float
+
+    def palpation_regions(self, tsi_length_x_m: float) -> tuple[tuple[float, float], ...]: ...
+
+    def highest_surface_m(self, x_m: float, y_m: float, face_size_m: tuple[float, float]) -> float: ...
 
 
-def plan_from_phantom(phantom, sensor: TactileConstraints, *, clearance_m: float, travel_z_m: float,
+def plan_from_surface(surface: SurfaceMap, sensor: TactileConstraints, *, clearance_m: float, travel_z_m: float,
                       jog_speed_m_s: float) -> AutopilotPlan:
-    """The phantom's palpation areas (listed, or strips as long as the TSI) in order, numbered from 0."""
-    areas = tuple(Area(i, float(x), float(y), approach_height_m(phantom, x, y, sensor, clearance_m))
-                  for i, (x, y) in enumerate(phantom.palpation_regions(sensor.size_m[0])))
-    return AutopilotPlan(areas, travel_z_m, jog_speed_m_s, (0.0, phantom.length_m, 0.0, phantom.width_m))
-
-
-def plan_for_rig(rig_spec, config: ControlConfig, sensor: TactileConstraints | None = None) -> AutopilotPlan | None:
-    """The plan for a simulated rig's phantom, with the simulated operator's clearance and travel height;
-    None for other backends (no phantom file to take the areas from)."""
-    if rig_spec.backend != "sim":
-        return None
-    from hardware.sim.phantom import load_phantom  # the simulator only where a simulated rig is used
-    from hardware.sim.settings import SimSettings
-
-    operator = SimSettings.from_mapping(dict(rig_spec.sim)).operator
-    try:
-        return plan_from_phantom(load_phantom(rig_spec.phantom), sensor or TactileConstraints(),
-                                 clearance_m=operator.clearance_m, travel_z_m=operator.travel_height_m,
-                                 jog_speed_m_s=config.master.jog_speed_m_s)
-    except AutopilotError as err:
-        raise ConfigError("sim.operator.travel_height_m", str(err)) from None
+    """The surface's palpation areas in order, numbered from 0, each approached ``clearance_m`` above the
+    highest point under the TSI's face."""
+    face = sensor.size_m
+    areas = tuple(Area(i, float(x), float(y), surface.highest_surface_m(x, y, face) + clearance_m)
+                  for i, (x, y) in enumerate(surface.palpation_regions(face[0])))
+    return AutopilotPlan(areas, travel_z_m, jog_speed_m_s, (0.0, surface.length_m, 0.0, surface.width_m))
 
 
 class AutopilotState(enum.Enum):
@@ -215,8 +202,8 @@ class Autopilot:
         step = self._steps[0] if self._steps else None
         if isinstance(event, FaultRaised):
             self._halt(f"fault: {event.message}")
-        elif isinstance(event, CommandRefused) and event.command in _OUR_COMMANDS:
-            self._halt(f"the controller refused {event.command}: {event.reason}")
+        elif isinstance(event, CommandRefused) and isinstance(event.command, _OUR_COMMANDS):
+            self._halt(f"the controller refused {event.command_name}: {event.reason}")
         elif step is None or step.kind is not _Kind.PALPATE or not step.commanded:
             return
         elif isinstance(event, RegionDone) and event.region == step.area.index:
@@ -233,7 +220,7 @@ class Autopilot:
         if step.kind is _Kind.PALPATE:
             return self._palpate(step, phase, int(tick["tick"]))
         if not step.commanded:
-            if phase not in _IDLE:
+            if not Phase(phase).idle:
                 if phase == Phase.RETRACT:
                     return None  # the loop is still lifting the TSI after the last area
                 self._halt(f"the loop is in phase {Phase(phase).name}, not waiting for the operator; "
@@ -249,7 +236,7 @@ class Autopilot:
             step.sent_s, step.start_m = t_s, tuple(float(v) for v in x_des)
             self.message = self._describe(step)
             return [Jog(tuple(float(v) for v in delta))]
-        if phase not in _IDLE:
+        if not Phase(phase).idle:
             self._halt(f"the loop left position control ({Phase(phase).name}) during a move")
             return None
         arrived = (np.abs(x_des - step.target_m).max() < 1e-6
@@ -273,7 +260,7 @@ class Autopilot:
     def _palpate(self, step: _Step, phase: int, tick_index: int) -> list[Command] | None:
         area = step.area
         if not step.commanded:
-            if phase not in _IDLE:
+            if not Phase(phase).idle:
                 self._halt(f"the loop is in phase {Phase(phase).name}; cannot start area {area.index + 1}")
                 return None
             step.commanded = True
