@@ -11,9 +11,12 @@ Signals (all delivered in the bridge's thread):
 * ``started()``, ``stopped()``: the driver is running / was stopped on request;
 * ``start_failed(str)``: the driver could not start (the rig did not open, ...);
 * ``crashed(str)``: the driver died on its own (exit code and its last message);
-* ``snapshot(LiveSnapshot)``: at display rate while running;
-* ``frames(np.ndarray)``: every FRAME_DTYPE row since the previous emission (for the session recorder;
-  ``LiveSnapshot`` only carries the latest frame).
+* ``snapshot(LiveSnapshot)``: at display rate while running (it carries every tick row and event, but only
+  the latest frame).
+
+Every row the controller produces (ticks, frames, events) also goes, in the worker thread itself, to the
+:class:`RowSink` objects added with :meth:`ControllerBridge.add_sink`: the session recorder is fed there,
+so recording never waits for the GUI thread and the GUI thread never handles rows it does not draw.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 from PySide6.QtCore import QCoreApplication, QObject, Qt, QThread, QTimer, Signal, Slot
@@ -31,7 +35,7 @@ from app.fastforward import FastForward
 from app.rigs import RigSpec, build_rig
 from control.config import ControlConfig
 from control.messages import Command, Notice
-from control.telemetry import FRAME_DTYPE, LiveSnapshot
+from control.telemetry import FRAME_DTYPE, TICK_DTYPE, LiveSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +43,7 @@ Driver = ControllerProcess | FastForward
 
 # A stalled display thread must not make the fast-forward driver catch up in one enormous burst.
 _MAX_CATCH_UP_S = 0.25
+_NO_TICKS = np.empty(0, TICK_DTYPE)
 
 
 def _exit_description(code: int | None) -> str:
@@ -50,6 +55,19 @@ def _exit_description(code: int | None) -> str:
         except ValueError:
             return f"killed by signal {-code}"
     return f"exit code {code}"
+
+
+class RowSink(Protocol):
+    """Takes every row the controller produces; called in the bridge's worker thread, in order."""
+
+    def driver_started(self) -> None:
+        """The driver runs; rows follow."""
+
+    def add_rows(self, ticks: np.ndarray, frames: np.ndarray, events: list) -> None:
+        """TICK_DTYPE and FRAME_DTYPE rows and control events since the previous call (any may be empty)."""
+
+    def driver_stopped(self) -> None:
+        """The driver stopped (on request or on its own); the rows it left have been added."""
 
 
 class _Pump:
@@ -150,10 +168,10 @@ class _Worker(QObject):
     start_failed = Signal(str)
     crashed = Signal(str)
     snapshot = Signal(object)
-    frames = Signal(object)
 
     def __init__(self, make_driver: Callable[[], Driver], interval_ms: int, speed: float, home: QThread):
         super().__init__()
+        self.sinks: list[RowSink] = []
         self._make_driver = make_driver
         self._interval_ms = interval_ms
         self._speed = speed
@@ -179,6 +197,8 @@ class _Worker(QObject):
             self.start_failed.emit(f"{type(err).__name__}: {err}" if str(err) else type(err).__name__)
             return
         self._pump = pump
+        for sink in self.sinks:
+            sink.driver_started()
         if self._timer is None:
             self._timer = QTimer(self)
             self._timer.setTimerType(Qt.TimerType.PreciseTimer)
@@ -194,6 +214,7 @@ class _Worker(QObject):
         self._on_timer()  # hand the GUI what arrived since the last display tick
         if self._pump is not None:  # the last drain may have found it dead
             self._release_pump()
+            self._sinks_stopped()
             self.stopped.emit()
 
     @Slot(object)
@@ -224,14 +245,21 @@ class _Worker(QObject):
         except Exception as err:  # noqa: BLE001 - a drain that fails every 16 ms must stop, and say why
             log.exception("draining the controller failed")
             snapshot, frames, failure = None, np.empty(0, FRAME_DTYPE), f"Reading the controller failed: {err}"
+        if snapshot is not None or len(frames):
+            ticks, events = (snapshot.ticks, snapshot.events) if snapshot is not None else (_NO_TICKS, [])
+            for sink in self.sinks:
+                sink.add_rows(ticks, frames, events)
         if snapshot is not None:
             self.snapshot.emit(snapshot)
-        if len(frames):
-            self.frames.emit(frames)
         if failure is not None:
             self._timer.stop()
             self._release_pump()
+            self._sinks_stopped()
             self.crashed.emit(failure)
+
+    def _sinks_stopped(self) -> None:
+        for sink in self.sinks:
+            sink.driver_stopped()
 
     def _release_pump(self) -> None:
         pump, self._pump = self._pump, None
@@ -247,7 +275,6 @@ class ControllerBridge(QObject):
     :class:`ControllerProcess` or a ready :class:`FastForward`."""
 
     snapshot = Signal(object)
-    frames = Signal(object)
     started = Signal()
     stopped = Signal()
     start_failed = Signal(str)
@@ -280,7 +307,6 @@ class ControllerBridge(QObject):
         self._worker.crashed.connect(self._on_crashed)
         self._worker.start_failed.connect(self.start_failed)
         self._worker.snapshot.connect(self.snapshot)
-        self._worker.frames.connect(self.frames)
         app = QCoreApplication.instance()
         if app is not None:
             app.aboutToQuit.connect(self.shutdown)
@@ -299,6 +325,12 @@ class ControllerBridge(QObject):
     @property
     def running(self) -> bool:
         return self._running
+
+    def add_sink(self, sink: RowSink) -> None:
+        """Feed ``sink`` every row from now on, in the worker thread (add it before :meth:`start`)."""
+        if self._thread.isRunning():
+            raise RuntimeError("add sinks before the bridge starts: its worker thread reads them")
+        self._worker.sinks.append(sink)
 
     def start(self) -> None:
         """Start the driver; ``started`` or ``start_failed`` follows."""

@@ -3,21 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from app.config import AppConfig, load_config
-from app.rigs import BACKENDS
-from control.messages import (CommandApplied, CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice,
-                              RegionAborted, RegionDone)
-from hardware.interfaces import DeviceError
 from hardware.settings import ConfigError
-from hardware.sim.mechanics.progress import TextProgressBar
-from hardware.sim.phantom import PhantomError
 
+# Imports stop at the standard library and the settings vocabulary here, so ``--help`` and a mistyped
+# flag answer at once; each command imports what it needs (Qt, numpy, the tissue model) when it runs.
+BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
 
@@ -67,85 +60,26 @@ def config_overrides(args) -> dict:
     return overrides
 
 
-def _config(args) -> AppConfig:
+def _config(args):
+    from app.config import load_config
+
     return load_config(args.config, config_overrides(args))
 
 
 def cmd_run(args) -> int:
     from app.gui import run_gui
     from app.rigs import prepare_rig
+    from hardware.sim.mechanics.progress import TextProgressBar
 
     config = _config(args)
     prepare_rig(config.rig, TextProgressBar())  # first use of a phantom: precompute its tissue model here
     return run_gui(config, screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
 
 
-def _level_line(r) -> str:
-    stiff = r.stiffness_pa[np.isfinite(r.stiffness_pa)]
-    med = f"{np.median(stiff) / 1e3:7.1f}" if stiff.size else "    n/a"
-    peak = f"{np.max(stiff) / 1e3:7.1f}" if stiff.size else "    n/a"
-    contact = int(np.isfinite(r.dL_m).sum())
-    depth = f"{r.indentation_m * 1e3:6.2f}" if math.isfinite(r.indentation_m) else "   n/a"
-    return (f"  {r.level + 1:>5} {r.force_desired_N:8.2f} {r.force_measured_N:8.3f} {depth} {contact:>7}"
-            f" {med} {peak} {r.pressure_pa.max() / 1e3:9.1f} {r.rmse_N:7.3f} {r.settle_time_s:7.2f}")
-
-
-HEADER = ("  level  F_d [N] F_ts [N] depth[mm] contact E_med[kPa] E_max[kPa] p_max[kPa] RMSE[N] settle[s]")
-
-
 def cmd_simulate(args) -> int:
-    """Palpate the phantom end to end on a virtual clock with the scripted operator, as in Section IV-A."""
-    from app.fastforward import FastForward
-    from app.rigs import build_rig
+    from app.simulate import simulate
 
-    config = _config(args)
-    if config.rig.backend != "sim":
-        raise ConfigError("rig.backend", f"simulate palpates the simulated rig, not {config.rig.backend!r}"
-                                         " (use `run` for real hardware)")
-    rig = build_rig(config.rig, progress=TextProgressBar())
-    operator = rig.master
-    if operator is None or not hasattr(operator, "finished"):
-        raise ConfigError("rig.backend", "simulate needs the simulated rig's scripted operator")
-    phantom = rig.description.get("phantom", config.rig.phantom)
-    print(f"Palpating phantom {phantom!r} with the scripted operator ({config.control.ramp.n_levels} levels, "
-          f"{config.control.ramp.force_min_N:g}-{config.control.ramp.force_max_N:g} N)")
-    failures = 0
-    done = 0
-    with FastForward(config.control, rig) as ff:
-        printed = 0
-        deadline_s = args.max_time_s
-
-        def report() -> None:
-            nonlocal printed, failures, done
-            for event in ff.events[printed:]:
-                if isinstance(event, LevelRecorded):
-                    if event.record.level == 0:
-                        x, y, _ = event.record.tsi_position_m
-                        print(f"\nRegion {event.record.region + 1} at x = {x * 1e3:.1f} mm, y = {y * 1e3:.1f} mm")
-                        print(HEADER)
-                    print(_level_line(event.record))
-                elif isinstance(event, RegionDone):
-                    done += 1
-                    print(f"  region {event.region + 1} done ({event.n_levels} levels)")
-                elif isinstance(event, (FaultRaised, LevelTimedOut, RegionAborted)):
-                    failures += 1
-                    print(f"  ! {getattr(event, 'message', None) or getattr(event, 'reason', '')}")
-                elif isinstance(event, (CommandApplied, CommandRefused, Notice)) and args.verbose:
-                    print(f"  {event}")
-            ff.clear()  # the rows are not needed here: keep memory flat over long runs
-            printed = 0
-
-        while not operator.finished:
-            ff.run_for(1.0)
-            report()
-            if ff.now_s > deadline_s:
-                print(f"error: the scripted operator had not finished after {deadline_s:g} s of simulated time",
-                      file=sys.stderr)
-                return 1
-        report()
-    print(f"\n{done} of {len(operator.regions)} regions done, {failures} problems, "
-          f"{ff.now_s:.1f} s of simulated time")
-    return 0 if done == len(operator.regions) and failures == 0 else 1
+    return simulate(_config(args), max_time_s=args.max_time_s, verbose=args.verbose)
 
 
 DELEGATED = {
@@ -165,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--phantom", help="simulated rig: phantom name or TOML file")
     real = run.add_argument_group("real hardware", "override [rig] backend and the [hardware] tables of the "
                                   "config (see docs/hardware.md); --slave or --sensor imply --backend udp")
-    real.add_argument("--backend", choices=sorted(BACKENDS), help="sim: the simulated rig (default); "
+    real.add_argument("--backend", choices=BACKEND_NAMES, help="sim: the simulated rig (default); "
                       "udp: the robot behind `palpation-console slave`")
     real.add_argument("--slave", metavar="HOST:PORT", type=slave_address,
                       help="where `palpation-console slave` listens (default 127.0.0.1:47600)")
@@ -199,6 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args([*argv, "run"])
+    from hardware.interfaces import DeviceError
+    from hardware.sim.phantom import PhantomError
+
     try:
         return args.func(args)
     except (ConfigError, PhantomError, DeviceError) as err:

@@ -27,15 +27,17 @@ import numpy as np
 
 from app.config import load_config
 from app.fastforward import FastForward
+from app.recording import session_info
 from app.rigs import RigSpec, build_rig
-from app.session.detect import detect_session
-from app.session.reader import open_session
-from app.session.recorder import SessionInfo, SessionRecorder, calibration_of
-from app.session.stitch import StitchParams, stitch_session
-from app.session.synthetic import level_record
 from control.config import ControlConfig, RampSettings
 from control.messages import LevelRecorded
 from hardware.interfaces import TactileConstraints
+from session.detect import detect_session
+from session.info import SessionInfo, calibration_of
+from session.reader import open_session
+from session.stitch import StitchParams, stitch_session
+from session.synthetic import level_record
+from session.writer import SessionRecorder
 
 NAME = "sessions"
 BASE_S = 30.0  # simulated seconds recorded once and tiled to an hour
@@ -57,7 +59,7 @@ def _shifted(event, dt_s: float, region_offset: int):
 def record_base() -> tuple[np.ndarray, np.ndarray, list, SessionInfo]:
     config = load_config(None, {"control": {"ramp": RAMP.to_mapping()}})
     rig = build_rig(config.rig)
-    info = SessionInfo.from_rig(config, rig)
+    info = session_info(config, rig)
     with FastForward(config.control, rig) as ff:
         ff.run_for(BASE_S)
         return ff.ticks.copy(), ff.frames.copy(), list(ff.events), info
@@ -152,17 +154,34 @@ def time_stitch_9x7(path: Path, repeats: int = 5) -> dict:
     return {"stitch_9x7_s": statistics.median(times), "stitch_9x7_tumours_found": found}
 
 
+class _RecorderFeed:
+    """The console's way of feeding a recorder: every row, in the bridge's worker thread."""
+
+    def __init__(self, recorder: SessionRecorder):
+        self.recorder = recorder
+
+    def driver_started(self) -> None:
+        pass
+
+    def add_rows(self, ticks, frames, events) -> None:
+        self.recorder.add_ticks(ticks)
+        self.recorder.add_frames(frames)
+        self.recorder.add_events(events)
+
+    def driver_stopped(self) -> None:
+        pass
+
+
 def measure_rows_lost(path: Path, seconds: float) -> dict:
     from PySide6 import QtCore, QtWidgets
 
     from app.bridge import ControllerBridge
 
-    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
+    _app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])  # signals need an application
     config = load_config(None, {"control": {"ramp": RAMP.to_mapping()}})
-    recorder = SessionRecorder(path, SessionInfo.from_rig(config, build_rig(config.rig)))
+    recorder = SessionRecorder(path, session_info(config))
     bridge = ControllerBridge.for_process(config.control, RigSpec())
-    bridge.snapshot.connect(lambda s: (recorder.add_ticks(s.ticks), recorder.add_events(s.events)))
-    bridge.frames.connect(recorder.add_frames)
+    bridge.add_sink(_RecorderFeed(recorder))
     problems: list[str] = []
     bridge.start_failed.connect(problems.append)
     bridge.crashed.connect(problems.append)
@@ -174,8 +193,7 @@ def measure_rows_lost(path: Path, seconds: float) -> dict:
     if not problems:
         QtCore.QTimer.singleShot(round(seconds * 1000), loop.quit)
         loop.exec()
-    bridge.shutdown()
-    app.processEvents()  # the snapshots queued before the shutdown
+    bridge.shutdown()  # the last rows reach the recorder in the bridge's thread before this returns
     status = recorder.close()
     if problems:
         raise RuntimeError(problems[0])

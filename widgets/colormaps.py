@@ -7,6 +7,10 @@ uniform one) lets an operator compare our maps with the paper's figures at a gla
 
 No data (an element without contact has no stiffness) must never look like a low value, so it is drawn in a
 neutral grey, a colour the spectrum does not contain.
+
+Values become colours in one place, :func:`lut_index`, the way pyqtgraph's ImageItem indexes its lookup
+table, so a value has the same colour in the live maps (pyqtgraph and :mod:`widgets.colour_image`), in the
+reviewer and in exported images and reports (:mod:`widgets.map_painting`).
 """
 
 from __future__ import annotations
@@ -37,3 +41,38 @@ CONTOUR_LUT: np.ndarray = CONTOUR_COLORMAP.getLookupTable(nPts=256, alpha=False)
 CONTOUR_LUT.setflags(write=False)
 
 NO_DATA_RGB: tuple[int, int, int] = (128, 128, 128)
+
+
+def lut_index(values: np.ndarray, levels: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(index into CONTOUR_LUT, finite mask) for ``values`` coloured over ``levels`` = (lo, hi):
+    ``floor((v - lo) * N / (hi - lo))`` clipped to the table, as pyqtgraph indexes a lookup table of N
+    entries. Non-finite values get index 0 and are False in the mask (draw them in NO_DATA_RGB)."""
+    lo, hi = float(levels[0]), float(levels[1])
+    n = len(CONTOUR_LUT)
+    finite = np.isfinite(values)
+    index = np.where(finite, values, lo).astype(np.float64)
+    index -= lo
+    index *= n / (hi - lo)
+    np.clip(index, 0, n - 1, out=index)
+    return index.astype(np.intp), finite
+
+
+def colour_range(values: np.ndarray) -> tuple[float, float]:
+    """[2nd percentile, max] of the finite values: a map's own contrast, robust to a stray low cell (the
+    reviewer's maps and exported images)."""
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return (0.0, 1.0)
+    lo, hi = float(np.percentile(finite, 2.0)), float(finite.max())
+    if hi <= lo:
+        hi = lo + max(abs(lo) * 0.01, 1e-12)
+    return lo, hi
+
+
+def map_rgb(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(ny, nx, 3) uint8 image of an (nx, ny) map, y upwards (row 0 is the highest y)."""
+    image = values.T[::-1]
+    index, finite = lut_index(image, (lo, hi))
+    rgb = CONTOUR_LUT[index].copy()
+    rgb[~finite] = NO_DATA_RGB
+    return np.ascontiguousarray(rgb, dtype=np.uint8)

@@ -64,6 +64,20 @@ def _describe(err: ConfigError, labels: dict[str, str]) -> str:
     return f"{label}: {problem}"
 
 
+def _show_status(label: QtWidgets.QLabel, setting: Setting) -> None:
+    """What the controller answered about ``setting``; nothing until something was asked."""
+    if setting.pending is not None:
+        text, style = "Sent; waiting for the controller…", OK_STYLE
+    elif setting.refusal is not None:
+        text, style = f"Not applied — the controller refused: {setting.refusal}", ERROR_STYLE
+    elif label.text():
+        text, style = "Applied.", OK_STYLE
+    else:
+        return
+    label.setText(text)
+    label.setStyleSheet(style)
+
+
 class RampEditor(QtWidgets.QWidget):
     """Signal ``apply_requested(RampSettings)``. Child objectNames: one spin box per field of
     :class:`RampSettings` (``force_min_N``, ...), ``rampApply``, ``rampRevert``, ``rampSummary`` (the levels,
@@ -113,12 +127,7 @@ class RampEditor(QtWidgets.QWidget):
             return
         self._shown = shown
         self._applied = setting.applied
-        if setting.pending is not None:
-            self._set_status("Sent; waiting for the controller…", OK_STYLE)
-        elif setting.refusal is not None:
-            self._set_status(f"Not applied — the controller refused: {setting.refusal}", ERROR_STYLE)
-        elif self._status.text():
-            self._set_status("Applied.", OK_STYLE)
+        _show_status(self._status, setting)
         self._validate()
 
     def show_ramp(self, ramp: RampSettings) -> None:
@@ -158,10 +167,6 @@ class RampEditor(QtWidgets.QWidget):
         ramp = self._validate()
         if ramp is not None:
             self.apply_requested.emit(ramp)
-
-    def _set_status(self, text: str, style: str) -> None:
-        self._status.setText(text)
-        self._status.setStyleSheet(style)
 
 
 class GainsEditor(QtWidgets.QWidget):
@@ -262,14 +267,6 @@ class GainsEditor(QtWidgets.QWidget):
         self._shown = shown
         self._applied = setting.applied
         self._waiting = setting.pending is not None
-        if self._waiting:
-            self._status.setText("Sent; waiting for the controller…")
-            self._status.setStyleSheet(OK_STYLE)
-            return
-        if setting.refusal is not None:
-            self._status.setText(f"Not applied — the controller refused: {setting.refusal}")
-            self._status.setStyleSheet(ERROR_STYLE)
-        elif self._status.text():
-            self._status.setText("Applied.")
-            self._status.setStyleSheet(OK_STYLE)
-        self.show_gains(self._applied)
+        _show_status(self._status, setting)
+        if not self._waiting:
+            self.show_gains(self._applied)

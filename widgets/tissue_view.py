@@ -1,8 +1,7 @@
 """The whole-tissue view: stitched pressure, stiffness and coverage that fill in as areas are palpated.
 
-Every recorded level (a ``LevelRecorded`` event) is kept and the lot is stitched with the sessions'
-stitching (:func:`app.session.stitch.stitch`, the same placement, overlap averaging and coverage as the
-reviewer and the exported maps), one map per force level. The view is fixed on the phantom (when its
+It shows a :class:`session.live.LiveMaps`, which keeps every recorded level and stitches them the way the
+reviewer and the exported maps do, one map per force level. The view is fixed on the phantom (when its
 extent is known): palpated areas fill in against the grey of what has not been touched yet, with the
 planned areas numbered and the TSI's footprint drawn where it is now. Double-clicking a point asks to move
 the TSI there (the window decides whether it may).
@@ -21,15 +20,14 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from app.session.recorder import LEVEL_DTYPE, level_row
-from app.session.stitch import StitchParams, StitchResult, stitch
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
+from session.live import LiveMaps
+from session.stitch import StitchResult
 from widgets.colormaps import CONTOUR_COLORMAP
 from widgets.plot_style import add_map_layers, follow_palette, map_view
 from widgets.tactile_map import auto_levels
 
-CELL_M = 1e-3
 COVERAGE_LEVELS = (0.0, 2.0)  # 1 = palpated once, 2 = two areas overlap
 # (objectName, label, LevelMap field, unit, display scale)
 QUANTITIES = (
@@ -51,12 +49,10 @@ class WholeTissueView(QtWidgets.QWidget):
                  areas: tuple[tuple[float, float], ...] = (), parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._sensor = sensor
-        self._min_indentation_m = min_indentation_m
+        self._maps = LiveMaps(sensor, min_indentation_m)
         self._floors = {"pressure_pa": pressure_floor_pa * 1e-3, "stiffness_pa": stiffness_floor_pa * 1e-3}
         self._extent = extent_m
-        self._records: list[tuple] = []
         self._result: StitchResult | None = None
-        self._dirty = False
         self._levels: dict[str, tuple[float, float] | None] = {"pressure_pa": None, "stiffness_pa": None}
         self._chosen_force: float | None = None  # None: follow the highest level
         self._quantity = "pressure_pa"
@@ -134,17 +130,13 @@ class WholeTissueView(QtWidgets.QWidget):
 
     def add_record(self, record: LevelRecord) -> None:
         """Keep one recorded level; the maps are re-stitched by the next :meth:`refresh`."""
-        self._records.append(level_row(record))
-        self._dirty = True
+        self._maps.add(record)
 
     def refresh(self) -> None:
         """Re-stitch if levels were recorded since the last call (cheap otherwise; call per display frame)."""
-        if not self._dirty:
+        if not self._maps.changed:
             return
-        self._dirty = False
-        levels = np.array(self._records, dtype=LEVEL_DTYPE)
-        self._result = stitch(levels, self._sensor.pitch_m, self._sensor.element_area_m2,
-                              StitchParams(cell_m=CELL_M), self._min_indentation_m)
+        self._result = self._maps.stitched()
         self._refresh_levels()
         self._show()
 
@@ -152,7 +144,7 @@ class WholeTissueView(QtWidgets.QWidget):
         return self._result
 
     def record_count(self) -> int:
-        return len(self._records)
+        return self._maps.level_count
 
     def quantity(self) -> str:
         return self._quantity
@@ -258,9 +250,9 @@ class WholeTissueView(QtWidgets.QWidget):
         self._summary.setText(self._describe(level))
 
     def _describe(self, level) -> str:
-        regions = len({int(r[1]) for r in self._records})
+        regions = self._maps.region_count
         covered_m2 = float(np.count_nonzero(level.coverage > 0.5)) * self._result.grid.cell_m ** 2
-        text = f"{len(self._records)} levels recorded in {regions} area{'s' if regions != 1 else ''}"
+        text = f"{self._maps.level_count} levels recorded in {regions} area{'s' if regions != 1 else ''}"
         if self._extent is not None:
             x0, x1, y0, y1 = self._extent
             share = min(1.0, covered_m2 / ((x1 - x0) * (y1 - y0)))

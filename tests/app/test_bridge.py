@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PySide6.QtCore import QThread
 
 from app.bridge import ControllerBridge
 from app.controller import ControllerProcess, PacingOptions
@@ -44,11 +45,28 @@ def bridges():
 
 
 class Collector:
+    """Snapshots as the GUI gets them; frames as a row sink (the session recorder) gets them."""
+
     def __init__(self, bridge):
         self.snapshots: list[LiveSnapshot] = []
         self.frames: list[np.ndarray] = []
+        self.sink_calls: list[str] = []
+        self.sink_threads: set[str] = set()
+        self.sink_ticks = 0
         bridge.snapshot.connect(self.snapshots.append)
-        bridge.frames.connect(self.frames.append)
+        bridge.add_sink(self)
+
+    def driver_started(self):
+        self.sink_calls.append("started")
+
+    def add_rows(self, ticks, frames, events):
+        self.sink_threads.add(QThread.currentThread().objectName())
+        self.sink_ticks += len(ticks)
+        if len(frames):
+            self.frames.append(frames)
+
+    def driver_stopped(self):
+        self.sink_calls.append("stopped")
 
     @property
     def events(self):
@@ -86,6 +104,11 @@ def test_fast_forward_bridge_streams_snapshots_takes_commands_and_shuts_down(qtb
     with qtbot.waitSignal(bridge.stopped, timeout=10_000):
         bridge.stop()
     assert not bridge.running
+    # the recorder's side: every row, in the bridge's own thread, between a start and a stop
+    assert got.sink_calls == ["started", "stopped"] and got.sink_ticks == got.n_ticks
+    assert got.sink_threads == {"controller-bridge"}
+    with pytest.raises(RuntimeError, match="before the bridge starts"):
+        bridge.add_sink(Collector.__new__(Collector))
     bridge.shutdown()
     bridge.shutdown()
 
@@ -102,6 +125,7 @@ def test_process_bridge_reports_a_crash_with_the_exit_reason(qtbot, bridges):
         os.kill(process.pid, signal.SIGKILL)
     assert "stopped unexpectedly" in crash.args[0] and "SIGKILL" in crash.args[0]
     assert not bridge.running
+    assert got.sink_calls == ["started", "stopped"]  # a dead controller ends the recording too
 
 
 def test_process_bridge_start_failure_is_reported(qtbot, bridges):

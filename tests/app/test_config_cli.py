@@ -56,3 +56,22 @@ def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done(ca
     out = capsys.readouterr().out
     assert "9 of 9 regions done, 0 problems" in out
     assert out.count("done (7 levels)") == 9
+
+
+def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
+    """``--help`` must answer at once: importing app.cli stops at the standard library (the time itself is
+    measured by ``make bench``, cli.json)."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, app.cli; heavy = ('PySide6', 'pyqtgraph', 'scipy', 'h5py', 'numpy', "
+             "'hardware.sim.mechanics'); print(sorted(m for m in sys.modules if m.startswith(heavy)))")
+    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_parser_names_exactly_the_backends_the_rig_builder_knows():
+    from app.cli import BACKEND_NAMES
+    from app.rigs import BACKENDS
+
+    assert sorted(BACKEND_NAMES) == sorted(BACKENDS)

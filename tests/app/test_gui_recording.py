@@ -15,11 +15,13 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from app.bridge import ControllerBridge
 from app.config import AppConfig
-from app.gui import SessionRecording, session_info, wire_recording
+from app.gui import wire_recording
+from app.recording import SessionRecording, session_info
 from app.rigs import RigSpec, plan_for_rig
-from app.session.reader import SessionFileError, open_session
-from app.session.recorder import EventKind, sessions_dir
 from control.config import ControlConfig, MasterMapping, RampSettings
+from session.format import EventKind
+from session.info import sessions_dir
+from session.reader import SessionFileError, open_session
 from widgets.live_window import LiveWindow
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.sz_switch import SzSwitch
@@ -33,7 +35,7 @@ WAIT_MS = 30_000
 
 @pytest.fixture
 def info():
-    return session_info(AppConfig(control=CONFIG, rig=SPEC), SPEC)
+    return session_info(AppConfig(control=CONFIG, rig=SPEC), spec=SPEC)
 
 
 @pytest.fixture
@@ -107,6 +109,8 @@ def test_a_region_run_in_the_console_is_recorded_with_its_levels_and_a_note(qtbo
         assert kinds[-1] == EventKind.CLOSED
         notes = [e for e in session.event_dicts() if e["kind"] == EventKind.NOTE]
         assert [n["text"] for n in notes] == ["stiff spot near the lower edge"]
+        t0, t1 = session.time_span_s()
+        assert t0 <= notes[0]["t_s"] <= t1  # stamped with the loop's clock
         ticks = session.tick_rows(0, 10**9, ["tick"])
         assert len(ticks) > 1000
         np.testing.assert_array_equal(ticks["tick"], np.arange(ticks["tick"][0], ticks["tick"][0] + len(ticks)))

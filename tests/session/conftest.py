@@ -12,7 +12,7 @@ import pytest
 import tomli_w
 
 from app.config import load_config
-from app.session.simulated import record_simulation
+from app.recording import record_simulation
 from hardware.interfaces import TactileConstraints
 from hardware.sim.phantom import PHANTOM_DIR, load_phantom
 from hardware.sim.rig import build_sim_rig

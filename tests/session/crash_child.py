@@ -21,10 +21,11 @@ import sys
 import threading
 import time
 
-from app.session.recorder import SessionInfo, SessionRecorder, calibration_of
-from app.session.synthetic import frame_rows, level_record, tick_rows
 from control.messages import LevelRecorded
 from hardware.interfaces import TactileConstraints
+from session.info import SessionInfo, calibration_of
+from session.synthetic import frame_rows, level_record, tick_rows
+from session.writer import SessionRecorder
 
 INFO = SessionInfo(config={"purpose": "crash test"}, calibration=calibration_of(TactileConstraints(), 0.0))
 

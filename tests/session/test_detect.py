@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from app.session.detect import DetectError, DetectParams, detect, detect_session, match_ground_truth
-from app.session.reader import open_session
-from app.session.stitch import StitchParams, stitch, stitch_session
-from app.session.synthetic import level_record
+from session.detect import DetectError, DetectParams, detect, detect_session, match_ground_truth
+from session.reader import open_session
+from session.stitch import StitchParams, stitch, stitch_session
+from session.synthetic import level_record
 
 from tests.session.test_stitch import AREA, PITCH, levels_of
 

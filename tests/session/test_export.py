@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from PySide6 import QtGui
 
-from app.session.cli import stitch_main
-from app.session.reader import open_session
-from app.session.stitch import StitchParams, stitch_session
+from app.session_commands import stitch_main
+from session.reader import open_session
+from session.stitch import StitchParams, stitch_session
 
 
 def test_every_export(recorded, tmp_path, capsys, qapp):

@@ -9,10 +9,11 @@ import h5py
 import numpy as np
 import pytest
 
-from app.session.reader import SessionFileError, open_session
-from app.session.recorder import OVERVIEW_BUCKET_ROWS, SessionRecorder
-from app.session.stitch import stitch_session
-from app.session.synthetic import tick_rows
+from session.format import OVERVIEW_BUCKET_ROWS
+from session.reader import SessionFileError, open_session
+from session.stitch import stitch_session
+from session.synthetic import tick_rows
+from session.writer import SessionRecorder
 
 from tests.session.test_recorder import INFO
 

@@ -18,17 +18,19 @@ import numpy as np
 import pytest
 
 from app.config import load_config
+from app.recording import session_info
 from app.rigs import build_rig
-from app.session import recorder as recorder_module
-from app.session.reader import open_session
-from app.session.recorder import (EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS,
-                                  EventKind, RecorderError, SessionInfo, SessionRecorder, calibration_of,
-                                  new_session_path, sessions_dir)
-from app.session.synthetic import frame_rows, level_record, tick_rows
 from control.messages import (FaultKind, FaultRaised, LevelRecorded, Notice, PhaseChanged, RegionDone, Source,
                               SzChanged)
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from hardware.interfaces import Phase, TactileConstraints
+from session import writer as recorder_module
+from session.format import EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS, EventKind
+from session.info import new_session_path
+from session.info import SessionInfo, calibration_of, sessions_dir
+from session.reader import open_session
+from session.synthetic import frame_rows, level_record, tick_rows
+from session.writer import RecorderError, SessionRecorder
 
 from tests.session.conftest import RAMP, REGIONS_XY_M
 
@@ -93,7 +95,7 @@ def test_recorded_session_is_self_describing(recorded):
 def test_session_info_describes_the_rig_the_controller_drives():
     config = load_config()
     spec = dataclasses.replace(config.rig, master="none")  # what the interactive console runs
-    info = SessionInfo.from_rig(config, build_rig(spec), spec)
+    info = session_info(config, build_rig(spec), spec)
     assert info.config["rig"]["master"] == "none" and info.rig["master"] == "none"
     assert info.config["control"] == config.control.to_mapping()
     assert info.config["sources"][0].endswith("default.toml")

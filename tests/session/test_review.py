@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from app.session.cli import review_main
-from app.session.detect import DetectParams
-from app.session.reader import open_session
-from app.session.recorder import SessionRecorder
-from app.session.stitch import L0Source, StitchParams
-from app.session.synthetic import level_record, tick_rows
+from app.session_commands import review_main
 from control.messages import LevelRecorded
+from session.detect import DetectParams
+from session.reader import open_session
+from session.stitch import L0Source, StitchParams
+from session.synthetic import level_record, tick_rows
+from session.writer import SessionRecorder
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.tactile_map import TactileMapWidget
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.session.reader import open_session
-from app.session.recorder import LEVEL_DTYPE, level_row
-from app.session.stitch import (L0Source, StitchError, StitchParams, level_groups, recompute_stiffness, stitch,
+from session.format import LEVEL_DTYPE, level_row
+from session.reader import open_session
+from session.stitch import (L0Source, StitchError, StitchParams, level_groups, recompute_stiffness, stitch,
                                 stitch_session)
-from app.session.synthetic import level_record
+from session.synthetic import level_record
 
 PITCH = 2e-3
 AREA = PITCH * PITCH

@@ -219,3 +219,17 @@ def test_colour_values_follow_the_lookup_table_and_grey_out_no_data():
     assert [rgb(p) for p in pixels[0]] == [tuple(CONTOUR_LUT[0]), tuple(CONTOUR_LUT[128]), tuple(CONTOUR_LUT[255]),
                                            NO_DATA_RGB, tuple(CONTOUR_LUT[0]), tuple(CONTOUR_LUT[255])]
     assert all(int(p) >> 24 == 0xFF for p in pixels[0])  # opaque
+
+
+def test_screen_and_exported_images_colour_a_value_alike():
+    """One mapping from values to colours: the live maps' RGB32 pixels and an exported map's RGB agree."""
+    from widgets.colormaps import map_rgb
+    from widgets.colour_image import colour_values
+
+    rng = np.random.default_rng(3)
+    values = rng.uniform(-10.0, 110.0, size=(13, 7))
+    values[2, 3] = np.nan
+    pixels = colour_values(values, (0.0, 100.0))
+    live = np.stack([(pixels >> 16) & 0xFF, (pixels >> 8) & 0xFF, pixels & 0xFF], axis=-1).astype(np.uint8)
+    exported = map_rgb(values, 0.0, 100.0)  # (ny, nx) with y upwards
+    np.testing.assert_array_equal(exported, live.transpose(1, 0, 2)[::-1])

@@ -2,7 +2,7 @@
 whose unit is not a pressure (the indentation, in mm).
 
 x runs to the right and y upwards, in mm, with the real aspect ratio. The colour range is the map's own
-[2nd percentile, maximum] (see :func:`app.session.export.colour_range`), the same as in the exported
+[2nd percentile, maximum] (see :func:`widgets.colormaps.colour_range`), the same as in the exported
 images, so a spot looks alike on screen and on paper. Cells without a value are drawn in the no-data grey.
 Markers: white rings (found tumours), dashed dark circles of the true size (a simulated phantom's tumours).
 """
@@ -13,8 +13,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from app.session.export import colour_range
-from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.colormaps import CONTOUR_COLORMAP, colour_range
 from widgets.plot_style import add_map_layers, follow_palette, map_view
 
 FOUND_RING_MM = 6.0

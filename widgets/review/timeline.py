@@ -13,8 +13,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from app.session.reader import SessionFileError
-from app.session.recorder import EventKind
+from session.format import EventKind
+from session.reader import SessionFileError
 
 _FIELDS = ["t_s", "force_measured_N", "force_desired_N", "indentation_m"]
 

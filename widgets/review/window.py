@@ -19,10 +19,13 @@ from pathlib import Path
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from app.session.detect import DetectError, DetectParams, Tumour, detect_session, match_ground_truth
-from app.session.export import colour_range
-from app.session.reader import Session, SessionFileError, open_session
-from app.session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups, stitch_session
+from session.analysis import AnalysisParams, SessionAnalysis
+from session.detect import SOURCES, DetectError, DetectParams, Tumour
+from session.export import ExportError
+from session.reader import Session, SessionFileError, open_session
+from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
+from widgets.colormaps import colour_range
+from widgets.map_painting import render_maps_png, write_report
 from widgets.review.map_view import GridMapView
 from widgets.review.recent import RecentSessions
 from widgets.review.timeline import TimelineWidget
@@ -64,9 +67,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self.recent = RecentSessions(settings)
         self._start_folder = Path(start_folder) if start_folder else Path.home()
         self._session: Session | None = None
-        self._stitched: StitchResult | None = None
-        self._tumours: list[Tumour] = []
-        self._detect_params = DetectParams()
+        self._analysis: SessionAnalysis | None = None
         self._record: int | None = None  # the /levels row shown in the browser
         self._analysis_timer = QtCore.QTimer(self)
         self._analysis_timer.setSingleShot(True)
@@ -160,8 +161,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
             return box
 
         self._cell_spin = spin("cellSpin", 0.1, 20.0, 1.0, 0.25, " mm")
-        self._threshold_spin = spin("thresholdSpin", 1.0, 1000.0, self._detect_params.threshold * 100, 5.0, " %", 0)
-        self._min_area_spin = spin("minAreaSpin", 0.0, 400.0, self._detect_params.min_area_m2 * 1e6, 1.0, " mm²", 1)
+        self._threshold_spin = spin("thresholdSpin", 1.0, 1000.0, DetectParams.threshold * 100, 5.0, " %", 0)
+        self._min_area_spin = spin("minAreaSpin", 0.0, 400.0, DetectParams.min_area_m2 * 1e6, 1.0, " mm²", 1)
         self._l0_combo = QtWidgets.QComboBox(objectName="l0Combo")
         for source in L0Source:
             self._l0_combo.addItem(_L0_LABELS[source], source.value)
@@ -234,12 +235,16 @@ class ReviewWindow(QtWidgets.QMainWindow):
         return self._session
 
     @property
+    def analysis(self) -> SessionAnalysis | None:
+        return self._analysis
+
+    @property
     def stitched(self) -> StitchResult | None:
-        return self._stitched
+        return self._analysis.stitched if self._analysis is not None else None
 
     @property
     def tumours(self) -> list[Tumour]:
-        return list(self._tumours)
+        return list(self._analysis.tumours) if self._analysis is not None else []
 
     def open_file(self, path: str | Path) -> bool:
         """Open a session (closing the one shown); on a bad file, say why and keep the current one."""
@@ -284,8 +289,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         if self._session is not None:
             self._session.close()
         self._session = None
-        self._stitched = None
-        self._tumours = []
+        self._analysis = None
         self._record = None
         self._timeline.clear()
         self._region_table.clear()
@@ -299,14 +303,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._set_exports_enabled(False)
         self.setWindowTitle("Palpation Console — session review")
 
-    def analysis_params(self) -> tuple[StitchParams, DetectParams]:
+    def analysis_params(self) -> AnalysisParams:
         """The parameters in the analysis panel; raises StitchError / DetectError naming a bad one."""
         source = L0Source(self._l0_combo.currentData())
         stitch = StitchParams(cell_m=self._cell_spin.value() * 1e-3, l0_source=source,
                               l0_fixed_m=self._l0_fixed_spin.value() * 1e-3 if source is L0Source.FIXED else None)
         detect = DetectParams(threshold=self._threshold_spin.value() / 100.0,
                               min_area_m2=self._min_area_spin.value() * 1e-6)
-        return stitch, detect
+        return AnalysisParams(stitch, detect)
 
     def set_analysis(self, stitch: StitchParams, detect: DetectParams) -> None:
         """Put parameters into the panel and re-analyse now."""
@@ -330,20 +334,19 @@ class ReviewWindow(QtWidgets.QMainWindow):
         if session is None:
             return
         try:
-            stitch_params, detect_params = self.analysis_params()
+            params = self.analysis_params()
         except (StitchError, DetectError) as err:
             self._summary.setText(f"<b>Not applied:</b> {err}")
             return
-        self._detect_params = detect_params
-        self._stitched = stitch_session(session, stitch_params)
-        self._tumours = detect_session(session, self._stitched, detect_params)
+        self._analysis = SessionAnalysis.run(session, params)
+        stitched = self._analysis.stitched
         keep = self._level_combo.currentIndex()
         blocked = self._level_combo.blockSignals(True)
         self._level_combo.clear()
-        for lm in self._stitched.levels:
+        for lm in stitched.levels:
             self._level_combo.addItem(f"{lm.force_N:g} N", lm.index)
-        if self._stitched.levels:
-            last = len(self._stitched.levels) - 1
+        if stitched.levels:
+            last = len(stitched.levels) - 1
             self._level_combo.setCurrentIndex(keep if 0 <= keep <= last else last)
         self._level_combo.blockSignals(blocked)
         self._fill_tumour_table()
@@ -377,16 +380,12 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._quantity_combo.setCurrentIndex(names.index(attribute))
 
     def export_maps(self, path: str | Path) -> None:
-        from app.session.export import render_maps_png
-
-        if self._stitched is not None and self._session is not None:
-            render_maps_png(path, self._stitched, self._tumours, self._session.ground_truth)
+        if self._analysis is not None:
+            render_maps_png(path, self._analysis)
 
     def export_report(self, path: str | Path) -> None:
-        from app.session.export import write_report
-
-        if self._stitched is not None and self._session is not None:
-            write_report(path, self._session, self._stitched, self._tumours, self._detect_params)
+        if self._analysis is not None:
+            write_report(path, self._analysis)
 
     # ---- internals -----------------------------------------------------------------------------------
 
@@ -408,8 +407,6 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._export_dialog("Export report", "report.pdf", "PDF (*.pdf);;PNG images (*.png)", self.export_report)
 
     def _export_dialog(self, title: str, name: str, filters: str, write) -> None:
-        from app.session.export import ExportError
-
         base = self._session.path.with_suffix("") if self._session else self._start_folder / "session"
         path, _ = QtWidgets.QFileDialog.getSaveFileName(self, title, f"{base}-{name}", filters)
         if not path:
@@ -457,7 +454,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         session = self._session
         self._record = row
         rec = session.levels[row]
-        stiffness_all = self._stitched.stiffness_pa if self._stitched is not None else session.levels["stiffness_pa"]
+        stitched = self.stitched
+        stiffness_all = stitched.stiffness_pa if stitched is not None else session.levels["stiffness_pa"]
         # One colour range for every record at this force (pressure) or in the session (stiffness), so
         # records compare at a glance; the operator can still unlock it.
         same_force = np.isclose(session.levels["force_desired_N"], rec["force_desired_N"], atol=5e-4)
@@ -479,7 +477,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
             f"{z * 1e3:.1f}) mm; TSI indentation {_mm(float(rec['indentation_m']), 2)} mm")
 
     def _show_stitched(self) -> None:
-        stitched = self._stitched
+        stitched = self.stitched
         if stitched is None or not stitched.levels:
             self._stitched_map.clear()
             return
@@ -491,28 +489,22 @@ class ReviewWindow(QtWidgets.QMainWindow):
         covered = float(np.count_nonzero(lm.coverage > 0.5)) / lm.coverage.size
         self._stitched_map.set_title(f"{label} at {lm.force_N:g} N — {len(lm.records)} regions, TSI indentation "
                                      f"{_mm(lm.tsi_indentation_m, 2)} mm, {covered * 100:.0f} % of the grid covered")
-        found = [(t.x_m, t.y_m) for t in self._tumours
+        found = [(t.x_m, t.y_m) for t in self._analysis.tumours
                  if t.source == source and lm.force_N >= t.first_level_N - 1e-9]
         truth = [(float(g["x_m"]), float(g["y_m"]), float(g.get("diameter_m", 8e-3)))
                  for g in (self._session.ground_truth if self._session else [])]
         self._stitched_map.set_markers(found, truth)
 
     def _fill_tumour_table(self) -> None:
-        session, tumours = self._session, self._tumours
+        analysis = self._analysis
+        session, tumours = analysis.session, analysis.tumours
         headers = ["Map", "x (mm)", "y (mm)", "Depth (mm)", "First level (N)", "Rise (%)"]
-        truth_of: dict[int, str] = {}
-        if session.ground_truth:
+        if analysis.has_ground_truth:
             headers.append("True tumour")
-            matches, false_positives = match_ground_truth(tumours, session.ground_truth, stitched=self._stitched)
-            for m in matches:
-                if m.found:
-                    truth_of[m.detection] = (f"#{m.truth_index + 1}, {m.depth_m * 1e3:.1f} mm deep, "
-                                             f"{m.error_xy_m * 1e3:.1f} mm off")
-            found = {s: sum(1 for m in matches if m.source == s and m.found) for s in ("stiffness", "force")}
-            palpated = sum(1 for m in matches if m.source == "stiffness" and m.palpated)
-            truth_text = (f" Ground truth: of the {palpated} palpated tumours (of {len(session.ground_truth)}), the "
-                          f"stiffness map found {found['stiffness']} and the force map {found['force']}; false "
-                          f"positives {false_positives['stiffness']} and {false_positives['force']}.")
+            found, fp = analysis.found_count(), analysis.false_positives
+            truth_text = (f" Ground truth: of the {analysis.palpated_count()} palpated tumours (of "
+                          f"{len(session.ground_truth)}), the stiffness map found {found['stiffness']} and the force "
+                          f"map {found['force']}; false positives {fp['stiffness']} and {fp['force']}.")
         else:
             truth_text = ""
         table = self._tumour_table
@@ -522,21 +514,24 @@ class ReviewWindow(QtWidgets.QMainWindow):
         for k, t in enumerate(tumours):
             cells = [t.source, _mm(t.x_m), _mm(t.y_m), _mm(t.depth_m, 2), f"{t.first_level_N:g}",
                      f"{t.peak_rise * 100:.0f}"]
-            if session.ground_truth:
-                cells.append(truth_of.get(k, "none (false positive)"))
+            if analysis.has_ground_truth:
+                m = analysis.truth_of(k)
+                cells.append(f"#{m.truth_index + 1}, {m.depth_m * 1e3:.1f} mm deep, {m.error_xy_m * 1e3:.1f} mm off"
+                             if m is not None else "none (false positive)")
             for c, text in enumerate(cells):
                 table.setItem(k, c, QtWidgets.QTableWidgetItem(text))
         table.resizeColumnsToContents()
-        counts = {s: sum(1 for t in tumours if t.source == s) for s in ("stiffness", "force")}
+        counts = {s: sum(1 for t in tumours if t.source == s) for s in SOURCES}
         self._summary.setText(f"{counts['stiffness']} tumour(s) in the stiffness map, {counts['force']} in the force "
-                              f"map, over {len(self._stitched.levels)} force levels.{truth_text}")
+                              f"map, over {len(analysis.stitched.levels)} force levels.{truth_text}")
 
     def _tumour_selected(self, row: int) -> None:
-        if not 0 <= row < len(self._tumours) or self._stitched is None:
+        tumours = self.tumours
+        if not 0 <= row < len(tumours):
             return
-        tumour = self._tumours[row]
+        tumour = tumours[row]
         self.set_quantity("pressure_pa" if tumour.source == "force" else "stiffness_pa")
-        forces = self._stitched.level_forces_N()
+        forces = self.stitched.level_forces_N()
         self.select_level(int(np.argmin(np.abs(np.asarray(forces) - tumour.first_level_N))))
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:

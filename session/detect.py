@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from app.session.stitch import StitchResult, element_offsets_m
+from session.stitch import StitchResult, element_offsets_m
 
 SOURCES = ("stiffness", "force")
 _MAP_OF = {"stiffness": "stiffness_pa", "force": "pressure_pa"}

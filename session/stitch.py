@@ -272,5 +272,5 @@ def _shape(levels: np.ndarray) -> tuple[int, int]:
 
 
 def stitch_session(session, params: StitchParams | None = None) -> StitchResult:
-    """:func:`stitch` with the geometry and settings a :class:`app.session.reader.Session` recorded."""
+    """:func:`stitch` with the geometry and settings a :class:`session.reader.Session` recorded."""
     return stitch(session.levels, session.pitch_m, session.element_area_m2, params, session.min_indentation_m)

@@ -1,32 +1,5 @@
-"""Session recording: one self-describing HDF5 file per session, written by a thread of its own.
-
-Layout, format ``palpation-console-session`` version 1 (the one place it is defined; docs/session-format.md
-explains it for readers outside Python)::
-
-    /                       attrs: format, format_version (int), uuid, created_utc (ISO 8601), software,
-                            software_version, simulated (bool)
-    /meta                   group; each attr is JSON text, SI units, key names carry units:
-        config_json         the full configuration the controller ran with: {"control": ..., "rig": ..., "sim": ...}
-        calibration_json    sensor geometry {rows, cols, pitch_m, element_area_m2, full_scale_pa,
-                            frame_rate_hz} and table_height_m, the height the L0 values are measured from
-        rig_json            what was built (hardware.rig.Rig.description)
-        phantom_json        simulated sessions: the phantom definition (its TOML as a table); null otherwise
-        ground_truth_json   simulated sessions: the phantom's tumours [{x_m, y_m, z_m, depth_m, diameter_m,
-                            youngs_modulus_pa}]; [] otherwise
-    /stream/ticks           TICK_DTYPE (control.telemetry): one row per control period, oldest first. ``tick``
-                            counts the loop's periods, so a jump in it is rows lost before the file
-    /stream/frames          FRAME_DTYPE: one row per tactile frame
-    /stream/overview        OVERVIEW_DTYPE: one row per OVERVIEW_BUCKET_ROWS consecutive tick rows, their time
-                            span and the min/max of the channels a timeline draws (derived from the ticks;
-                            lets a viewer show hours at a glance without reading them)
-    /levels                 LEVEL_DTYPE: one row per recorded force level (control.messages.LevelRecord)
-    /events                 EVENT_DTYPE: one row per event, kinds in EventKind; a cleanly closed file ends
-                            with one "closed" row
-
-Text attributes are fixed-length UTF-8 strings. Every dataset is 1-D, chunked, resizable, appended in blocks,
-byte-shuffled, deflated (level 1) and Fletcher-32 checksummed, all of it built into every HDF5, so any HDF5
-tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and no real tick or frame row is
-all zero bytes, so a row whose data never reached the disk (HDF5 reads it as zeros) is recognisable.
+"""Session recording: one self-describing HDF5 file per session (layout: :mod:`session.format`), written by a
+thread of its own.
 
 Crash safety. The file is written in HDF5's single-writer/multiple-reader (SWMR) mode: the layout above is
 created first, then SWMR is switched on, after which HDF5 orders its metadata writes so that the file on
@@ -50,12 +23,9 @@ raises, so the control side carries on regardless.
 from __future__ import annotations
 
 import atexit
-import dataclasses
 import errno as errno_codes
-import importlib.metadata
 import json
 import logging
-import math
 import os
 import queue
 import re
@@ -65,7 +35,7 @@ import time
 import uuid as uuid_module
 import weakref
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -73,233 +43,16 @@ from typing import Any
 import h5py
 import numpy as np
 
-from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultRaised, LevelRecord, LevelRecorded,
-                              LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
-from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
+from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from session.format import (CHUNK_ROWS, EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS,
+                            OVERVIEW_DTYPE, EventKind, Overview, event_row, rows_for_event)
+from session.info import SessionInfo, software_version
 
 log = logging.getLogger(__name__)
-
-FORMAT_NAME = "palpation-console-session"
-FORMAT_VERSION = 1
-OVERVIEW_BUCKET_ROWS = 1000
-
-_GRID = (ROWS, COLS)
-LEVEL_DTYPE = np.dtype(
-    [
-        ("seq", np.int64),
-        ("region", np.int32),
-        ("level", np.int32),
-        ("t_s", np.float64),
-        ("force_desired_N", np.float64),
-        ("force_measured_N", np.float64),
-        ("rmse_N", np.float64),
-        ("settle_time_s", np.float64),
-        ("tsi_position_m", np.float64, (3,)),
-        ("indentation_m", np.float64),
-        ("pressure_pa", np.float64, _GRID),
-        ("element_force_N", np.float64, _GRID),
-        ("onset_height_m", np.float64, _GRID),
-        ("L0_m", np.float64, _GRID),
-        ("dL_m", np.float64, _GRID),
-        ("stiffness_pa", np.float64, _GRID),
-    ]
-)
-
-EVENT_TEXT_BYTES = 240
-EVENT_DTYPE = np.dtype(
-    [
-        ("seq", np.int64),
-        ("t_s", np.float64),
-        ("kind", "S16"),
-        ("region", np.int32),  # -1 when the event is not about a region
-        ("level", np.int32),  # -1 when not about a level
-        ("code", np.int32),  # kind-specific: S_z, Phase, FaultKind, notice severity (0 info, 1 warning)
-        ("value", np.float64),  # kind-specific: force of a level, rows lost, ... (NaN when unused)
-        ("text", f"S{EVENT_TEXT_BYTES}"),  # UTF-8, cut at a character boundary
-    ]
-)
-
-# Channels of the timeline overview: (name in OVERVIEW_DTYPE, tick field, index into a vector field or None)
-OVERVIEW_CHANNELS: tuple[tuple[str, str, int | None], ...] = (
-    ("force_measured_N", "force_measured_N", None),
-    ("force_desired_N", "force_desired_N", None),
-    ("indentation_m", "indentation_m", None),
-    ("tsi_z_m", "x_slave_m", 2),
-    ("late_s", "late_s", None),
-)
-OVERVIEW_DTYPE = np.dtype(
-    [("row_start", np.int64), ("n_rows", np.int32), ("t_start_s", np.float64), ("t_end_s", np.float64)]
-    + [(f"{name}_{stat}", np.float64) for name, _, _ in OVERVIEW_CHANNELS for stat in ("min", "max")]
-)
-
-
-class EventKind:
-    """Values of the ``kind`` column of /events."""
-
-    SZ = "sz"  # code = S_z, text = who switched it
-    PHASE = "phase"  # code = Phase, level, value = number of levels, text = phase name
-    LEVEL = "level"  # region, level, value = F_d; the level's data is the matching /levels row
-    LEVEL_TIMEOUT = "level_timeout"  # region, level, value = F_d, text = why
-    REGION_DONE = "region_done"  # region, code = number of levels
-    REGION_ABORTED = "region_aborted"  # region, text = why
-    FAULT = "fault"  # code = FaultKind, text = message
-    FAULT_CLEARED = "fault_cleared"  # code = FaultKind
-    APPLIED = "applied"  # text = "<command>: <what changed>"
-    REFUSED = "refused"  # text = "<command>: <reason>"
-    NOTICE = "notice"  # code = 0 info / 1 warning, text
-    NOTE = "note"  # text = the operator's note
-    ROWS_LOST = "rows_lost"  # value = rows missing from the stream before this point, text = "ticks"
-    RECORDER = "recorder"  # text = what the recorder did (stopped on a full disk, ...)
-    CLOSED = "closed"  # the last row of a cleanly closed file; text = UTC time of closing
-
-
-# A chunk that is still filling up is rewritten at every flush; if that write fails (full disk), the rows
-# it held before are lost too. Levels are the data that matter most, so each gets a chunk of its own.
-_CHUNK_ROWS = {"ticks": 1024, "frames": 128, "overview": 256, "levels": 1, "events": 16}
 
 
 class RecorderError(RuntimeError):
     """The session file could not be created (no such folder, no permission, the file exists...)."""
-
-
-@dataclass(frozen=True)
-class SessionInfo:
-    """What makes a session file self-describing; everything plain data (JSON-able), SI units."""
-
-    config: dict[str, Any]
-    calibration: dict[str, Any]
-    rig: dict[str, Any] = field(default_factory=dict)
-    phantom: dict[str, Any] | None = None
-    ground_truth: list[dict[str, Any]] = field(default_factory=list)
-    software_version: str = ""
-
-    @property
-    def simulated(self) -> bool:
-        return self.rig.get("backend") == "sim"
-
-    @classmethod
-    def from_rig(cls, config, rig, spec=None) -> SessionInfo:
-        """From an :class:`app.config.AppConfig` and the rig (built, not necessarily opened) the controller
-        drives; ``spec`` is the :class:`app.rigs.RigSpec` it was built from when not ``config.rig``."""
-        sensor = rig.sensor.constraints
-        spec = spec if spec is not None else config.rig
-        phantom = None
-        if spec.backend == "sim":
-            from hardware.sim.phantom import load_phantom
-
-            phantom = load_phantom(spec.phantom).source
-        full_config = {
-            "control": config.control.to_mapping(),
-            "rig": {k: v for k, v in dataclasses.asdict(spec).items() if k != "sim"},
-            "sim": dict(spec.sim),
-            "sources": list(config.sources),
-        }
-        return cls(
-            config=full_config,
-            calibration=calibration_of(sensor, config.control.contact.table_height_m),
-            rig=dict(rig.description),
-            phantom=phantom,
-            ground_truth=list(rig.ground_truth),
-            software_version=software_version(),
-        )
-
-
-def calibration_of(sensor, table_height_m: float) -> dict[str, Any]:
-    """The calibration block for a :class:`hardware.interfaces.TactileConstraints`."""
-    return {
-        "rows": sensor.rows,
-        "cols": sensor.cols,
-        "pitch_m": sensor.pitch_m,
-        "element_area_m2": sensor.element_area_m2,
-        "full_scale_pa": sensor.full_scale_pa,
-        "frame_rate_hz": sensor.frame_rate_hz,
-        "table_height_m": table_height_m,
-    }
-
-
-def software_version() -> str:
-    try:
-        return importlib.metadata.version("palpation-console")
-    except importlib.metadata.PackageNotFoundError:
-        return "unknown (not installed)"
-
-
-def sessions_dir() -> Path:
-    """Where sessions go: ``$PALPATION_DATA_DIR/sessions``, else the platform's user data folder."""
-    base = os.environ.get("PALPATION_DATA_DIR")
-    if not base:
-        import platformdirs
-
-        base = platformdirs.user_data_dir("palpation-console")
-    return Path(base) / "sessions"
-
-
-def new_session_path(folder: Path | None = None, now: datetime | None = None) -> Path:
-    """A fresh file name in ``folder`` named by the local date and time: ``session-2024-05-01_14-03-22.h5``."""
-    folder = Path(folder) if folder is not None else sessions_dir()
-    stamp = (now or datetime.now()).strftime("%Y-%m-%d_%H-%M-%S")
-    path = folder / f"session-{stamp}.h5"
-    n = 2
-    while path.exists():
-        path = folder / f"session-{stamp}-{n}.h5"
-        n += 1
-    return path
-
-
-# ---- events and level records as rows ------------------------------------------------------------------
-
-
-def _text(value: str) -> bytes:
-    raw = value.encode("utf-8")
-    if len(raw) <= EVENT_TEXT_BYTES:
-        return raw
-    return raw[:EVENT_TEXT_BYTES].decode("utf-8", errors="ignore").encode("utf-8")
-
-
-def level_row(record: LevelRecord) -> tuple:
-    """A LEVEL_DTYPE row (without its seq) for one level record."""
-    return (0, record.region, record.level, record.t_s, record.force_desired_N, record.force_measured_N,
-            record.rmse_N, record.settle_time_s, record.tsi_position_m, record.indentation_m, record.pressure_pa,
-            record.element_force_N, record.onset_height_m, record.L0_m, record.dL_m, record.stiffness_pa)
-
-
-def event_row(t_s: float, kind: str, *, region: int = -1, level: int = -1, code: int = 0, value: float = math.nan,
-              text: str = "") -> tuple:
-    return (0, t_s, kind.encode("ascii"), region, level, code, value, _text(text))
-
-
-def rows_for_event(event) -> tuple[tuple | None, tuple | None]:
-    """(event row, level row or None) for a control.messages event; (None, None) for other objects."""
-    k = EventKind
-    if isinstance(event, LevelRecorded):
-        r = event.record
-        return (event_row(event.t_s, k.LEVEL, region=r.region, level=r.level, value=r.force_desired_N),
-                level_row(r))
-    if isinstance(event, SzChanged):
-        row = event_row(event.t_s, k.SZ, code=int(event.sz), text=event.source.name.lower())
-    elif isinstance(event, PhaseChanged):
-        row = event_row(event.t_s, k.PHASE, level=event.level, code=int(event.phase), value=float(event.n_levels),
-                        text=event.phase.name)
-    elif isinstance(event, LevelTimedOut):
-        row = event_row(event.t_s, k.LEVEL_TIMEOUT, region=event.region, level=event.level,
-                        value=event.force_desired_N, text=event.message)
-    elif isinstance(event, RegionDone):
-        row = event_row(event.t_s, k.REGION_DONE, region=event.region, code=event.n_levels)
-    elif isinstance(event, RegionAborted):
-        row = event_row(event.t_s, k.REGION_ABORTED, region=event.region, text=event.reason)
-    elif isinstance(event, FaultRaised):
-        row = event_row(event.t_s, k.FAULT, code=int(event.kind), text=event.message)
-    elif isinstance(event, FaultCleared):
-        row = event_row(event.t_s, k.FAULT_CLEARED, code=int(event.kind), text=event.kind.name)
-    elif isinstance(event, CommandRefused):
-        row = event_row(event.t_s, k.REFUSED, text=f"{event.command_name}: {event.reason}")
-    elif isinstance(event, CommandApplied):
-        row = event_row(event.t_s, k.APPLIED, text=f"{type(event.command).__name__}: {event.message}")
-    elif isinstance(event, Notice):
-        row = event_row(event.t_s, k.NOTICE, code=1 if event.level == "warning" else 0, text=event.message)
-    else:
-        return None, None
-    return row, None
 
 
 # ---- the writer ----------------------------------------------------------------------------------------
@@ -333,51 +86,6 @@ class _Appender:
         self.pending_rows = 0
         self.n = n0 + len(block)
         return len(block)
-
-
-class _Overview:
-    """Folds tick rows into OVERVIEW_DTYPE buckets of OVERVIEW_BUCKET_ROWS rows."""
-
-    def __init__(self):
-        self.tail = np.empty(0, TICK_DTYPE)
-        self.rows_done = 0  # tick rows already folded into complete buckets
-
-    @staticmethod
-    def buckets(ticks: np.ndarray, row_start: int, size: int) -> np.ndarray:
-        n = len(ticks) // size if size else 0
-        out = np.zeros(n, OVERVIEW_DTYPE)
-        if n == 0:
-            return out
-        t = ticks["t_s"][: n * size].reshape(n, size)
-        out["row_start"] = row_start + np.arange(n) * size
-        out["n_rows"] = size
-        out["t_start_s"] = t[:, 0]
-        out["t_end_s"] = t[:, -1]
-        for name, source, index in OVERVIEW_CHANNELS:
-            column = ticks[source][: n * size]
-            if index is not None:
-                column = column[:, index]
-            column = column.reshape(n, size)
-            # fmin/fmax skip NaN (no contact, outside a ramp) and give NaN only for an all-NaN bucket
-            out[f"{name}_min"] = np.fmin.reduce(column, axis=1)
-            out[f"{name}_max"] = np.fmax.reduce(column, axis=1)
-        return out
-
-    def add(self, ticks: np.ndarray) -> np.ndarray:
-        rows = np.concatenate([self.tail, ticks]) if len(self.tail) else ticks
-        full = self.buckets(rows, self.rows_done, OVERVIEW_BUCKET_ROWS)
-        used = len(full) * OVERVIEW_BUCKET_ROWS
-        self.tail = rows[used:].copy()
-        self.rows_done += used
-        return full
-
-    def finish(self) -> np.ndarray:
-        if not len(self.tail):
-            return np.zeros(0, OVERVIEW_DTYPE)
-        last = self.buckets(self.tail, self.rows_done, len(self.tail))
-        self.rows_done += len(self.tail)
-        self.tail = self.tail[:0]
-        return last
 
 
 @dataclass
@@ -463,7 +171,7 @@ class SessionRecorder:
         self.rows_dropped = 0
         self.rows_lost = 0
         self._last_tick: int | None = None
-        self._overview = _Overview()
+        self._overview = Overview()
         self._file = self._create(compression)
         # A daemon, so a recorder nobody closed cannot keep the process from exiting; _close_all still
         # writes it out at exit.
@@ -525,7 +233,7 @@ class SessionRecorder:
 
         def table(parent: h5py.Group, name: str, dtype: np.dtype, chunk_key: str, description: str):
             ds = parent.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype,
-                                       chunks=(_CHUNK_ROWS[chunk_key],), **filters)
+                                       chunks=(CHUNK_ROWS[chunk_key],), **filters)
             ds.attrs["description"] = _fixed(description)
             return ds
 
@@ -541,7 +249,7 @@ class SessionRecorder:
                                        "one row per recorded force level (control.messages.LevelRecord)"),
                                  numbered=True)
         self._events = _Appender(table(f, "events", EVENT_DTYPE, "events",
-                                       "one row per event; see app.session.recorder.EventKind"), numbered=True)
+                                       "one row per event; see session.format.EventKind"), numbered=True)
 
     # ---- producer side (any thread) ------------------------------------------------------------------
 

@@ -4,7 +4,7 @@
 names the file and the problem in words an operator can act on: missing, empty, not HDF5 (a foreign
 file), HDF5 but not a session, a session from a newer version, truncated, corrupt. Nothing in here ever
 writes to the file: a session left open by a killed console is opened in HDF5's SWMR-read mode (see
-:mod:`app.session.recorder`), which reads it as it is.
+:mod:`session.writer`), which reads it as it is.
 
 A file whose last writes never reached the disk (killed console, full disk) reads as zeros past the
 last good row; those rows are trimmed and the session carries a warning saying so.
@@ -25,21 +25,11 @@ from typing import Any
 import h5py
 import numpy as np
 
-from app.session.recorder import (EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS,
-                                  OVERVIEW_DTYPE, EventKind, _Overview)
-from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from control.telemetry import TICK_DTYPE
+from session.format import (ADDED_COLUMNS, FORMAT_NAME, FORMAT_VERSION, OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TABLES,
+                            EventKind, Overview)
 
 _META_KEYS = ("config_json", "calibration_json", "rig_json", "phantom_json", "ground_truth_json")
-_TABLES: dict[str, np.dtype] = {
-    "stream/ticks": TICK_DTYPE,
-    "stream/frames": FRAME_DTYPE,
-    "stream/overview": OVERVIEW_DTYPE,
-    "levels": LEVEL_DTYPE,
-    "events": EVENT_DTYPE,
-}
-# Columns added to a table after files were first written without them: such a file still opens, and
-# reads them as NaN (format version 1 files from before the loop's time was split into compute and I/O).
-_ADDED_COLUMNS = {"stream/ticks": {"io_s"}}
 _TAIL_WINDOWS = 64  # how far back (in chunks) a damaged stream tail is looked for
 _READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
 
@@ -169,11 +159,12 @@ class Session:
             self._fail(f"the file is damaged: the calibration has no valid pitch_m (got {pitch!r})")
 
         self._ds: dict[str, h5py.Dataset] = {}
-        for name, dtype in _TABLES.items():
+        for name, dtype in TABLES.items():
             if name not in f or not isinstance(f[name], h5py.Dataset):
                 self._fail(f"the file is damaged: the dataset /{name} is missing")
             ds = f[name]
-            problem = _dtype_problem(ds.dtype, dtype, _ADDED_COLUMNS.get(name, set()))
+            optional = {column for (table, column), since in ADDED_COLUMNS.items() if table == name and version < since}
+            problem = _dtype_problem(ds.dtype, dtype, optional)
             if problem or ds.ndim != 1:
                 self._fail(f"the file is damaged: /{name} does not hold the expected rows ({problem or 'not 1-D'})")
             self._ds[name] = ds
@@ -194,7 +185,7 @@ class Session:
 
     def _read_numbered(self, name: str) -> np.ndarray:
         ds = self._ds[name]
-        rows = _conform(self._read_rows(name, 0, ds.shape[0]), _TABLES[name])
+        rows = _conform(self._read_rows(name, 0, ds.shape[0]), TABLES[name])
         good = rows["seq"] == np.arange(1, len(rows) + 1)
         if not good.all():
             keep = int(np.argmin(good))
@@ -206,14 +197,14 @@ class Session:
     def _read_rows(self, name: str, start: int, stop: int, fields: list[str] | None = None) -> np.ndarray:
         ds = self._ds[name]
         stored = fields
-        if any(f not in ds.dtype.names for f in (fields or _TABLES[name].names)):
-            stored = [f for f in (fields or _TABLES[name].names) if f in ds.dtype.names]
+        if any(f not in ds.dtype.names for f in (fields or TABLES[name].names)):
+            stored = [f for f in (fields or TABLES[name].names) if f in ds.dtype.names]
         try:
             rows = ds.fields(stored)[start:stop] if stored else ds[start:stop]
         except _READ_ERRORS as err:
             self._fail(f"{self._damage}: HDF5 could not read rows {start}-{stop} of /{name} ({_first_line(err)})")
         if stored is not fields:  # an older file: give its rows the columns added since, as NaN
-            wanted = _TABLES[name] if not fields else np.dtype([(f, _TABLES[name][f]) for f in fields])
+            wanted = TABLES[name] if not fields else np.dtype([(f, TABLES[name][f]) for f in fields])
             rows = _conform(rows, wanted)
         return rows
 
@@ -322,11 +313,11 @@ class Session:
             while done < self.n_ticks:
                 stop = min(self.n_ticks, done + step)
                 ticks = self._read_rows("stream/ticks", done, stop)
-                full = _Overview.buckets(ticks, done, OVERVIEW_BUCKET_ROWS)
+                full = Overview.buckets(ticks, done, OVERVIEW_BUCKET_ROWS)
                 used = len(full) * OVERVIEW_BUCKET_ROWS
                 pieces.append(full)
                 if used < len(ticks):
-                    pieces.append(_Overview.buckets(ticks[used:], done + used, len(ticks) - used))
+                    pieces.append(Overview.buckets(ticks[used:], done + used, len(ticks) - used))
                 done = stop
             self._overview = np.concatenate(pieces) if len(pieces) > 1 else stored
         return self._overview

@@ -12,10 +12,11 @@ import os
 import sys
 from pathlib import Path
 
-from app.session.detect import DetectError, DetectParams, detect_session, match_ground_truth
-from app.session.reader import SessionFileError, open_session
-from app.session.recorder import sessions_dir
-from app.session.stitch import L0Source, StitchError, StitchParams, stitch_session
+from session.analysis import AnalysisParams, SessionAnalysis
+from session.detect import DetectError, DetectParams
+from session.info import sessions_dir
+from session.reader import SessionFileError, open_session
+from session.stitch import L0Source, StitchError, StitchParams
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
 
@@ -34,12 +35,12 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--l0-mm", type=float, help="the thickness for --l0 fixed, in mm")
 
 
-def analysis_params(args) -> tuple[StitchParams, DetectParams]:
+def analysis_params(args) -> AnalysisParams:
     """Raises StitchError / DetectError naming the bad option."""
     stitch = StitchParams(cell_m=args.cell_mm * 1e-3, l0_source=args.l0,
                           l0_fixed_m=None if args.l0_mm is None else args.l0_mm * 1e-3)
     detect = DetectParams(threshold=args.threshold, min_area_m2=args.min_area_mm2 * 1e-6)
-    return stitch, detect
+    return AnalysisParams(stitch, detect)
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str] | None):
@@ -67,7 +68,8 @@ def stitch_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_summary(session, stitched, tumours, out) -> None:
+def _print_summary(analysis: SessionAnalysis, out) -> None:
+    session, stitched, tumours = analysis.session, analysis.stitched, analysis.tumours
     forces = ", ".join(f"{f:g}" for f in stitched.level_forces_N()) or "none"
     print(f"{session.path.name}: {len(session.regions())} regions, {len(session.levels)} recorded levels "
           f"(forces {forces} N), {stitched.covered_fraction() * 100:.0f} % of the grid covered", file=out)
@@ -79,14 +81,13 @@ def _print_summary(session, stitched, tumours, out) -> None:
         depth = f"{t.depth_m * 1e3:5.2f}" if t.depth_m == t.depth_m else "  n/a"
         print(f"  {t.source:<9} x {t.x_m * 1e3:6.1f} mm  y {t.y_m * 1e3:6.1f} mm  depth {depth} mm  "
               f"first at {t.first_level_N:g} N  (+{t.peak_rise * 100:.0f} %)", file=out)
-    if session.ground_truth:
-        matches, false_positives = match_ground_truth(tumours, session.ground_truth, stitched=stitched)
-        for m in matches:
+    if analysis.has_ground_truth:
+        for m in analysis.matches:
             result = (f"found {m.error_xy_m * 1e3:.1f} mm away, depth estimate {m.depth_estimate_m * 1e3:.2f} mm"
                       if m.found else "not found" if m.palpated else "not palpated")
             print(f"  truth {m.truth_index + 1} ({m.x_m * 1e3:.0f}, {m.y_m * 1e3:.0f}) mm, {m.depth_m * 1e3:.1f} mm "
                   f"deep, {m.source} map: {result}", file=out)
-        print("  false positives: " + ", ".join(f"{k} {v}" for k, v in false_positives.items()), file=out)
+        print("  false positives: " + ", ".join(f"{k} {v}" for k, v in analysis.false_positives.items()), file=out)
 
 
 def stitch_main(argv: list[str] | None = None) -> int:
@@ -94,7 +95,7 @@ def stitch_main(argv: list[str] | None = None) -> int:
     if args is None:
         return code
     try:
-        stitch_params, detect_params = analysis_params(args)
+        params = analysis_params(args)
     except (StitchError, DetectError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_INPUT
@@ -103,27 +104,28 @@ def stitch_main(argv: list[str] | None = None) -> int:
     except SessionFileError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_INPUT
-    from app.session import export
+    from session import export
 
     with session:
-        stitched = stitch_session(session, stitch_params)
-        tumours = detect_session(session, stitched, detect_params)
-        _print_summary(session, stitched, tumours, sys.stdout)
+        analysis = SessionAnalysis.run(session, params)
+        _print_summary(analysis, sys.stdout)
         try:
+            if args.output or args.report:
+                from widgets import map_painting  # Qt, only for the pictures
             if args.output:
-                export.render_maps_png(args.output, stitched, tumours, session.ground_truth)
+                map_painting.render_maps_png(args.output, analysis)
                 print(f"maps: {args.output}")
             if args.csv:
-                export.write_maps_csv(args.csv, stitched)
+                export.write_maps_csv(args.csv, analysis.stitched)
                 print(f"maps CSV: {args.csv}")
             if args.json:
-                export.write_maps_json(args.json, session, stitched)
+                export.write_maps_json(args.json, analysis)
                 print(f"maps JSON: {args.json}")
             if args.tumours:
-                export.write_tumours_json(args.tumours, session, stitched, tumours, detect_params)
+                export.write_tumours_json(args.tumours, analysis)
                 print(f"tumours: {args.tumours}")
             if args.report:
-                export.write_report(args.report, session, stitched, tumours, detect_params)
+                map_painting.write_report(args.report, analysis)
                 print(f"report: {args.report}")
         except export.ExportError as err:
             print(f"error: {err}", file=sys.stderr)
