@@ -119,6 +119,8 @@ class LevelRecord:
     tsi_position_m: Vec3
     indentation_m: float  # TSI indentation depth: mean dL over elements in contact (NaN if none)
     pressure_pa: np.ndarray  # (4, 15), mean over the settle window
+    pressure_std_pa: np.ndarray  # (4, 15), standard deviation of the frames over the settle window (NaN: one frame)
+    window_frames: int  # frames averaged over the settle window
     element_force_N: np.ndarray  # (4, 15)
     onset_height_m: np.ndarray  # (4, 15) TSI height at each element's contact onset (NaN: never)
     L0_m: np.ndarray  # (4, 15) initial tissue thickness under each element

@@ -5,7 +5,8 @@ APPROACH (S_z = 1, the operator positions the TSI above an area)
      threshold (a real touch, not noise)
   -> SETTLING at level k (F_d = F_min + k dF): once the RMSE of F_d - F_ts over the settle window is below
      eps and the level has lasted the minimum settle time, record the level (pressure and force per
-     element averaged over the window, L0, dL, stiffness, TSI indentation) and go to level k + 1
+     element averaged over the window and each element's scatter over it, L0, dL, stiffness, TSI
+     indentation) and go to level k + 1
   -> after the F_max level: set "region done" and RETRACT (S_z = 1, lift the TSI) -> DONE
 A level that does not settle within the level timeout, a seek that finds no tissue, or an operator abort
 ends the region without "region done" (RETRACT -> APPROACH). A fault (from the safety supervisor) goes to
@@ -177,7 +178,10 @@ class PalpationStateMachine:
             self._record(t_s, window)
 
     def _record(self, t_s: float, window: np.ndarray) -> None:
-        pressure = self._fp[window].mean(axis=0)
+        frames = self._fp[window]
+        pressure = frames.mean(axis=0)
+        # the sensor's scatter over the settled window: what a finding at this level must stand out from
+        spread = frames.std(axis=0, ddof=1) if len(frames) > 1 else np.full(pressure.shape, np.nan)
         z = float(self._fz[window].mean())
         pos = self._fpos[window].mean(axis=0)
         onset = self.tracker.onset_height_m.copy()
@@ -193,6 +197,8 @@ class PalpationStateMachine:
             tsi_position_m=(float(pos[0]), float(pos[1]), float(pos[2])),
             indentation_m=indentation,
             pressure_pa=pressure,
+            pressure_std_pa=spread,
+            window_frames=len(frames),
             element_force_N=pressure * self.area,
             onset_height_m=onset,
             L0_m=L0,

@@ -30,8 +30,9 @@ tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and 
 all zero bytes, so a row whose data never reached the disk (HDF5 reads it as zeros) is recognisable.
 
 Versions. A column added to a dataset bumps :data:`FORMAT_VERSION`, and :data:`ADDED_COLUMNS` says from which
-version on a column is written, so a reader gives older files the column as NaN. Version 1 files may lack
-``io_s`` in /stream/ticks: it was added before this rule was made.
+version on a column is written, so a reader gives older files the column as NaN (-1 for integers).
+Version 2 added each level's per-element scatter over its settle window (``pressure_std_pa``,
+``window_frames``); version 1 files may also lack ``io_s`` in /stream/ticks, added before this rule.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from control.messages import (CommandApplied, CommandRefused, FaultCleared, Faul
 from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
 
 FORMAT_NAME = "palpation-console-session"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 OVERVIEW_BUCKET_ROWS = 1000
 
 _GRID = (ROWS, COLS)
@@ -62,6 +63,8 @@ LEVEL_DTYPE = np.dtype(
         ("tsi_position_m", np.float64, (3,)),
         ("indentation_m", np.float64),
         ("pressure_pa", np.float64, _GRID),
+        ("pressure_std_pa", np.float64, _GRID),  # scatter of the frames over the settle window (version 2)
+        ("window_frames", np.int32),  # frames averaged (version 2)
         ("element_force_N", np.float64, _GRID),
         ("onset_height_m", np.float64, _GRID),
         ("L0_m", np.float64, _GRID),
@@ -124,7 +127,11 @@ CHUNK_ROWS = {"ticks": 1024, "frames": 128, "overview": 256, "levels": 1, "event
 
 # Columns written from a format version on: (dataset, column) -> the first version that always has it. A file
 # of an older version may lack the column; the reader gives it NaN there.
-ADDED_COLUMNS: dict[tuple[str, str], int] = {("stream/ticks", "io_s"): 2}
+ADDED_COLUMNS: dict[tuple[str, str], int] = {
+    ("stream/ticks", "io_s"): 2,
+    ("levels", "pressure_std_pa"): 2,
+    ("levels", "window_frames"): 2,
+}
 
 TABLES: dict[str, np.dtype] = {
     "stream/ticks": TICK_DTYPE,
@@ -150,7 +157,8 @@ def level_row(record: LevelRecord) -> tuple:
     """A LEVEL_DTYPE row (without its seq) for one level record."""
     return (0, record.region, record.level, record.t_s, record.force_desired_N, record.force_measured_N,
             record.rmse_N, record.settle_time_s, record.tsi_position_m, record.indentation_m, record.pressure_pa,
-            record.element_force_N, record.onset_height_m, record.L0_m, record.dL_m, record.stiffness_pa)
+            record.pressure_std_pa, record.window_frames, record.element_force_N, record.onset_height_m, record.L0_m,
+            record.dL_m, record.stiffness_pa)
 
 
 def event_row(t_s: float, kind: str, *, region: int = -1, level: int = -1, code: int = 0, value: float = math.nan,

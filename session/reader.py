@@ -493,9 +493,13 @@ def _dtype_problem(actual: np.dtype, expected: np.dtype, optional: set[str] = fr
 
 
 def _conform(rows: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """``rows`` with ``dtype``'s columns; a column an older file lacks is NaN, or -1 for an integer column."""
     if rows.dtype == dtype:
         return rows
     out = np.empty(len(rows), dtype)
     for name in dtype.names:
-        out[name] = rows[name] if name in rows.dtype.names else np.nan
+        if name in rows.dtype.names:
+            out[name] = rows[name]
+        else:
+            out[name] = -1 if dtype[name].base.kind in "iu" else np.nan
     return out

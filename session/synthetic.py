@@ -69,12 +69,14 @@ def frame_rows(start_seq: int, n: int, frame_period_s: float = 0.01, seed: int =
 def level_record(region: int, level: int, force_N: float, position_xy_m: tuple[float, float], *,
                  tumours_xy_m: tuple[tuple[float, float], ...] = (), thickness_m: float = 0.025,
                  youngs_pa: float = 20e3, tumour_factor: float = 1.5, tumour_radius_m: float = 4e-3,
-                 t_s: float = 0.0, noise: float = 0.0, seed: int = 0,
-                 sensor: TactileConstraints | None = None) -> LevelRecord:
+                 t_s: float = 0.0, noise: float = 0.0, seed: int = 0, frame_noise_pa: float = 50.0,
+                 window_frames: int = 30, sensor: TactileConstraints | None = None) -> LevelRecord:
     """The level a flat TSI records at ``force_N`` over a layer with stiffer spots at ``tumours_xy_m``.
 
     Every element is indented by the same dL (a level face on a flat surface); it is found so that the
-    element forces add up to ``force_N``.
+    element forces add up to ``force_N``. ``noise`` is a relative scatter of the modulus from element to
+    element (fixed by ``seed``); ``frame_noise_pa`` is the scatter the record says its frames had over
+    ``window_frames`` frames.
     """
     sensor = sensor or TactileConstraints()
     area = sensor.element_area_m2
@@ -93,6 +95,7 @@ def level_record(region: int, level: int, force_N: float, position_xy_m: tuple[f
     return LevelRecord(
         region=region, level=level, t_s=t_s, force_desired_N=force_N, force_measured_N=float(pressure.sum() * area),
         rmse_N=0.01, settle_time_s=0.6, tsi_position_m=(position_xy_m[0], position_xy_m[1], z), indentation_m=dL,
-        pressure_pa=pressure, element_force_N=pressure * area, onset_height_m=np.full(sensor.shape, thickness_m),
+        pressure_pa=pressure, pressure_std_pa=np.full(sensor.shape, frame_noise_pa), window_frames=window_frames,
+        element_force_N=pressure * area, onset_height_m=np.full(sensor.shape, thickness_m),
         L0_m=np.full(sensor.shape, thickness_m), dL_m=np.full(sensor.shape, dL),
         stiffness_pa=pressure * area * thickness_m / (area * dL))

@@ -9,10 +9,11 @@ import h5py
 import numpy as np
 import pytest
 
-from session.format import OVERVIEW_BUCKET_ROWS
+from control.messages import LevelRecorded
+from session.format import FORMAT_VERSION, OVERVIEW_BUCKET_ROWS
 from session.reader import SessionFileError, open_session
 from session.stitch import stitch_session
-from session.synthetic import tick_rows
+from session.synthetic import level_record, tick_rows
 from session.writer import SessionRecorder
 
 from tests.session.test_recorder import INFO
@@ -63,6 +64,7 @@ def test_a_file_from_before_the_io_column_opens_and_reads_it_as_nan(tmp_path):
     rec.add_ticks(tick_rows(0, 2500))
     rec.close()
     with h5py.File(tmp_path / "old.h5", "r+") as f:  # the tick table as the first version wrote it
+        f.attrs["format_version"] = 1
         ticks = f["stream/ticks"][()]
         old = np.dtype([(n, ticks.dtype[n]) for n in ticks.dtype.names if n != "io_s"])
         del f["stream/ticks"]
@@ -113,8 +115,9 @@ def test_newer_format_version(recorded, tmp_path):
     path = tmp_path / "newer.h5"
     shutil.copy(recorded[0], path)
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 2
-    expect_problem(path, "newer Palpation Console", "format version 2", "reads up to 1", "Update")
+        f.attrs["format_version"] = FORMAT_VERSION + 1
+    expect_problem(path, "newer Palpation Console", f"format version {FORMAT_VERSION + 1}",
+                   f"reads up to {FORMAT_VERSION}", "Update")
 
 
 def test_missing_parts(recorded, tmp_path):
@@ -170,3 +173,27 @@ def test_corrupt_files_never_raise_anything_else(recorded, tmp_path, fraction, k
             s.frames()
     except SessionFileError as err:
         assert err.problem.startswith("the file is")
+
+
+def _drop_columns(path, table: str, names: set[str], version: int | None) -> None:
+    with h5py.File(path, "r+") as f:
+        if version is not None:
+            f.attrs["format_version"] = version
+        rows = f[table][()]
+        kept = np.dtype([(n, rows.dtype[n]) for n in rows.dtype.names if n not in names])
+        del f[table]
+        f.create_dataset(table, data=np.array(rows[list(kept.names)], dtype=kept), maxshape=(None,), chunks=(1,))
+
+
+def test_a_version_1_file_opens_without_the_levels_scatter_and_a_version_2_file_must_have_it(tmp_path):
+    rec = SessionRecorder(tmp_path / "v1.h5", INFO)
+    rec.add_events([LevelRecorded(1.0, level_record(0, 0, 1.0, (0.004, 0.015)))])
+    rec.close()
+    shutil.copy(tmp_path / "v1.h5", tmp_path / "v2.h5")
+    _drop_columns(tmp_path / "v1.h5", "levels", {"pressure_std_pa", "window_frames"}, version=1)
+    with open_session(tmp_path / "v1.h5") as s:
+        assert s.format_version == 1 and len(s.levels) == 1
+        assert np.isnan(s.levels["pressure_std_pa"]).all() and s.levels["window_frames"][0] == -1
+        assert np.allclose(s.levels["pressure_pa"], level_record(0, 0, 1.0, (0.004, 0.015)).pressure_pa)
+    _drop_columns(tmp_path / "v2.h5", "levels", {"window_frames"}, version=None)
+    expect_problem(tmp_path / "v2.h5", "damaged", "/levels", "window_frames")

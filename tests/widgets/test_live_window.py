@@ -72,7 +72,8 @@ def make_record(region=0, level=0, force=1.0, x=0.012):
     return LevelRecord(region=region, level=level, t_s=2.0 + level, force_desired_N=force, force_measured_N=force,
                        rmse_N=0.02, settle_time_s=0.6, tsi_position_m=(x, 0.015, 0.024),
                        indentation_m=1e-3 * (1 + level),
-                       pressure_pa=p, element_force_N=p * 4e-6, onset_height_m=np.full((4, 15), 0.025),
+                       pressure_pa=p, pressure_std_pa=np.full((4, 15), 50.0), window_frames=30,
+                       element_force_N=p * 4e-6, onset_height_m=np.full((4, 15), 0.025),
                        L0_m=np.full((4, 15), 0.025), dL_m=np.full((4, 15), 1e-3 * (1 + level)),
                        stiffness_pa=np.full((4, 15), 40e3))
 
