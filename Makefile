@@ -1,9 +1,9 @@
-# make run | make test | make bench — each bootstraps .venv (and Qt's system libraries) when missing.
+# make run | make test | make bench | make study — each bootstraps .venv (and Qt's system libraries) when missing.
 VENV := .venv
 PY := $(VENV)/bin/python
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: bootstrap run test bench simulate lint clean screenshot
+.PHONY: bootstrap run test bench study simulate lint clean screenshot
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -20,6 +20,12 @@ test: bootstrap
 
 bench: bootstrap
 	QT_QPA_PLATFORM=offscreen $(PY) -m bench
+
+# The validation study as a benchmark (app/study.py): 12 seeded phantoms and the paper's two, figures in
+# build/bench/accuracy.json, the plot beside it, every case's phantom and session in build/study.
+study: bootstrap
+	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --out build/study \
+		--json build/bench/accuracy.json --plot build/bench/accuracy.png
 
 clean:
 	rm -rf $(VENV) build .pytest_cache

@@ -83,10 +83,11 @@ def cmd_simulate(args) -> int:
 
 
 DELEGATED = {
-    "review": ("app.session.cli.review_main", "open a recorded session read-only in the reviewer"),
-    "stitch": ("app.session.cli.stitch_main", "stitch a session's regions into whole-tissue maps and find tumours"),
+    "review": ("app.session_commands.review_main", "open a recorded session read-only in the reviewer"),
+    "stitch": ("app.session_commands.stitch_main", "stitch a session into whole-tissue maps and find the tumours"),
     "slave": ("hardware.udp.server.slave_main", "run the slave side of the UDP master/slave link"),
     "devices": ("hardware.discovery.main", "list the tactile sensors, masters and links this machine can see"),
+    "study": ("app.study.study_main", "validate tumour detection and depth on seeded simulated phantoms"),
 }
 
 

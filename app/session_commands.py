@@ -12,10 +12,13 @@ import os
 import sys
 from pathlib import Path
 
+from app.physics import PHYSICS, physics_for
 from session.analysis import AnalysisParams, SessionAnalysis
-from session.detect import DetectError, DetectParams
+from session import export
+from session.detect import MATCH_RADIUS_M, DetectError, DetectParams
+from session.flatfield import FlatFieldError, Reference
 from session.info import sessions_dir
-from session.reader import SessionFileError, open_session
+from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
@@ -24,11 +27,18 @@ EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
 def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("analysis (re-analyse a recording without re-recording it)")
     group.add_argument("--cell-mm", type=float, default=1.0, help="grid cell size in mm (default 1)")
-    group.add_argument("--threshold", type=float, default=DetectParams.threshold,
-                       help="a cell is suspicious when it rises this much above the map's median "
-                            "(relative: 0.2 = 20 %%, the default)")
-    group.add_argument("--min-area-mm2", type=float, default=DetectParams.min_area_m2 * 1e6,
-                       help="smallest suspicious spot kept, in mm² (default 8: two elements)")
+    group.add_argument("--false-alarm", type=float, default=DetectParams.false_alarm_per_area,
+                       help="chance that a palpated area of healthy tissue raises a spot (default "
+                            f"{DetectParams.false_alarm_per_area:g}); lower finds fewer, stronger tumours")
+    group.add_argument("--accuracy", type=float, default=DetectParams.accuracy,
+                       help="the least relative scatter of healthy tissue from one loading to the next (default "
+                            f"{DetectParams.accuracy:g} = {DetectParams.accuracy * 100:g} %%)")
+    group.add_argument("--physics", choices=list(PHYSICS), default="rebuilt",
+                       help="the probe's expected pattern on homogeneous tissue: " + "; ".join(
+                           f"{k} = {v}" for k, v in PHYSICS.items()) + " (default rebuilt)")
+    group.add_argument("--reference", type=Path,
+                       help="a reference palpation of tumour-free tissue (saved with --save-reference) whose "
+                            "per-element baseline replaces the session's own estimate")
     group.add_argument("--l0", choices=[s.value for s in L0Source], default=L0Source.ELEMENT.value,
                        help="where Eq. 1's initial thickness L0 comes from: each element's onset (element, "
                             "as recorded), one per region (region), or a given thickness (fixed, with --l0-mm)")
@@ -39,8 +49,28 @@ def analysis_params(args) -> AnalysisParams:
     """Raises StitchError / DetectError naming the bad option."""
     stitch = StitchParams(cell_m=args.cell_mm * 1e-3, l0_source=args.l0,
                           l0_fixed_m=None if args.l0_mm is None else args.l0_mm * 1e-3)
-    detect = DetectParams(threshold=args.threshold, min_area_m2=args.min_area_mm2 * 1e-6)
+    detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy)
     return AnalysisParams(stitch, detect)
+
+
+def analyse(session: Session, args) -> SessionAnalysis:
+    """The session analysed as the options say; raises AnalysisInputError for physics or a reference that
+    cannot be had for it (a cache hit or a finite-element solve of the rebuilt block: seconds when new)."""
+    try:
+        physics = physics_for(session, args.physics)
+    except ValueError as err:
+        raise AnalysisInputError(f"--physics {args.physics}: {err}") from None
+    reference = None
+    if args.reference is not None:
+        try:
+            reference = Reference.load(args.reference, tuple(session.levels.dtype["pressure_pa"].shape))
+        except FlatFieldError as err:
+            raise AnalysisInputError(str(err)) from None
+    return SessionAnalysis.run(session, analysis_params(args), physics, reference)
+
+
+class AnalysisInputError(ValueError):
+    """A re-analysis option that cannot be applied to this session; the message says why."""
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str] | None):
@@ -64,6 +94,9 @@ def stitch_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", type=Path, help="the maps as JSON")
     parser.add_argument("--tumours", type=Path, help="the tumours found, as JSON")
     parser.add_argument("--report", type=Path, help="one-page report: PDF for a .pdf name, else PNG")
+    parser.add_argument("--save-reference", type=Path, metavar="FILE",
+                        help="this session palpated tumour-free tissue: save its per-element baseline as a "
+                             "reference palpation (JSON) for --reference")
     add_analysis_arguments(parser)
     return parser
 
@@ -73,21 +106,25 @@ def _print_summary(analysis: SessionAnalysis, out) -> None:
     forces = ", ".join(f"{f:g}" for f in stitched.level_forces_N()) or "none"
     print(f"{session.path.name}: {len(session.regions())} regions, {len(session.levels)} recorded levels "
           f"(forces {forces} N), {stitched.covered_fraction() * 100:.0f} % of the grid covered", file=out)
+    print(f"  flat field: {analysis.flat_field}", file=out)
     for warning in session.warnings:
         print(f"  warning: {warning}", file=out)
     if not tumours:
         print("No tumour found with these parameters.", file=out)
     for t in tumours:
         depth = f"{t.depth_m * 1e3:5.2f}" if t.depth_m == t.depth_m else "  n/a"
-        print(f"  {t.source:<9} x {t.x_m * 1e3:6.1f} mm  y {t.y_m * 1e3:6.1f} mm  depth {depth} mm  "
-              f"first at {t.first_level_N:g} N  (+{t.peak_rise * 100:.0f} %)", file=out)
+        model = export.depth_model_text(t)
+        print(f"  {t.source:<9} x {t.x_m * 1e3:6.1f} mm  y {t.y_m * 1e3:6.1f} mm  z {t.score:5.1f}  "
+              f"contrast {t.contrast * 100:+4.0f} %  first at {t.first_level_N:g} N  depth {depth} mm (rule)"
+              + ("" if model == "—" else f", {model} mm (model, 90 %)"), file=out)
     if analysis.has_ground_truth:
         for m in analysis.matches:
-            result = (f"found {m.error_xy_m * 1e3:.1f} mm away, depth estimate {m.depth_estimate_m * 1e3:.2f} mm"
+            result = (f"found {m.error_xy_m * 1e3:.1f} mm away, depth {m.depth_estimate_m * 1e3:.2f} mm (rule)"
                       if m.found else "not found" if m.palpated else "not palpated")
             print(f"  truth {m.truth_index + 1} ({m.x_m * 1e3:.0f}, {m.y_m * 1e3:.0f}) mm, {m.depth_m * 1e3:.1f} mm "
                   f"deep, {m.source} map: {result}", file=out)
-        print("  false positives: " + ", ".join(f"{k} {v}" for k, v in analysis.false_positives.items()), file=out)
+        print(f"  false positives (no true tumour within {MATCH_RADIUS_M * 1e3:g} mm): "
+              + ", ".join(f"{k} {v}" for k, v in analysis.false_positives.items()), file=out)
 
 
 def stitch_main(argv: list[str] | None = None) -> int:
@@ -95,7 +132,7 @@ def stitch_main(argv: list[str] | None = None) -> int:
     if args is None:
         return code
     try:
-        params = analysis_params(args)
+        analysis_params(args)  # a bad option is told before the file is even opened
     except (StitchError, DetectError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_INPUT
@@ -104,12 +141,17 @@ def stitch_main(argv: list[str] | None = None) -> int:
     except SessionFileError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_INPUT
-    from session import export
-
     with session:
-        analysis = SessionAnalysis.run(session, params)
+        try:
+            analysis = analyse(session, args)
+        except AnalysisInputError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return EXIT_INPUT
         _print_summary(analysis, sys.stdout)
         try:
+            if args.save_reference:
+                save_reference(args.save_reference, analysis)
+                print(f"reference palpation: {args.save_reference}")
             if args.output or args.report:
                 from widgets import map_painting  # Qt, only for the pictures
             if args.output:
@@ -133,6 +175,19 @@ def stitch_main(argv: list[str] | None = None) -> int:
     return EXIT_OK
 
 
+def save_reference(path: Path, analysis: SessionAnalysis) -> None:
+    """Save an analysed session of tumour-free tissue as a reference palpation (raises ExportError)."""
+    session = analysis.session
+    pattern = analysis.contrasts["stiffness"]
+    reference = Reference.from_levels(session.levels, pattern.share, pattern.share_sigma,
+                                      f"reference palpation {session.path.name} ({session.uuid}, "
+                                      f"{session.created_utc}); physics: {analysis.flat_field}", pattern.physics)
+    try:
+        reference.save(path)
+    except OSError as err:
+        raise export.ExportError(f"cannot write {path}: {err.strerror or err}") from None
+
+
 # ---- review -------------------------------------------------------------------------------------------
 
 
@@ -144,6 +199,12 @@ def review_parser() -> argparse.ArgumentParser:
                         help=f"a session file (.h5); without it, File > Open starts in {sessions_dir()}")
     parser.add_argument("--screenshot", type=Path, help=argparse.SUPPRESS)  # save the window as PNG and quit
     return parser
+
+
+def physics_options() -> dict:
+    """The reviewer's flat-field physics choices (label -> factory), the default first."""
+    return {"rebuilt from the session": lambda session: physics_for(session, "rebuilt"),
+            "simulated phantom (simulated sessions)": lambda session: physics_for(session, "phantom")}
 
 
 def review_main(argv: list[str] | None = None) -> int:
@@ -163,7 +224,7 @@ def review_main(argv: list[str] | None = None) -> int:
     from widgets.review import ReviewWindow
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
-    window = ReviewWindow(start_folder=sessions_dir())
+    window = ReviewWindow(start_folder=sessions_dir(), physics=physics_options())
     window.resize(1400, 900)
     window.show()
     if args.file is not None:

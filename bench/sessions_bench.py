@@ -32,10 +32,10 @@ from app.rigs import RigSpec, build_rig
 from control.config import ControlConfig, RampSettings
 from control.messages import LevelRecorded
 from hardware.interfaces import TactileConstraints
-from session.detect import detect_session
+from session.analysis import AnalysisParams, SessionAnalysis
 from session.info import SessionInfo, calibration_of
 from session.reader import open_session
-from session.stitch import StitchParams, stitch_session
+from session.stitch import StitchParams
 from session.synthetic import level_record
 from session.writer import SessionRecorder
 
@@ -148,8 +148,7 @@ def time_stitch_9x7(path: Path, repeats: int = 5) -> dict:
     for _ in range(repeats):
         started = time.perf_counter()
         with open_session(path) as session:
-            stitched = stitch_session(session, StitchParams(cell_m=1e-3))
-            found = len(detect_session(session, stitched))
+            found = len(SessionAnalysis.run(session, AnalysisParams(StitchParams(cell_m=1e-3))).tumours)
         times.append(time.perf_counter() - started)
     return {"stitch_9x7_s": statistics.median(times), "stitch_9x7_tumours_found": found}
 

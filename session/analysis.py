@@ -1,18 +1,25 @@
 """One analysis of a recorded session, the same for the ``stitch`` command, the reviewer and the report:
-stitch its levels into whole-tissue maps, find the tumours in them, and, for a simulated session, score
-what was found against the phantom's ground truth.
+take the probe's own pattern out of every level record (the contrast, :mod:`session.flatfield`), find the
+tumours in the stiffness map and in the force map (:mod:`session.detect`), stitch the raw and contrast maps
+into whole-tissue maps (:mod:`session.stitch`), and, for a simulated session, score what was found against
+the phantom's ground truth.
 
-Nothing here writes to the session file: an analysis is derived data, recomputable from the file alone
-with other parameters (:class:`AnalysisParams`).
+The physics of the expected pattern (a homogeneous block pressed by the face) comes from the composition
+root, which knows the continuum mechanics (``app.physics``); without it the analysis still runs, with the
+face's pattern left to the session's own baseline, and says so. Nothing here writes to the session file:
+an analysis is derived data, recomputable from the file alone with other parameters (:class:`AnalysisParams`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect_session, match_ground_truth
+from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect, match_ground_truth
+from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
+
+CONTRAST_MAPS = {"stiffness": "stiffness_contrast", "force": "force_contrast"}
 
 
 @dataclass(frozen=True)
@@ -23,25 +30,40 @@ class AnalysisParams:
 
 @dataclass
 class SessionAnalysis:
-    """The stitched maps, the tumours found (stiffness map first, then the force map) and, when the session
-    knows its ground truth, each true tumour matched per map and the false positives per map."""
+    """The contrasts, the tumours found (stiffness map first, then the force map), the stitched maps (raw
+    quantities and ``stiffness_contrast``/``force_contrast``) and, when the session knows its ground truth,
+    each true tumour matched per map and the false positives per map."""
 
     session: Session
     params: AnalysisParams
     stitched: StitchResult
+    contrasts: dict[str, Contrast]
     tumours: list[Tumour]
+    flat_field: str  # how the expected pattern was obtained, in words
     matches: list[TruthMatch] = field(default_factory=list)
     false_positives: dict[str, int] = field(default_factory=dict)
 
     @classmethod
-    def run(cls, session: Session, params: AnalysisParams | None = None) -> SessionAnalysis:
+    def run(cls, session: Session, params: AnalysisParams | None = None, physics: Physics | None = None,
+            reference: Reference | None = None) -> SessionAnalysis:
         params = params or AnalysisParams()
-        stitched = stitch_session(session, params.stitch)
-        tumours = detect_session(session, stitched, params.detect)
-        analysis = cls(session, params, stitched, tumours)
+        levels = session.levels
+        contrasts = {}
+        for source in SOURCES:
+            share = sigma = None
+            if physics is not None and len(levels):
+                # the stiffness map is compared with the measured surface, the force map with a flat one
+                pattern = physics.pattern(levels, measured_surface=source == "stiffness")
+                share, sigma = pattern.share, pattern.sigma
+            contrasts[source] = contrast(levels, source, share, sigma, reference, params.detect.accuracy,
+                                         physics.description if physics is not None else "")
+        tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
+        stitched = stitch_session(session, params.stitch,
+                                  {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
+        analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)
         if session.ground_truth:
-            analysis.matches, analysis.false_positives = match_ground_truth(tumours, session.ground_truth,
-                                                                            stitched=stitched)
+            analysis.matches, analysis.false_positives = match_ground_truth(tumours, session.ground_truth, levels,
+                                                                            session.pitch_m)
         return analysis
 
     @property

@@ -1,34 +1,49 @@
-"""Tumours in the stitched maps, their position, the force level where they first show, and their depth.
+"""Tumours in a session's contrast, their position, the force level where they first show, and their depth.
 
-The rule (written down once, here):
+The rule (written down once, here), applied to the stiffness map and, separately, to the force map (their
+contrasts are made by :mod:`session.flatfield`):
 
-* **Candidates at one level.** The map's baseline is its median over every cell with a value (healthy
-  tissue covers most of a palpated area). A cell is suspicious when its value rises above the baseline by
-  at least ``threshold`` (0.2 = 20 %). Suspicious cells that touch (8-neighbourhood) form a spot; spots
-  smaller than ``min_area_m2`` are noise. A spot's position is its centroid weighted by the rise.
-* **Across levels.** Spots at successive force levels within ``merge_radius_m`` of each other are the
-  same tumour. A tumour's **first level** is the lowest force from which it shows at every higher level
-  palpated there (a spot that comes and goes is noise, not a tumour becoming palpable); spots that do not
-  last up to the highest force are dropped.
+* **Evidence.** In each level record (an area at a force), each element's contrast is weighed against its
+  uncertainty with a matched filter: for a blob of Gaussian profile of width ``w`` centred on element e,
+  ``z(e) = sum_j K_ej c_j / s_j^2 / sqrt(sum_j K_ej^2 / s_j^2)``, the likelihood-ratio statistic of a blob
+  of unknown height against none, over the elements in contact. Blobs of every width in
+  ``kernel_widths_m`` are tried and the largest statistic kept.
+* **Threshold.** Healthy tissue gives independent standard normal ``c_j / s_j``; the threshold is the
+  value the largest statistic over one area's face exceeds with probability ``false_alarm_per_area``
+  (found once by simulating healthy faces), so each palpated area raises a false alarm that often.
+* **Spots.** Every local maximum of the statistic (over its 8 neighbours) that passes the threshold is a
+  spot, so two tumours under one face stay two; its score is that statistic, its first position the
+  precision-weighted centroid of the positive contrast around it, in the tissue frame (TSI position +
+  element offset).
+* **Across areas and levels.** Spots at the same force level within ``merge_radius_m`` of each other are one
+  (areas may overlap), and so is a spot at the edge of its face within that radius plus half the face's
+  width of a stronger one (it sees only the near side of what raised it); spots at successive levels within
+  that radius are the same tumour. A tumour's
+  **first level** is the lowest force from which it shows at every higher level palpated at its position (a
+  spot that comes and goes is noise, not a tumour becoming palpable); one that does not last up to the
+  highest force palpated there is dropped. Its score is that of its strongest spot; its position is where a
+  Gaussian blob fitted (weighted by precision) to the contrast of every element of every area within
+  ``fit_radius_m`` of that spot, at that level, peaks: the areas on both sides of a seam each see part of
+  a tumour under it, and only together do they show where it is.
 * **Depth**, by the paper's rule (Section IV-B): the TSI indentation depth of the record, at the first
-  level, whose footprint holds the tumour (the nearest TSI centre if several overlap).
-* The same is done on the stiffness map (Eq. 1, which accounts for how much the tissue was deformed) and,
-  separately, on the force map (the tactile pressure alone), to show the paper's contrast between them.
-* The reported position is that of the spot with the strongest rise along the tumour's levels.
+  level, whose footprint holds the tumour (the nearest TSI centre if several do). The model-based estimate
+  with its interval is added by :mod:`session.depth`.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
 
-from session.stitch import StitchResult, element_offsets_m
+from session.flatfield import ACCURACY, MAPS, Contrast
+from session.stitch import element_offsets_m, level_groups
 
-SOURCES = ("stiffness", "force")
-_MAP_OF = {"stiffness": "stiffness_pa", "force": "pressure_pa"}
+SOURCES = MAPS
+_NULL_DRAWS = 20000  # healthy faces simulated to set the threshold: its quantile is good to ~0.1 in z
 
 
 class DetectError(ValueError):
@@ -37,147 +52,254 @@ class DetectError(ValueError):
 
 @dataclass(frozen=True)
 class DetectParams:
-    threshold: float = 0.2  # relative rise over the map's median
-    min_area_m2: float = 8e-6  # two sensor elements
-    merge_radius_m: float = 4e-3  # half the TSI width
+    false_alarm_per_area: float = 0.01  # chance that a palpated area of healthy tissue raises a spot
+    accuracy: float = ACCURACY  # the least relative scatter healthy tissue is allowed (repeatability of a reading)
+    merge_radius_m: float = 4e-3  # half the TSI's width: one tumour seen twice is closer than this
+    fit_radius_m: float = 6e-3  # contrast this close to a spot places the tumour
+    kernel_widths_m: tuple[float, ...] = (2e-3, 4e-3)  # blob widths (Gaussian sigma) the matched filter tries
 
     def __post_init__(self):
-        if not (math.isfinite(self.threshold) and 0.0 < self.threshold <= 10.0):
-            raise DetectError(f"threshold must be a relative rise within (0, 10] (0.2 = 20 %), got {self.threshold!r}")
-        if not (math.isfinite(self.min_area_m2) and self.min_area_m2 >= 0.0):
-            raise DetectError(f"minimum spot area must be >= 0 m^2, got {self.min_area_m2!r}")
-        if not (math.isfinite(self.merge_radius_m) and self.merge_radius_m > 0.0):
-            raise DetectError(f"merge radius must be > 0 m, got {self.merge_radius_m!r}")
+        a = self.false_alarm_per_area
+        if not (isinstance(a, (int, float)) and math.isfinite(a) and 1e-6 <= a <= 0.5):
+            raise DetectError(f"false-alarm rate per area must be within [1e-6, 0.5], got {a!r}")
+        if not (isinstance(self.accuracy, (int, float)) and math.isfinite(self.accuracy)
+                and 0.001 <= self.accuracy <= 0.5):
+            raise DetectError(f"accuracy must be a relative scatter within [0.001, 0.5], got {self.accuracy!r}")
+        if not (math.isfinite(self.merge_radius_m) and 0.0 < self.merge_radius_m <= 0.05):
+            raise DetectError(f"merge radius must be within (0, 50] mm, got {self.merge_radius_m!r} m")
+        if not (math.isfinite(self.fit_radius_m) and 2e-3 <= self.fit_radius_m <= 0.05):
+            raise DetectError(f"fit radius must be within [2, 50] mm, got {self.fit_radius_m!r} m")
+        widths = tuple(float(w) for w in self.kernel_widths_m)
+        if not widths or not all(math.isfinite(w) and 0.5e-3 <= w <= 20e-3 for w in widths):
+            raise DetectError(f"kernel widths must be within [0.5, 20] mm, got {self.kernel_widths_m!r}")
+        object.__setattr__(self, "kernel_widths_m", widths)
 
 
 @dataclass(frozen=True)
 class Spot:
-    level_index: int
+    record: int  # its /levels row
+    level_index: int  # 0 = lowest force in the session
     force_N: float
     x_m: float
     y_m: float
-    area_m2: float
-    peak_rise: float  # (max value - baseline) / baseline
+    score: float  # largest matched-filter statistic
+    contrast: float  # largest contrast among its elements
+    elements: int
+    at_edge: bool  # it reaches the face's edge: what raised it may lie beyond, under a neighbouring area
 
 
 @dataclass(frozen=True)
 class Tumour:
     x_m: float
     y_m: float
-    depth_m: float  # TSI indentation at the first level (NaN if no record there holds the position)
+    depth_m: float  # the paper's rule: TSI indentation at the first level (NaN if no record there holds it)
     first_level_N: float
     source: str  # "stiffness" | "force"
-    peak_rise: float
-    area_m2: float
+    score: float  # the strongest spot's statistic (a z score: how many standard deviations of healthy tissue)
+    contrast: float  # its largest contrast (0.3 = 30 % harder than homogeneous tissue)
     levels_N: tuple[float, ...]  # every force level it shows at, from the first
+    depth_model_m: float = math.nan  # model-based estimate (session.depth), with its 90 % interval
+    depth_low_m: float = math.nan
+    depth_high_m: float = math.nan
+    spots: tuple[Spot, ...] = field(default=(), repr=False, compare=False)
 
     def to_json(self) -> dict:
-        d = asdict(self)
+        d = {k: v for k, v in asdict(self).items() if k != "spots"}
         d["levels_N"] = list(self.levels_N)
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
 
+    def with_depth_model(self, depth_m: float, low_m: float, high_m: float) -> Tumour:
+        return replace(self, depth_model_m=depth_m, depth_low_m=low_m, depth_high_m=high_m)
 
-def spots(values: np.ndarray, stitched: StitchResult, level_index: int, params: DetectParams) -> list[Spot]:
-    """The suspicious spots of one map (shaped like the grid) at one level."""
-    grid = stitched.grid
-    finite = np.isfinite(values)
-    if not finite.any():
-        return []
-    baseline = float(np.median(values[finite]))
-    if not baseline > 0:
-        return []
-    rise = np.where(finite, values / baseline - 1.0, -np.inf)
-    labels, n = ndimage.label(rise >= params.threshold, structure=np.ones((3, 3), dtype=bool))
-    if n == 0:
-        return []
-    cell_area = grid.cell_m * grid.cell_m
-    xs, ys = grid.x_centres_m(), grid.y_centres_m()
+
+def _kernels(shape: tuple[int, int], pitch_m: float, widths_m: tuple[float, ...]) -> np.ndarray:
+    """(widths, n, n) Gaussian weights between the n elements of a face."""
+    offsets = element_offsets_m(shape[0], shape[1], pitch_m).reshape(-1, 2)
+    d2 = ((offsets[:, None, :] - offsets[None, :, :]) ** 2).sum(axis=-1)
+    return np.stack([np.exp(-0.5 * d2 / (w * w)) for w in widths_m])
+
+
+def evidence(contrast: np.ndarray, sigma: np.ndarray, pitch_m: float, widths_m: tuple[float, ...]) -> np.ndarray:
+    """The matched-filter statistic centred on each element (see the module docstring); NaN off contact."""
+    shape = contrast.shape
+    kernels = _kernels(shape, pitch_m, widths_m)
+    used = np.isfinite(contrast.ravel()) & np.isfinite(sigma.ravel()) & (sigma.ravel() > 0)
+    out = np.full(contrast.size, -np.inf)
+    if not used.any():
+        return np.full(shape, np.nan)
+    precision = np.where(used, 1.0 / np.where(used, sigma.ravel(), 1.0) ** 2, 0.0)
+    weighted = np.where(used, contrast.ravel(), 0.0) * precision
+    for k in kernels:
+        num = k @ weighted
+        den = np.sqrt((k * k) @ precision)
+        out = np.maximum(out, np.divide(num, den, out=np.full(num.shape, -np.inf), where=den > 0))
+    return np.where(used, out, np.nan).reshape(shape)
+
+
+@functools.lru_cache(maxsize=32)
+def threshold(false_alarm: float, shape: tuple[int, int], pitch_m: float, widths_m: tuple[float, ...]) -> float:
+    """The statistic healthy tissue's largest value over one face exceeds with probability ``false_alarm``."""
+    kernels = _kernels(shape, pitch_m, widths_m)
+    rng = np.random.default_rng(20240501)
+    null = rng.standard_normal((_NULL_DRAWS, shape[0] * shape[1]))
+    largest = np.full(_NULL_DRAWS, -np.inf)
+    for k in kernels:
+        largest = np.maximum(largest, (null @ k.T / np.sqrt((k * k).sum(axis=1))).max(axis=1))
+    return float(np.quantile(largest, 1.0 - false_alarm))
+
+
+def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams) -> list[Spot]:
+    """The significant spots of every level record."""
+    shape = levels.dtype["pressure_pa"].shape
+    limit = threshold(params.false_alarm_per_area, tuple(shape), pitch_m, params.kernel_widths_m)
+    offsets = element_offsets_m(shape[0], shape[1], pitch_m)
+    level_of = np.empty(len(levels), dtype=int)
+    force_of = np.empty(len(levels))
+    for index, (force, records) in enumerate(level_groups(levels)):
+        level_of[records] = index
+        force_of[records] = force
     out = []
-    force = stitched.levels[level_index].force_N
-    for label in range(1, n + 1):
-        ii, jj = np.nonzero(labels == label)
-        area = len(ii) * cell_area
-        if area + 1e-15 < params.min_area_m2:
-            continue
-        w = rise[ii, jj]
-        x, y = float(np.sum(w * xs[ii]) / np.sum(w)), float(np.sum(w * ys[jj]) / np.sum(w))
-        out.append(Spot(level_index, force, x, y, area, float(w.max())))
+    for r in range(len(levels)):
+        c, s = contrast.contrast[r], contrast.sigma[r]
+        z = evidence(c, s, pitch_m, params.kernel_widths_m)
+        finite = np.nan_to_num(z, nan=-np.inf)
+        peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+        tsi = levels["tsi_position_m"][r]
+        near = np.hypot(offsets[..., 0][None, None] - offsets[..., 0][..., None, None],
+                        offsets[..., 1][None, None] - offsets[..., 1][..., None, None])
+        for i, j in zip(*np.nonzero(peaks)):
+            around = near[i, j] <= 1.5 * pitch_m
+            weight = np.where(around, np.clip(np.nan_to_num(c), 0.0, None) / np.nan_to_num(s, nan=np.inf) ** 2, 0.0)
+            if not weight.sum() > 0:
+                weight = (near[i, j] == 0).astype(float)
+            x = float(tsi[0] + (weight * offsets[..., 0]).sum() / weight.sum())
+            y = float(tsi[1] + (weight * offsets[..., 1]).sum() / weight.sum())
+            edge = i in (0, shape[0] - 1) or j in (0, shape[1] - 1)
+            out.append(Spot(r, int(level_of[r]), float(force_of[r]), x, y, float(z[i, j]), float(np.nanmax(c[around])),
+                            int(around.sum()), edge))
     return out
+
+
+def _footprint_holds(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float) -> np.ndarray:
+    """Which of ``records`` had the point (x, y) under the TSI's face."""
+    rows, cols = levels.dtype["pressure_pa"].shape
+    pos = levels["tsi_position_m"][records]
+    return (np.abs(x_m - pos[:, 0]) <= rows * pitch_m / 2) & (np.abs(y_m - pos[:, 1]) <= cols * pitch_m / 2)
 
 
 def _depth_at(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float) -> float:
     """Indentation of the record (among ``records``) whose TSI footprint holds (x, y), nearest centre first."""
-    rows, cols = levels.dtype["pressure_pa"].shape
-    offsets = element_offsets_m(rows, cols, pitch_m)
-    half_x = offsets[..., 0].max() + pitch_m / 2
-    half_y = offsets[..., 1].max() + pitch_m / 2
-    pos = levels["tsi_position_m"][records]
-    dx, dy = x_m - pos[:, 0], y_m - pos[:, 1]
-    inside = (np.abs(dx) <= half_x) & (np.abs(dy) <= half_y)
+    inside = _footprint_holds(levels, records, x_m, y_m, pitch_m)
     if not inside.any():
         return math.nan
     candidates = np.flatnonzero(inside)
-    best = candidates[np.argmin(np.hypot(dx[candidates], dy[candidates]))]
+    pos = levels["tsi_position_m"][records[candidates]]
+    best = candidates[np.argmin(np.hypot(x_m - pos[:, 0], y_m - pos[:, 1]))]
     return float(levels["indentation_m"][records[best]])
 
 
-def detect(stitched: StitchResult, levels: np.ndarray, pitch_m: float, source: str = "stiffness",
-           params: DetectParams | None = None) -> list[Tumour]:
-    """Tumours in the ``source`` map ("stiffness" or "force") of a stitched session, ordered along x."""
-    if source not in SOURCES:
-        raise DetectError(f"unknown map {source!r} to detect in (known: {', '.join(SOURCES)})")
+def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams | None = None
+           ) -> list[Tumour]:
+    """Tumours in one map's contrast (``contrast.map``) of a session's level records, ordered along x."""
     params = params or DetectParams()
-    tracks: list[list[Spot]] = []
-    for lm in stitched.levels:
-        found = spots(lm.quantity(_MAP_OF[source]), stitched, lm.index, params)
+    groups = level_groups(levels)
+    found = spots(levels, contrast, pitch_m, params)
+    rows = levels.dtype["pressure_pa"].shape[0]
+    # One cluster per tumour and level. A spot that reaches its face's edge sees only the near side of what
+    # raised it, and its centroid falls short of it by up to the face's width: it joins a stronger spot of
+    # a neighbouring area that far away.
+    per_level: list[list[list[Spot]]] = [[] for _ in groups]
+    for spot in sorted(found, key=lambda s: -s.score):
+        clusters = per_level[spot.level_index]
+        reach = params.merge_radius_m + (rows * pitch_m / 2 if spot.at_edge else 0.0)
+        near = [c for c in clusters if math.hypot(spot.x_m - c[0].x_m, spot.y_m - c[0].y_m) <= reach]
+        if near:
+            near[0].append(spot)
+        else:
+            clusters.append([spot])
+    tracks: list[dict[int, list[Spot]]] = []
+    for index, clusters in enumerate(per_level):
         claimed: set[int] = set()
-        for spot in sorted(found, key=lambda s: -s.peak_rise):
+        for cluster in clusters:
+            lead = cluster[0]
             best, best_d = None, params.merge_radius_m
             for t, track in enumerate(tracks):
-                last = track[-1]
-                d = math.hypot(spot.x_m - last.x_m, spot.y_m - last.y_m)
-                if t not in claimed and last.level_index < lm.index and d <= best_d:
+                last = track[max(track)]
+                d = math.hypot(lead.x_m - last[0].x_m, lead.y_m - last[0].y_m)
+                if t not in claimed and max(track) < index and d <= best_d:
                     best, best_d = t, d
             if best is None:
-                tracks.append([spot])
+                tracks.append({index: cluster})
                 claimed.add(len(tracks) - 1)
             else:
-                tracks[best].append(spot)
+                tracks[best][index] = cluster
                 claimed.add(best)
-
     tumours = []
     for track in tracks:
-        top = _highest_level_covering(stitched, track[-1].x_m, track[-1].y_m)
-        # the unbroken run of levels that ends at the highest level palpated at this place
-        by_level = {s.level_index: s for s in track}
-        if top is None or top not in by_level:
+        last = track[max(track)][0]
+        top = _highest_level_at(levels, groups, last.x_m, last.y_m, pitch_m)
+        if top is None or top not in track:
             continue
         first = top
-        while first - 1 in by_level:
+        while first - 1 in track:
             first -= 1
-        run = [by_level[k] for k in range(first, top + 1)]
-        strongest = max(run, key=lambda s: s.peak_rise)
-        first_map = stitched.levels[first]
-        depth = _depth_at(levels, first_map.records, strongest.x_m, strongest.y_m, pitch_m)
-        tumours.append(Tumour(x_m=strongest.x_m, y_m=strongest.y_m, depth_m=depth, first_level_N=first_map.force_N,
-                              source=source, peak_rise=strongest.peak_rise, area_m2=strongest.area_m2,
-                              levels_N=tuple(stitched.levels[s.level_index].force_N for s in run)))
+        run = [track[k] for k in range(first, top + 1)]
+        strongest = max(run, key=lambda cluster: cluster[0].score)
+        lead = strongest[0]
+        x, y = _blob_centre(levels, contrast, groups[lead.level_index][1], lead.x_m, lead.y_m, pitch_m,
+                            params.fit_radius_m)
+        depth = _depth_at(levels, groups[first][1], x, y, pitch_m)
+        tumours.append(Tumour(x_m=x, y_m=y, depth_m=depth, first_level_N=groups[first][0], source=contrast.map,
+                              score=lead.score, contrast=max(s.contrast for s in strongest),
+                              levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
+                              spots=tuple(s for cluster in run for s in cluster)))
     return sorted(tumours, key=lambda t: (t.x_m, t.y_m))
 
 
-def _highest_level_covering(stitched: StitchResult, x_m: float, y_m: float) -> int | None:
-    cell = stitched.grid.cell_of(x_m, y_m)
-    if cell is None:
-        return None
-    for lm in reversed(stitched.levels):
-        if lm.coverage[cell] > 0.5:
-            return lm.index
+def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, x_m: float, y_m: float,
+                 pitch_m: float, radius_m: float) -> tuple[float, float]:
+    """Where a Gaussian blob fitted to the contrast within ``radius_m`` of (x, y), over every element of every
+    record at that level, peaks (weighted least squares; the first position again if the fit fails or
+    leaves the fitted region)."""
+    from scipy.optimize import least_squares
+
+    rows, cols = levels.dtype["pressure_pa"].shape
+    offsets = element_offsets_m(rows, cols, pitch_m)
+    xs, ys, cs, ws = [], [], [], []
+    for r in records:
+        ex = levels["tsi_position_m"][r, 0] + offsets[..., 0]
+        ey = levels["tsi_position_m"][r, 1] + offsets[..., 1]
+        c, s = contrast.contrast[r], contrast.sigma[r]
+        use = (np.hypot(ex - x_m, ey - y_m) <= radius_m) & np.isfinite(c) & np.isfinite(s) & (s > 0)
+        xs.append(ex[use]), ys.append(ey[use]), cs.append(c[use]), ws.append(1.0 / s[use])
+    x, y, c, w = (np.concatenate(v) for v in (xs, ys, cs, ws))
+    if len(c) < 5 or not (c > 0).any():
+        return x_m, y_m
+
+    def residual(p):
+        height, cx, cy, log_width = p
+        width = math.exp(log_width)
+        return w * (height * np.exp(-0.5 * ((x - cx) ** 2 + (y - cy) ** 2) / width ** 2) - c)
+
+    start = (float(c.max()), x_m, y_m, math.log(pitch_m))
+    lower = (0.0, x_m - radius_m, y_m - radius_m, math.log(0.5 * pitch_m))
+    upper = (np.inf, x_m + radius_m, y_m + radius_m, math.log(4 * radius_m))
+    try:
+        fit = least_squares(residual, start, bounds=(lower, upper), max_nfev=200)
+    except (ValueError, np.linalg.LinAlgError):
+        return x_m, y_m
+    cx, cy = float(fit.x[1]), float(fit.x[2])
+    if not fit.success or math.hypot(cx - x_m, cy - y_m) >= radius_m * 0.999:
+        return x_m, y_m
+    return cx, cy
+
+
+def _highest_level_at(levels: np.ndarray, groups, x_m: float, y_m: float, pitch_m: float) -> int | None:
+    """Index of the highest force level palpated with (x, y) under the face, if any."""
+    for index in range(len(groups) - 1, -1, -1):
+        if _footprint_holds(levels, groups[index][1], x_m, y_m, pitch_m).any():
+            return index
     return None
-
-
-def detect_session(session, stitched: StitchResult, params: DetectParams | None = None) -> list[Tumour]:
-    """Both sources, stiffness first."""
-    return [t for source in SOURCES for t in detect(stitched, session.levels, session.pitch_m, source, params)]
 
 
 @dataclass(frozen=True)
@@ -191,39 +313,52 @@ class TruthMatch:
     source: str
     found: bool
     error_xy_m: float  # NaN when not found
-    depth_estimate_m: float
+    depth_estimate_m: float  # the paper's rule
     first_level_N: float
     detection: int  # index of the matched detection in the list given, -1 when not found
     palpated: bool  # whether the session palpated the place at all (True when not known)
+    depth_model_m: float = math.nan
+    depth_low_m: float = math.nan
+    depth_high_m: float = math.nan
+    score: float = math.nan
 
 
-def match_ground_truth(tumours: list[Tumour], ground_truth: list[dict], match_radius_m: float = 6e-3,
-                       stitched: StitchResult | None = None) -> tuple[list[TruthMatch], dict[str, int]]:
-    """Pair each true tumour with the nearest detection (per source) within ``match_radius_m``.
+MATCH_RADIUS_M = 2e-3
 
-    Returns the matches and, per source, the number of detections that matched no true tumour (false
-    positives). With ``stitched``, a true tumour nobody palpated over is marked ``palpated=False``.
+
+def match_ground_truth(tumours: list[Tumour], ground_truth: list[dict], levels: np.ndarray | None = None,
+                       pitch_m: float | None = None, match_radius_m: float = MATCH_RADIUS_M
+                       ) -> tuple[list[TruthMatch], dict[str, int]]:
+    """Pair each true tumour with the nearest detection (per map) within ``match_radius_m``.
+
+    Returns the matches and, per map, the number of detections that matched no true tumour (false
+    positives). With ``levels`` and ``pitch_m``, a true tumour no area was palpated over is marked
+    ``palpated=False``.
     """
     matches: list[TruthMatch] = []
     false_positives: dict[str, int] = {}
+    groups = level_groups(levels) if levels is not None else None
     for source in SOURCES:
         found = [(k, t) for k, t in enumerate(tumours) if t.source == source]
         used: set[int] = set()
+        # closest pairs first, so a detection goes to the true tumour it is nearest to
+        pairs = sorted((math.hypot(t.x_m - float(truth["x_m"]), t.y_m - float(truth["y_m"])), i, k)
+                       for i, truth in enumerate(ground_truth) for k, t in found)
+        assigned: dict[int, tuple[int, float]] = {}
+        for d, i, k in pairs:
+            if d <= match_radius_m and i not in assigned and k not in used:
+                assigned[i] = (k, d)
+                used.add(k)
         for i, truth in enumerate(ground_truth):
             tx, ty = float(truth["x_m"]), float(truth["y_m"])
-            best, best_d = None, match_radius_m
-            for k, t in found:
-                d = math.hypot(t.x_m - tx, t.y_m - ty)
-                if k not in used and d <= best_d:
-                    best, best_d = k, d
             depth = float(truth.get("depth_m", math.nan))
-            palpated = stitched is None or _highest_level_covering(stitched, tx, ty) is not None
-            if best is None:
+            palpated = groups is None or _highest_level_at(levels, groups, tx, ty, pitch_m) is not None
+            if i not in assigned:
                 matches.append(TruthMatch(i, tx, ty, depth, source, False, math.nan, math.nan, math.nan, -1, palpated))
-            else:
-                used.add(best)
-                t = tumours[best]
-                matches.append(TruthMatch(i, tx, ty, depth, source, True, best_d, t.depth_m, t.first_level_N, best,
-                                          palpated))
+                continue
+            k, d = assigned[i]
+            t = tumours[k]
+            matches.append(TruthMatch(i, tx, ty, depth, source, True, d, t.depth_m, t.first_level_N, k, palpated,
+                                      t.depth_model_m, t.depth_low_m, t.depth_high_m, t.score))
         false_positives[source] = len(found) - len(used)
     return matches, false_positives

@@ -121,12 +121,16 @@ class LevelMap:
     indentation_m: np.ndarray  # per-element dL
     coverage: np.ndarray
     tsi_indentation_m: float  # mean TSI indentation depth of its records
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # other per-element values stitched (contrasts)
 
     def quantity(self, name: str) -> np.ndarray:
         if name == "coverage":
             return self.coverage
+        if name in self.extra:
+            return self.extra[name]
         if name not in QUANTITIES:
-            raise KeyError(f"unknown map {name!r} (known: {', '.join(QUANTITIES)}, coverage)")
+            known = ", ".join((*QUANTITIES, *self.extra, "coverage"))
+            raise KeyError(f"unknown map {name!r} (known: {known})")
         return getattr(self, name)
 
 
@@ -237,8 +241,9 @@ def level_groups(levels: np.ndarray) -> list[tuple[float, np.ndarray]]:
 
 
 def stitch(levels: np.ndarray, pitch_m: float, element_area_m2: float, params: StitchParams | None = None,
-           default_min_indentation_m: float = 0.2e-3) -> StitchResult:
-    """Stitch LEVEL_DTYPE records (a session's ``levels``) into one set of maps per force level."""
+           default_min_indentation_m: float = 0.2e-3, extra: dict[str, np.ndarray] | None = None) -> StitchResult:
+    """Stitch LEVEL_DTYPE records (a session's ``levels``) into one set of maps per force level; ``extra``
+    names other per-element values, (records, rows, cols) each, stitched the same way (``LevelMap.extra``)."""
     params = params or StitchParams()
     if not len(levels):
         return StitchResult(Grid(0.0, 0.0, params.cell_m, 0, 0), params, [], np.empty((0,) + _shape(levels)))
@@ -259,11 +264,13 @@ def stitch(levels: np.ndarray, pitch_m: float, element_area_m2: float, params: S
     for index, (force, records) in enumerate(level_groups(levels)):
         select = (records[:, None] * n_el + np.arange(n_el)[None, :]).ravel()
         maps = {name: splat.mean(values, select).reshape(grid.shape) for name, values in per_element.items()}
+        stitched_extra = {name: splat.mean(np.asarray(values, float).reshape(-1), select).reshape(grid.shape)
+                          for name, values in (extra or {}).items()}
         depth = levels["indentation_m"][records]
         finite = depth[np.isfinite(depth)]
         result.levels.append(LevelMap(
             force_N=force, index=index, records=records, coverage=splat.coverage(select).reshape(grid.shape),
-            tsi_indentation_m=float(finite.mean()) if finite.size else math.nan, **maps))
+            tsi_indentation_m=float(finite.mean()) if finite.size else math.nan, extra=stitched_extra, **maps))
     return result
 
 
@@ -271,6 +278,8 @@ def _shape(levels: np.ndarray) -> tuple[int, int]:
     return tuple(levels.dtype["pressure_pa"].shape)  # type: ignore[return-value]
 
 
-def stitch_session(session, params: StitchParams | None = None) -> StitchResult:
+def stitch_session(session, params: StitchParams | None = None, extra: dict[str, np.ndarray] | None = None
+                   ) -> StitchResult:
     """:func:`stitch` with the geometry and settings a :class:`session.reader.Session` recorded."""
-    return stitch(session.levels, session.pitch_m, session.element_area_m2, params, session.min_indentation_m)
+    return stitch(session.levels, session.pitch_m, session.element_area_m2, params, session.min_indentation_m,
+                  extra)

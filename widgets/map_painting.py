@@ -24,8 +24,12 @@ from session.stitch import LevelMap, StitchResult
 from widgets.colormaps import CONTOUR_LUT, colour_range, map_rgb
 
 # (LevelMap attribute, detection source, title, unit, display scale)
+# Each raw map beside its contrast (when the analysis made one): the raw map is what was measured, the
+# contrast what is left once the probe's own pattern is divided out.
 _PANELS = (("pressure_pa", "force", "force map", "kPa", 1e-3),
-           ("stiffness_pa", "stiffness", "stiffness map", "kPa", 1e-3))
+           ("force_contrast", "force", "force contrast", "%", 100.0),
+           ("stiffness_pa", "stiffness", "stiffness map", "kPa", 1e-3),
+           ("stiffness_contrast", "stiffness", "stiffness contrast", "%", 100.0))
 
 
 def ensure_gui_application():
@@ -46,13 +50,15 @@ class MapPainter:
         self.stitched = stitched
         self.tumours = tumours
         self.ground_truth = ground_truth or []
+        known = stitched.levels[0].extra if stitched.levels else {}
+        self.panels = [p for p in _PANELS if not p[0].endswith("_contrast") or p[0] in known]
 
     def natural_size(self, px_per_mm: float) -> tuple[int, int]:
         g = self.stitched.grid
         w_mm, h_mm = g.nx * g.cell_m * 1e3, g.ny * g.cell_m * 1e3
         cell_w = w_mm * px_per_mm + 150
         cell_h = h_mm * px_per_mm + 70
-        return int(len(_PANELS) * cell_w + 40), int(max(1, len(self.stitched.levels)) * cell_h + 40)
+        return int(len(self.panels) * cell_w + 40), int(max(1, len(self.stitched.levels)) * cell_h + 40)
 
     def paint(self, painter, rect) -> None:
         levels = self.stitched.levels
@@ -60,13 +66,13 @@ class MapPainter:
         if not levels or g.nx == 0:
             painter.drawText(rect, QtCore.Qt.AlignmentFlag.AlignCenter, "No force level was recorded in this session")
             return
-        cols, rows = len(_PANELS), len(levels)
+        cols, rows = len(self.panels), len(levels)
         cw, ch = rect.width() / cols, rect.height() / rows
         font = QtGui.QFont("DejaVu Sans")
         font.setPixelSize(max(8, int(min(ch * 0.075, cw * 0.03))))
         painter.setFont(font)
         for r, lm in enumerate(levels):
-            for c, panel in enumerate(_PANELS):
+            for c, panel in enumerate(self.panels):
                 cell = QtCore.QRectF(rect.left() + c * cw, rect.top() + r * ch, cw, ch)
                 self._panel(painter, cell, lm, panel)
 

@@ -75,3 +75,16 @@ def test_the_parser_names_exactly_the_backends_the_rig_builder_knows():
     from app.rigs import BACKENDS
 
     assert sorted(BACKEND_NAMES) == sorted(BACKENDS)
+
+
+def test_every_delegated_subcommand_reaches_its_own_parser(capsys):
+    """`palpation-console stitch --help` (and the others) must find the function they are handed to."""
+    from app.cli import DELEGATED
+
+    for name in DELEGATED:
+        try:
+            code = main([name, "--help"])
+        except SystemExit as stop:  # argparse's own way out, for the subcommands that let it through
+            code = stop.code
+        assert code == 0, name
+        assert f"usage: palpation-console {name}" in capsys.readouterr().out

@@ -2,7 +2,9 @@
 paper's flat phantom (the first two overlap; tumours under the first and the third), ramp 0.5-1.5 N.
 
 The tissue is the Winkler model, named explicitly: it is fast, and what these tests check (recording,
-stitching, detection) must not move when the simulator's default tissue model changes."""
+stitching, detection) must not move when the simulator's default tissue model changes. The finite-element
+physics of the flat field does not describe a Winkler bed, so detection here takes the face's pattern from
+a reference palpation of the same phantom without its tumours, as a lab would."""
 
 from __future__ import annotations
 
@@ -22,17 +24,28 @@ REGIONS_XY_M = ((0.012, 0.015), (0.018, 0.015), (0.036, 0.015))
 RAMP = {"force_min_N": 0.5, "force_max_N": 1.5, "force_step_N": 0.5}
 
 
-@pytest.fixture(scope="session")
-def recorded(tmp_path_factory):
-    """(path of the session file, the recorder's final status)."""
-    folder = tmp_path_factory.mktemp("recorded")
+def _record(folder, name: str, with_tumours: bool):
     phantom = tomllib.loads((PHANTOM_DIR / "flat.toml").read_text(encoding="utf-8"))
     phantom["phantom"]["regions"] = [{"centre_xy_m": list(xy)} for xy in REGIONS_XY_M]
-    phantom_path = folder / "three_areas.toml"
+    if not with_tumours:
+        phantom["phantom"].pop("inclusions", None)
+    phantom_path = folder / f"{name}.toml"
     phantom_path.write_text(tomli_w.dumps(phantom), encoding="utf-8")
     config = load_config(None, {"control": {"ramp": RAMP}, "rig": {"phantom": str(phantom_path)}})
     three_areas = load_phantom(phantom_path)
     rig = build_sim_rig(three_areas, tissue=WinklerTissue(three_areas, TactileConstraints()))
-    path = folder / "session.h5"
+    path = folder / f"{name}.h5"
     status = record_simulation(path, config, rig=rig, max_time_s=120.0)
     return path, status
+
+
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory):
+    """(path of the session file, the recorder's final status)."""
+    return _record(tmp_path_factory.mktemp("recorded"), "session", with_tumours=True)
+
+
+@pytest.fixture(scope="session")
+def reference_recorded(tmp_path_factory):
+    """The same three areas of the same phantom without its tumours: a reference palpation."""
+    return _record(tmp_path_factory.mktemp("reference"), "reference", with_tumours=False)[0]

@@ -14,18 +14,24 @@ from session.reader import open_session
 from session.stitch import StitchParams, stitch_session
 
 
-def test_every_export(recorded, tmp_path, capsys, qapp):
+def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
     path = recorded[0]
     out = {name: tmp_path / name for name in ("maps.png", "maps.csv", "maps.json", "tumours.json", "report.pdf",
-                                             "report.png")}
+                                             "report.png", "reference.json")}
+    # the lab's way: palpate tumour-free tissue once, save it as the reference, analyse sessions against it
+    assert stitch_main([str(reference_recorded), "--physics", "none", "--save-reference",
+                        str(out["reference.json"])]) == 0
+    assert f"reference palpation: {out['reference.json']}" in capsys.readouterr().out
+    analysis = ["--physics", "none", "--reference", str(out["reference.json"])]
     code = stitch_main([str(path), "-o", str(out["maps.png"]), "--csv", str(out["maps.csv"]),
                         "--json", str(out["maps.json"]), "--tumours", str(out["tumours.json"]),
-                        "--report", str(out["report.pdf"]), "--cell-mm", "2"])
+                        "--report", str(out["report.pdf"]), "--cell-mm", "2", *analysis])
     assert code == 0
     printed = capsys.readouterr().out
     assert "3 regions, 9 recorded levels (forces 0.5, 1, 1.5 N)" in printed
+    assert "baseline reference palpation (reference palpation reference.h5" in printed
     assert "truth 3 (60, 15) mm, 10.0 mm deep, stiffness map: not palpated" in printed
-    assert stitch_main([str(path), "--report", str(out["report.png"])]) == 0
+    assert stitch_main([str(path), "--report", str(out["report.png"]), *analysis]) == 0
 
     for name in ("maps.png", "report.png"):
         image = QtGui.QImage(str(out[name]))
@@ -42,10 +48,12 @@ def test_every_export(recorded, tmp_path, capsys, qapp):
     lm = stitched.levels[0]
     cell = stitched.grid.cell_of(float(first["x_m"]), float(first["y_m"]))
     assert float(first["pressure_pa"]) == pytest.approx(lm.pressure_pa[cell], rel=1e-5)
+    assert {"stiffness_contrast", "force_contrast"} <= set(first)
 
     maps = json.loads(out["maps.json"].read_text())
     assert maps["format"] == "palpation-console-maps" and maps["grid"]["cell_m"] == 2e-3
     assert len(maps["levels"]) == 3 and maps["levels"][2]["force_N"] == 1.5
+    assert len(maps["levels"][2]["stiffness_contrast"]) == stitched.grid.nx
     stiffness = maps["levels"][2]["stiffness_pa"]
     assert len(stiffness) == stitched.grid.nx and len(stiffness[0]) == stitched.grid.ny
     gap = stitched.grid.cell_of(0.028, 0.015)  # between the second and the third area
@@ -55,7 +63,8 @@ def test_every_export(recorded, tmp_path, capsys, qapp):
     assert tumours["format"] == "palpation-console-tumours"
     assert {t["source"] for t in tumours["tumours"]} == {"stiffness", "force"}
     for t in tumours["tumours"]:
-        assert set(t) >= {"x_m", "y_m", "depth_m", "first_level_N", "source"}
+        assert set(t) >= {"x_m", "y_m", "depth_m", "first_level_N", "source", "score", "contrast", "depth_model_m",
+                          "depth_low_m", "depth_high_m"}
         assert t["first_level_N"] == 0.5 and 1e-3 < t["depth_m"] < 5e-3
     assert len(tumours["comparison"]) == 6 and tumours["false_positives"] == {"stiffness": 0, "force": 0}
 
@@ -72,7 +81,12 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert stitch_main([str(recorded[0]), "--l0", "guess"]) == 2  # argparse's own message
     assert "invalid choice: 'guess'" in capsys.readouterr().err
     assert stitch_main(["--help"]) == 0
-    assert "--threshold" in capsys.readouterr().out
+    assert "--false-alarm" in capsys.readouterr().out
+    assert stitch_main([str(recorded[0]), "--false-alarm", "2"]) == 2
+    assert "false-alarm rate per area must be within [1e-6, 0.5]" in capsys.readouterr().err
+    (tmp_path / "ref.json").write_text("{}")
+    assert stitch_main([str(recorded[0]), "--reference", str(tmp_path / "ref.json")]) == 2
+    assert "not a Palpation Console reference palpation" in capsys.readouterr().err
 
 
 def test_an_unwritable_output_is_reported(recorded, tmp_path, capsys, qapp):

@@ -12,6 +12,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from app.session_commands import review_main
 from control.messages import LevelRecorded
 from session.detect import DetectParams
+from session.flatfield import Reference
 from session.reader import open_session
 from session.stitch import L0Source, StitchParams
 from session.synthetic import level_record, tick_rows
@@ -70,10 +71,23 @@ def test_browse_regions_and_levels(qtbot, window, recorded):
     assert sha256(path) == before
 
 
-def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded):
+@pytest.fixture(scope="module")
+def reference_file(reference_recorded, tmp_path_factory):
+    """The tumour-free palpation of the same areas, saved as a reference (see tests/session/conftest.py)."""
+    path = tmp_path_factory.mktemp("ref") / "reference.json"
+    with open_session(reference_recorded) as ref:
+        share = np.ones(ref.levels["pressure_pa"].shape)
+        Reference.from_levels(ref.levels, share, np.zeros(share.shape), "tumour-free", physics=False).save(path)
+    return path
+
+
+def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded, reference_file):
     path = recorded[0]
     before = sha256(path)
     open_in(qtbot, window, path)
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        assert window.set_reference(reference_file)
+    assert child(window, QtWidgets.QLabel, "referenceLabel").text().startswith("reference.json: 3 areas")
     window.findChild(QtWidgets.QTabWidget, "tabs").setCurrentIndex(1)
     combo = child(window, QtWidgets.QComboBox, "levelCombo")
     assert [combo.itemText(i) for i in range(combo.count())] == ["0.5 N", "1 N", "1.5 N"]
@@ -81,13 +95,21 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded):
     stitched_map = window.findChild(QtWidgets.QWidget, "stitchedMap")
     assert np.array_equal(stitched_map.values(), window.stitched.levels[2].stiffness_pa, equal_nan=True)
     assert stitched_map.marker_counts() == (2, 3)  # two found by the stiffness map; the phantom's three
+    contrast_map = window.findChild(QtWidgets.QWidget, "contrastMap")  # beside it, the same map's contrast
+    assert np.array_equal(contrast_map.values(), window.stitched.levels[2].extra["stiffness_contrast"],
+                          equal_nan=True)
+    assert contrast_map.marker_counts() == (2, 3)
     window.set_quantity("pressure_pa")
     assert np.array_equal(stitched_map.values(), window.stitched.levels[2].pressure_pa, equal_nan=True)
     window.set_quantity("stiffness_pa")
     tumours = child(window, QtWidgets.QTableWidget, "tumourTable")
     assert tumours.rowCount() == 4
     assert [tumours.item(r, 0).text() for r in range(4)] == ["stiffness", "stiffness", "force", "force"]
-    assert tumours.item(0, 6).text().startswith("#1, 2.0 mm deep")
+    headers = [tumours.horizontalHeaderItem(c).text() for c in range(tumours.columnCount())]
+    assert headers[3:8] == ["Score (z)", "Contrast (%)", "First level (N)", "Depth, rule (mm)",
+                            "Depth, model (mm, 90 %)"]
+    assert float(tumours.item(0, 3).text()) > 3.0
+    assert tumours.item(0, 8).text().startswith("#1, 2.0 mm deep")
     assert "of the 2 palpated tumours (of 3)" in child(window, QtWidgets.QLabel, "analysisSummary").text()
     tumours.setCurrentCell(2, 0)  # the first tumour of the force map: shown where it first appears
     assert combo.currentIndex() == 0
@@ -97,8 +119,11 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded):
 
     # re-analysis from the panel, without re-recording
     with qtbot.waitSignal(window.analysis_done, timeout=5000):
-        child(window, QtWidgets.QDoubleSpinBox, "thresholdSpin").setValue(300.0)
+        child(window, QtWidgets.QDoubleSpinBox, "accuracySpin").setValue(50.0)  # healthy tissue this scattered
     assert tumours.rowCount() == 0 and window.tumours == []
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        child(window, QtWidgets.QDoubleSpinBox, "accuracySpin").setValue(2.0)
+    assert tumours.rowCount() == 4
     with qtbot.waitSignal(window.analysis_done, timeout=5000):
         child(window, QtWidgets.QDoubleSpinBox, "cellSpin").setValue(2.0)
     assert window.stitched.grid.cell_m == pytest.approx(2e-3)
@@ -117,6 +142,22 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded):
     assert len(window.tumours) == 4 and child(window, QtWidgets.QComboBox, "l0Combo").currentData() == "element"
     window.close_session()
     assert sha256(path) == before
+
+
+def test_a_flat_field_physics_that_cannot_be_had_is_said_and_the_analysis_runs_without(qtbot, settings, recorded):
+    def unavailable(session):
+        raise ValueError("no model for this tissue")
+
+    w = ReviewWindow(settings=settings, physics={"model": unavailable})
+    qtbot.addWidget(w)
+    with qtbot.waitSignal(w.analysis_done, timeout=10000):
+        assert w.open_file(recorded[0])
+    banner = child(w, QtWidgets.QLabel, "banner")
+    assert "Flat-field physics 'model' unavailable: no model for this tissue" in banner.text()
+    assert w.analysis is not None and "no physics" in w.analysis.flat_field
+    combo = child(w, QtWidgets.QComboBox, "physicsCombo")
+    assert [combo.itemText(i) for i in range(combo.count())] == ["model", "none (session baseline only)"]
+    w.close_session()
 
 
 def test_the_timeline_reads_every_tick_only_when_zoomed_in(qtbot, window, recorded):

@@ -5,8 +5,10 @@ Top, the timeline over the whole stream. Below, two tabs:
 * **Regions × levels**: one row per palpated area, one column per force level; selecting a cell shows that
   record's pressure, stiffness (Eq. 1) and per-element indentation maps and its numbers.
 * **Whole tissue**: the stitched map of the chosen force level and quantity, with the tumours found and,
-  for a simulated session, the phantom's real ones; the analysis parameters (cell size, threshold, source
-  of L0), applied as they are edited, without touching the recording; the tumour table.
+  for a simulated session, the phantom's real ones, beside the same map's contrast (the probe's own pattern
+  divided out, :mod:`session.flatfield`); the analysis parameters (cell size, false-alarm rate, accuracy, the
+  physics and reference of the flat field, source of L0), applied as they are edited, without touching the
+  recording; the tumour table with each tumour's score and both depths.
 
 Read-only: the file is opened read-only and never written (exports go to other files).
 """
@@ -14,14 +16,16 @@ Read-only: the file is opened read-only and never written (exports go to other f
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from session.analysis import AnalysisParams, SessionAnalysis
+from session.analysis import CONTRAST_MAPS, AnalysisParams, SessionAnalysis
 from session.detect import SOURCES, DetectError, DetectParams, Tumour
-from session.export import ExportError
+from session.export import ExportError, depth_model_text
+from session.flatfield import FlatFieldError, Physics, Reference
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
 from widgets.colormaps import colour_range
@@ -53,7 +57,12 @@ class ReviewWindow(QtWidgets.QMainWindow):
 
     Child objectNames: ``banner``, ``timeline``, ``tabs``, ``regionTable``, ``recordInfo``, ``pressureMap``,
     ``stiffnessMap``, ``indentationMap``, ``levelCombo``, ``quantityCombo``, ``stitchedMap``, ``cellSpin``,
-    ``thresholdSpin``, ``minAreaSpin``, ``l0Combo``, ``l0FixedSpin``, ``analysisSummary``, ``tumourTable``.
+    ``contrastMap``, ``falseAlarmSpin``, ``accuracySpin``, ``physicsCombo``, ``referenceButton``,
+    ``referenceLabel``, ``l0Combo``, ``l0FixedSpin``, ``analysisSummary``, ``tumourTable``.
+
+    ``physics`` names the ways of knowing the probe's pattern on homogeneous tissue the composition root
+    offers (label -> factory for a session; the first is the default); without any, the flat field is the
+    session's own baseline alone.
     """
 
     session_opened = QtCore.Signal(str)
@@ -61,8 +70,13 @@ class ReviewWindow(QtWidgets.QMainWindow):
     analysis_done = QtCore.Signal()
 
     def __init__(self, path: str | Path | None = None, *, start_folder: str | Path | None = None,
-                 settings: QtCore.QSettings | None = None, parent: QtWidgets.QWidget | None = None):
+                 settings: QtCore.QSettings | None = None,
+                 physics: Mapping[str, Callable[[Session], Physics | None]] | None = None,
+                 parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
+        self._physics_factories = dict(physics or {})
+        self._physics: dict[str, Physics | None] = {}  # per option, for the open session (a solve when new)
+        self._reference: Reference | None = None
         self.setWindowTitle("Palpation Console — session review")
         self.recent = RecentSessions(settings)
         self._start_folder = Path(start_folder) if start_folder else Path.home()
@@ -148,6 +162,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._quantity_combo.currentIndexChanged.connect(lambda _: self._show_stitched())
         self._stitched_map = GridMapView("Whole tissue")
         self._stitched_map.setObjectName("stitchedMap")
+        self._contrast_map = GridMapView("Contrast", unit="%", scale=100.0)
+        self._contrast_map.setObjectName("contrastMap")
 
         def spin(name: str, lo: float, hi: float, value: float, step: float, suffix: str, decimals: int = 2):
             box = QtWidgets.QDoubleSpinBox(objectName=name)
@@ -161,8 +177,20 @@ class ReviewWindow(QtWidgets.QMainWindow):
             return box
 
         self._cell_spin = spin("cellSpin", 0.1, 20.0, 1.0, 0.25, " mm")
-        self._threshold_spin = spin("thresholdSpin", 1.0, 1000.0, DetectParams.threshold * 100, 5.0, " %", 0)
-        self._min_area_spin = spin("minAreaSpin", 0.0, 400.0, DetectParams.min_area_m2 * 1e6, 1.0, " mm²", 1)
+        self._false_alarm_spin = spin("falseAlarmSpin", 0.01, 50.0, DetectParams.false_alarm_per_area * 100, 0.5,
+                                      " % of areas", 2)
+        self._false_alarm_spin.setToolTip("Chance that a palpated area of healthy tissue raises a spot")
+        self._accuracy_spin = spin("accuracySpin", 0.1, 50.0, DetectParams.accuracy * 100, 0.5, " %", 1)
+        self._accuracy_spin.setToolTip("The least relative scatter of healthy tissue from one loading to the next")
+        self._physics_combo = QtWidgets.QComboBox(objectName="physicsCombo")
+        for label in self._physics_factories:
+            self._physics_combo.addItem(label)
+        self._physics_combo.addItem("none (session baseline only)")
+        self._physics_combo.currentIndexChanged.connect(lambda _: self._analysis_timer.start())
+        self._reference_button = QtWidgets.QPushButton("Reference palpation…", objectName="referenceButton")
+        self._reference_button.clicked.connect(self._reference_dialog)
+        self._reference_label = QtWidgets.QLabel("none: baseline from this session", objectName="referenceLabel",
+                                                 wordWrap=True)
         self._l0_combo = QtWidgets.QComboBox(objectName="l0Combo")
         for source in L0Source:
             self._l0_combo.addItem(_L0_LABELS[source], source.value)
@@ -171,8 +199,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._l0_combo.currentIndexChanged.connect(self._l0_changed)
         form = QtWidgets.QFormLayout()
         form.addRow("Grid cell", self._cell_spin)
-        form.addRow("Suspicious above median by", self._threshold_spin)
-        form.addRow("Smallest spot", self._min_area_spin)
+        form.addRow("False alarms", self._false_alarm_spin)
+        form.addRow("Accuracy", self._accuracy_spin)
+        form.addRow("Flat-field physics", self._physics_combo)
+        form.addRow(self._reference_button, self._reference_label)
         form.addRow("L0 (Eq. 1) from", self._l0_combo)
         form.addRow("Fixed L0", self._l0_fixed_spin)
         analysis = QtWidgets.QGroupBox("Analysis (the recording is not changed)", objectName="analysis")
@@ -190,7 +220,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         side_layout.setContentsMargins(0, 0, 0, 0)
         side_layout.addWidget(analysis)
         side_layout.addWidget(self._summary)
-        side_layout.addWidget(QtWidgets.QLabel("Tumours (depth = TSI indentation at the first level)"))
+        side_layout.addWidget(QtWidgets.QLabel("Tumours (score: z over healthy tissue; depth by the paper's rule = "
+                                               "TSI indentation at the first level)", wordWrap=True))
         side_layout.addWidget(self._tumour_table, 1)
 
         bar = QtWidgets.QHBoxLayout()
@@ -204,7 +235,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         left_layout = QtWidgets.QVBoxLayout(left)
         left_layout.setContentsMargins(0, 0, 0, 0)
         left_layout.addLayout(bar)
-        left_layout.addWidget(self._stitched_map, 1)
+        maps = QtWidgets.QHBoxLayout()
+        maps.addWidget(self._stitched_map, 1)
+        maps.addWidget(self._contrast_map, 1)
+        left_layout.addLayout(maps, 1)
         split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         split.addWidget(left)
         split.addWidget(side)
@@ -289,6 +323,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         if self._session is not None:
             self._session.close()
         self._session = None
+        self._physics = {}
         self._analysis = None
         self._record = None
         self._timeline.clear()
@@ -298,6 +333,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._tumour_table.setRowCount(0)
         self._level_combo.clear()
         self._stitched_map.clear()
+        self._contrast_map.clear()
         self._summary.setText("")
         self._record_info.setText("")
         self._set_exports_enabled(False)
@@ -308,17 +344,17 @@ class ReviewWindow(QtWidgets.QMainWindow):
         source = L0Source(self._l0_combo.currentData())
         stitch = StitchParams(cell_m=self._cell_spin.value() * 1e-3, l0_source=source,
                               l0_fixed_m=self._l0_fixed_spin.value() * 1e-3 if source is L0Source.FIXED else None)
-        detect = DetectParams(threshold=self._threshold_spin.value() / 100.0,
-                              min_area_m2=self._min_area_spin.value() * 1e-6)
+        detect = DetectParams(false_alarm_per_area=self._false_alarm_spin.value() / 100.0,
+                              accuracy=self._accuracy_spin.value() / 100.0)
         return AnalysisParams(stitch, detect)
 
     def set_analysis(self, stitch: StitchParams, detect: DetectParams) -> None:
         """Put parameters into the panel and re-analyse now."""
-        widgets = (self._cell_spin, self._threshold_spin, self._min_area_spin, self._l0_combo, self._l0_fixed_spin)
+        widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin)
         blocked = [w.blockSignals(True) for w in widgets]
         self._cell_spin.setValue(stitch.cell_m * 1e3)
-        self._threshold_spin.setValue(detect.threshold * 100)
-        self._min_area_spin.setValue(detect.min_area_m2 * 1e6)
+        self._false_alarm_spin.setValue(detect.false_alarm_per_area * 100)
+        self._accuracy_spin.setValue(detect.accuracy * 100)
         self._l0_combo.setCurrentIndex(self._l0_combo.findData(stitch.l0_source.value))
         if stitch.l0_fixed_m is not None:
             self._l0_fixed_spin.setValue(stitch.l0_fixed_m * 1e3)
@@ -338,7 +374,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         except (StitchError, DetectError) as err:
             self._summary.setText(f"<b>Not applied:</b> {err}")
             return
-        self._analysis = SessionAnalysis.run(session, params)
+        physics, problem = self._current_physics()
+        self._analysis = SessionAnalysis.run(session, params, physics, self._reference)
+        if problem:
+            self._show_banner(problem, "warning")
         stitched = self._analysis.stitched
         keep = self._level_combo.currentIndex()
         blocked = self._level_combo.blockSignals(True)
@@ -354,6 +393,51 @@ class ReviewWindow(QtWidgets.QMainWindow):
         if self._record is not None:
             self._show_record(self._record)  # its stiffness depends on the L0 source
         self.analysis_done.emit()
+
+    def set_reference(self, path: str | Path | None) -> bool:
+        """Use a saved reference palpation as the flat field's baseline (None: the session's own); False,
+        with the reason in the banner, when the file is not a reference for this array."""
+        if path is None:
+            self._reference = None
+            self._reference_label.setText("none: baseline from this session")
+        else:
+            shape = ((tuple(self._session.levels.dtype["pressure_pa"].shape)) if self._session is not None
+                     else (4, 15))
+            try:
+                self._reference = Reference.load(path, shape)
+            except FlatFieldError as err:
+                self._show_banner(str(err), "error")
+                return False
+            self._reference_label.setText(f"{Path(path).name}: {self._reference.areas} areas, "
+                                          f"{len(self._reference.forces_N)} levels")
+        self.reanalyse()
+        return True
+
+    def _current_physics(self) -> tuple[Physics | None, str]:
+        """The chosen physics for the open session (made once per session and option) and, if it could
+        not be had, why (the analysis then runs without it)."""
+        label = self._physics_combo.currentText()
+        factory = self._physics_factories.get(label)
+        if factory is None or self._session is None:
+            return None, ""
+        if label not in self._physics:
+            self.statusBar().showMessage(f"Modelling homogeneous tissue for the flat field ({label}) …")
+            QtWidgets.QApplication.setOverrideCursor(QtCore.Qt.CursorShape.WaitCursor)
+            try:
+                self._physics[label] = factory(self._session)
+            except ValueError as err:
+                self._physics[label] = None
+                return None, f"Flat-field physics {label!r} unavailable: {err}; analysed without it."
+            finally:
+                QtWidgets.QApplication.restoreOverrideCursor()
+                self.statusBar().clearMessage()
+        return self._physics[label], ""
+
+    def _reference_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Reference palpation", str(self._start_folder),
+                                                        "Reference palpation (*.json);;All files (*)")
+        if path:
+            self.set_reference(path)
 
     def select_record(self, row: int) -> None:
         """Show /levels row ``row`` in the regions × levels browser."""
@@ -480,6 +564,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         stitched = self.stitched
         if stitched is None or not stitched.levels:
             self._stitched_map.clear()
+            self._contrast_map.clear()
             return
         index = max(0, self._level_combo.currentIndex())
         lm = stitched.levels[index]
@@ -494,11 +579,20 @@ class ReviewWindow(QtWidgets.QMainWindow):
         truth = [(float(g["x_m"]), float(g["y_m"]), float(g.get("diameter_m", 8e-3)))
                  for g in (self._session.ground_truth if self._session else [])]
         self._stitched_map.set_markers(found, truth)
+        contrast = lm.extra.get(CONTRAST_MAPS[source])
+        if contrast is None:
+            self._contrast_map.clear()
+        else:
+            self._contrast_map.set_map(contrast, stitched.grid.extent_m)
+            self._contrast_map.set_title(f"{source.capitalize()} contrast at {lm.force_N:g} N (measured / expected "
+                                         "on homogeneous tissue − 1)")
+            self._contrast_map.set_markers(found, truth)
 
     def _fill_tumour_table(self) -> None:
         analysis = self._analysis
         session, tumours = analysis.session, analysis.tumours
-        headers = ["Map", "x (mm)", "y (mm)", "Depth (mm)", "First level (N)", "Rise (%)"]
+        headers = ["Map", "x (mm)", "y (mm)", "Score (z)", "Contrast (%)", "First level (N)", "Depth, rule (mm)",
+                   "Depth, model (mm, 90 %)"]
         if analysis.has_ground_truth:
             headers.append("True tumour")
             found, fp = analysis.found_count(), analysis.false_positives
@@ -512,8 +606,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         table.setHorizontalHeaderLabels(headers)
         table.setRowCount(len(tumours))
         for k, t in enumerate(tumours):
-            cells = [t.source, _mm(t.x_m), _mm(t.y_m), _mm(t.depth_m, 2), f"{t.first_level_N:g}",
-                     f"{t.peak_rise * 100:.0f}"]
+            cells = [t.source, _mm(t.x_m), _mm(t.y_m), f"{t.score:.1f}", f"{t.contrast * 100:+.0f}",
+                     f"{t.first_level_N:g}", _mm(t.depth_m, 2), depth_model_text(t)]
             if analysis.has_ground_truth:
                 m = analysis.truth_of(k)
                 cells.append(f"#{m.truth_index + 1}, {m.depth_m * 1e3:.1f} mm deep, {m.error_xy_m * 1e3:.1f} mm off"
@@ -523,7 +617,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         table.resizeColumnsToContents()
         counts = {s: sum(1 for t in tumours if t.source == s) for s in SOURCES}
         self._summary.setText(f"{counts['stiffness']} tumour(s) in the stiffness map, {counts['force']} in the force "
-                              f"map, over {len(analysis.stitched.levels)} force levels.{truth_text}")
+                              f"map, over {len(analysis.stitched.levels)} force levels.{truth_text} Flat field: "
+                              f"{analysis.flat_field}.")
 
     def _tumour_selected(self, row: int) -> None:
         tumours = self.tumours

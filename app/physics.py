@@ -1,0 +1,525 @@
+"""What homogeneous tissue would have pressed on each element: the physics behind the flat-field.
+
+A rigid face does not load a homogeneous layer evenly: its edge rows carry two to three times what its inner
+rows carry, the tissue is softer near a free end or side, and where only part of the face touches (an
+uneven surface) the edge of the contact is loaded like an edge of the face. A tumour shows as what is left
+once that expected pattern is divided out (:mod:`session.flatfield`).
+
+The pattern comes from the project's continuum mechanics (:mod:`hardware.sim.mechanics`: finite elements of
+the block on its table, condensed onto its surface) for a block of homogeneous tissue rebuilt from the
+session's own measurements, never from a phantom file, so a real session gets the same treatment:
+
+* its extent is what was palpated (the areas of the paper's protocol cover the tissue, so the tissue ends
+  where they end) and its thickness the median height at which the elements first touched, over the table;
+* each recorded level is a rigid flat punch pressing that block uniformly over the elements that were in
+  contact at that level (:meth:`HomogeneousTissue.pattern`): the force map is compared with the whole face
+  pressing a flat surface (``measured_surface=False``, the face's own pattern), the stiffness map with the
+  surface the level's onsets measured, which Eq. 1 then relates to each element's own indentation and
+  thickness.
+
+Forces are seen through the sensor's compliant cover when the session records one, and returned normalised
+to their mean over the elements pressing: the flat-field fits its own scale per level. The block's modulus is
+irrelevant to the pattern (linear elasticity scales with it). :meth:`HomogeneousTissue.from_phantom` gives,
+for a simulated session only, the pattern of its own phantom without the tumours: the simulator's answer,
+for tests and comparison.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from session.reader import Session
+from session.stitch import element_offsets_m
+
+Progress = Callable[[float, str], None]
+NU = 0.49  # nearly incompressible soft tissue and silicone (docs/phantoms.md)
+MESH_VERSION = 2  # bump when the block's mesh changes: cached compliances are keyed by it
+GRID_M = 1e-3  # the mesh's node spacing in the plane (MeshSettings' default)
+# The onsets' own scatter (0.1-0.3 mm) is smoothed out of the block's surface, but not a bump's step.
+SMOOTHING_M = 0.5e-3
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceBlock:
+    """A homogeneous block on the table, ``length_m`` along x and ``width_m`` along y from (0, 0), whose
+    surface stands at ``heights_m`` (on a ``GRID_M`` grid from (0, 0) reaching at least that far, first index
+    along x): what the continuum model needs of a phantom to mesh it."""
+
+    heights_m: np.ndarray
+    length_m: float
+    width_m: float
+    youngs_modulus_pa: float = 1.0
+    poisson_ratio: float = NU
+    inclusions: tuple = ()
+    source: dict = field(default_factory=dict)
+
+    @property
+    def thickness_m(self) -> float:
+        return float(np.median(self.heights_m))
+
+    @property
+    def name(self) -> str:
+        return (f"{self.length_m * 1e3:.0f} x {self.width_m * 1e3:.0f} mm block, "
+                f"{self.heights_m.min() * 1e3:.1f}-{self.heights_m.max() * 1e3:.1f} mm thick")
+
+    def surface_height_m(self, x, y) -> np.ndarray:
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        h = self.heights_m
+        fx = np.clip(x / GRID_M, 0.0, h.shape[0] - 1.0)
+        fy = np.clip(y / GRID_M, 0.0, h.shape[1] - 1.0)
+        i = np.minimum(np.floor(fx).astype(int), h.shape[0] - 2)
+        j = np.minimum(np.floor(fy).astype(int), h.shape[1] - 2)
+        wx, wy = fx - i, fy - j
+        value = ((1 - wx) * (1 - wy) * h[i, j] + wx * (1 - wy) * h[i + 1, j] + (1 - wx) * wy * h[i, j + 1]
+                 + wx * wy * h[i + 1, j + 1])
+        outside = (x < -1e-9) | (x > self.length_m + 1e-9) | (y < -1e-9) | (y > self.width_m + 1e-9)
+        return np.where(outside, 0.0, value)
+
+    def content_hash(self) -> str:
+        digest = hashlib.sha256(np.round(self.heights_m, 6).tobytes())
+        digest.update(f"{self.length_m:.7f} {self.width_m:.7f} {self.poisson_ratio} {MESH_VERSION}".encode())
+        return digest.hexdigest()[:16]
+
+
+def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float) -> tuple[SurfaceBlock, tuple]:
+    """(the block of the measured surface, (x0, y0) of its origin in the tissue frame): the
+    onsets of every palpated area placed where its elements were, over the union of their footprints,
+    smoothed over about one element (an onset comes from noisy frames). Where an element never touched the
+    surface is taken a millimetre below the lowest it was found under that area; between areas nobody
+    measured, the nearest measurement stands."""
+    from scipy import ndimage
+
+    rows, cols = levels.dtype["onset_height_m"].shape
+    offsets = element_offsets_m(rows, cols, pitch_m)
+    centres = levels["tsi_position_m"][:, None, None, :2] + offsets[None]
+    lo = centres.reshape(-1, 2).min(axis=0) - pitch_m / 2
+    hi = centres.reshape(-1, 2).max(axis=0) + pitch_m / 2
+    nx = int(np.ceil((hi[0] - lo[0]) / GRID_M - 1e-6)) + 1
+    ny = int(np.ceil((hi[1] - lo[1]) / GRID_M - 1e-6)) + 1
+    gx = lo[0] + GRID_M * np.arange(nx)
+    gy = lo[1] + GRID_M * np.arange(ny)
+    total, count = np.zeros((nx, ny)), np.zeros((nx, ny))
+    for region in np.unique(levels["region"]):
+        i = np.flatnonzero(levels["region"] == region)[-1]  # its last level: onsets refined the longest
+        onset = levels["onset_height_m"][i] - table_height_m
+        if not np.isfinite(onset).any():
+            continue
+        onset = np.where(np.isfinite(onset), onset, np.nanmin(onset) - 1e-3)
+        for a in range(rows):
+            for b in range(cols):
+                cx, cy = centres[i, a, b]
+                cells = np.ix_(np.abs(gx - cx) <= pitch_m / 2 + 1e-9, np.abs(gy - cy) <= pitch_m / 2 + 1e-9)
+                total[cells] += onset[a, b]
+                count[cells] += 1
+    if not count.any():
+        raise ValueError("no element of this session ever touched the tissue: its surface is unknown")
+    known = count > 0
+    heights = total / np.maximum(count, 1)
+    if not known.all():
+        nearest = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
+        heights = heights[tuple(nearest)]
+    heights = ndimage.gaussian_filter(heights, SMOOTHING_M / GRID_M, mode="nearest")
+    block = SurfaceBlock(np.clip(heights, 1e-3, None), float(hi[0] - lo[0]), float(hi[1] - lo[1]))
+    return block, (float(lo[0]), float(lo[1]))
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """What homogeneous tissue presses on each element of each record, and how sure that is."""
+
+    share: np.ndarray  # (n, rows, cols) element forces over their mean over the elements pressing; NaN: none
+    sigma: np.ndarray  # (n, rows, cols) relative uncertainty of ``share`` from the rebuilt geometry (0: exact)
+
+
+class HomogeneousTissue(ABC):
+    """Element forces of a homogeneous block under the face at each recorded level (module docstring).
+
+    ``description`` says which block, for the analysis report."""
+
+    def __init__(self, description: str, cover_spread_m: float, pitch_m: float, shape: tuple[int, int]):
+        self.description = description
+        self.cover_spread_m = cover_spread_m
+        self.pitch_m = pitch_m
+        self.shape = shape
+        self._cover = _cover(cover_spread_m, shape, pitch_m)
+
+    @classmethod
+    def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
+        """The block rebuilt from ``session`` (raises ValueError if no element ever touched)."""
+        return BlockResponse.rebuild(session, cache_dir, progress)
+
+    @classmethod
+    def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
+        """The simulated session's phantom without its tumours (raises ValueError for other sessions)."""
+        return PhantomResponse.load(session, cache_dir, progress)
+
+    @abstractmethod
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        """The pattern of each level record. ``measured_surface``: the surface under the face is the one
+        the record's onsets measured, else a flat one pressed evenly by the whole face."""
+
+    def _finish(self, forces: np.ndarray) -> np.ndarray:
+        if self._cover is not None:
+            forces = self._cover[0] @ forces @ self._cover[1]
+        pressing = forces > 1e-9 * max(float(forces.max()), 1e-300)
+        if not pressing.any():
+            return np.full(forces.shape, np.nan)
+        return np.where(pressing, forces / forces[pressing].mean(), np.nan)
+
+
+class BlockResponse(HomogeneousTissue):
+    """The flat block of the palpated extent: its surface compliance, and punches on it."""
+
+    def __init__(self, block: SurfaceBlock, origin_xy_m: tuple[float, float], compliance: np.ndarray,
+                 nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int]):
+        super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}: the palpated extent "
+                         "and the measured surface, finite elements)", cover_spread_m, pitch_m, shape)
+        self.block = block
+        self.origin_xy_m = origin_xy_m
+        self._compliance = compliance
+        self._nodes = nodes_xy_m
+        self._faces: dict[tuple[int, int], _Face] = {}
+
+    @classmethod
+    def rebuild(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
+        levels = session.levels
+        if not len(levels):
+            raise ValueError("the session recorded no level: there is no palpated area to model")
+        shape = tuple(levels.dtype["pressure_pa"].shape)
+        block, origin = measured_surface(levels, session.pitch_m,
+                                         float(session.calibration.get("table_height_m", 0.0)))
+        compliance, nodes = _block_compliance(block, cache_dir, progress)
+        return cls(block, origin, compliance, nodes, _cover_of(session), session.pitch_m, shape)
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        shape = levels["pressure_pa"].shape
+        if not measured_surface:
+            flat = np.stack([self._share(row, None) for row in levels]) if len(levels) else np.full(shape, np.nan)
+            return Pattern(flat, np.where(np.isfinite(flat), 0.0, np.nan))
+        # An onset is where an element first touched: the highest point under it, or where a neighbour's load
+        # leaking through the sensor's cover first reached the threshold. Where the surface falls away within
+        # an element (a bump's flank, the edge of a gap) the truth lies between that and the lowest of its
+        # neighbours' surfaces, and an onset step to a neighbour beyond the onsets' scatter says by how much
+        # it may fall within the element (the only clue at the array's edge). The pattern is taken on the
+        # surface half-way; each uncertain element's half-range is propagated through the contact to every
+        # element's share (a raised element takes load off its neighbours), and the onsets' own scatter
+        # counts relative to how far each element is pressed in.
+        upper = self._surfaces(levels)
+        onset_noise = _onset_noise_m(levels)
+        relief = _relief(levels, onset_noise)
+        share = np.full(shape, np.nan)
+        sigma = np.full(shape, np.nan)
+        for k, row in enumerate(levels):
+            region = int(row["region"])
+            high = upper[region]
+            low = np.minimum(_lower_envelope(high), high - relief[region])
+            mid = 0.5 * (high + low)
+            half = np.nan_to_num(0.5 * (high - low))
+            base = self._share(row, mid)
+            pressed = np.maximum(mid - float(row["tsi_position_m"][2]), 1e-4)
+            variance = (onset_noise / pressed) ** 2
+            for e in np.flatnonzero(half.ravel() > 2.0 * onset_noise):
+                raised = mid.copy()
+                raised.flat[e] += half.flat[e]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    variance = variance + np.nan_to_num((self._share(row, raised) - base) / base) ** 2
+            share[k] = base
+            sigma[k] = np.sqrt(variance)
+        return Pattern(share, np.where(np.isfinite(share), sigma, np.nan))
+
+    def _share(self, row, heights: np.ndarray | None) -> np.ndarray:
+        """The normalised element forces of one record: the face on ``heights`` (undeformed surface height
+        under each element; None: a flat surface pressed evenly)."""
+        fx, fy = self._face_lo(row)
+        ix, iy = int(np.floor(fx)), int(np.floor(fy))
+        z = float(row["tsi_position_m"][2])
+        forces = np.zeros(self.shape)
+        # The mesh resolves a face whose edges lie on its node lines; a face between them is the blend of
+        # the two neighbouring faces along each axis, as the simulator's model does.
+        for px, wx in ((ix, 1.0 - (fx - ix)), (ix + 1, fx - ix)):
+            for py, wy in ((iy, 1.0 - (fy - iy)), (iy + 1, fy - iy)):
+                if wx * wy > 1e-9:
+                    face = self._face(px, py)
+                    # a flat surface pressed evenly: a unit indentation everywhere
+                    gap = np.ones(len(face.nodes)) if heights is None else face.surface(heights) - z
+                    forces += wx * wy * face.elements(_contact(self._compliance, face.nodes, gap))
+        return self._finish(forces)
+
+    def _face_lo(self, row) -> tuple[float, float]:
+        """The face's lower corner in the block, in node spacings."""
+        rows, cols = self.shape
+        x0, y0 = self.origin_xy_m
+        return ((float(row["tsi_position_m"][0]) - x0 - rows * self.pitch_m / 2) / GRID_M,
+                (float(row["tsi_position_m"][1]) - y0 - cols * self.pitch_m / 2) / GRID_M)
+
+    def _face(self, ix: int, iy: int) -> _Face:
+        """The nodes under a face whose lower corner is node line (ix, iy), and how they map to its elements."""
+        from hardware.sim.mechanics.contact import tributary_weights
+
+        face = self._faces.get((ix, iy))
+        if face is None:
+            rows, cols = self.shape
+            lo = (ix * GRID_M, iy * GRID_M)
+            nx, ny = self._nodes[:, 0], self._nodes[:, 1]
+            eps = 1e-9
+            under = np.flatnonzero((nx >= lo[0] - eps) & (nx <= lo[0] + rows * self.pitch_m + eps)
+                                   & (ny >= lo[1] - eps) & (ny <= lo[1] + cols * self.pitch_m + eps))
+            weights = tributary_weights(nx[under], ny[under], (0.0, self.block.length_m, 0.0, self.block.width_m),
+                                        lo, self.pitch_m, self.shape)
+            carried = weights.sum(axis=0) > 0
+            under, weights = under[carried], weights[:, carried]
+            # each node's position in element units from the first element's centre, kept on the array
+            u = np.clip((nx[under] - lo[0]) / self.pitch_m - 0.5, 0.0, rows - 1.0)
+            v = np.clip((ny[under] - lo[1]) / self.pitch_m - 0.5, 0.0, cols - 1.0)
+            i0 = np.minimum(np.floor(u).astype(int), max(rows - 2, 0))
+            j0 = np.minimum(np.floor(v).astype(int), max(cols - 2, 0))
+            i1, j1 = np.minimum(i0 + 1, rows - 1), np.minimum(j0 + 1, cols - 1)
+            fu, fv = u - i0, v - j0
+            corners = np.stack([i0 * cols + j0, i1 * cols + j0, i0 * cols + j1, i1 * cols + j1], axis=1)
+            corner_weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
+            face = self._faces[(ix, iy)] = _Face(under, weights, np.argmax(weights, axis=0), self.shape,
+                                                 corners, corner_weights)
+        return face
+
+    def _surfaces(self, levels: np.ndarray) -> dict[int, np.ndarray]:
+        """Each palpated area's undeformed surface height under each element, relative to the face.
+
+        An element's onset is where the face was when it first touched, but by then the elements already
+        touching had pushed the surface around it down (sink-in), so the undeformed surface was higher by
+        that much. Going through the elements in the order they touched, each one's sink-in at its onset is
+        the homogeneous block's response to the contact already made: undeformed height = onset + sink-in.
+        Elements that never touched lie below every face height recorded (NaN)."""
+        surfaces = {}
+        for region in np.unique(levels["region"]):
+            rows_of = np.flatnonzero(levels["region"] == region)
+            row = levels[rows_of[-1]]  # the last level's onsets: refined for as long as the area was pressed
+            onset = np.where(np.isfinite(row["dL_m"]) | np.isfinite(row["onset_height_m"]),
+                             row["onset_height_m"], np.nan).ravel()
+            fx, fy = self._face_lo(row)
+            face = self._face(int(round(fx)), int(round(fy)))
+            heights = np.full(onset.shape, np.nan)
+            for e in np.argsort(-np.where(np.isfinite(onset), onset, -np.inf)):
+                if not np.isfinite(onset[e]):
+                    break
+                gap = heights[face.owner] - onset[e]
+                f = _contact(self._compliance, face.nodes, gap)
+                mine = face.owner == e
+                # the element touched first where its surface stood highest after sinking in, and the point
+                # that sank least is the one whose height the onset can vouch for
+                sink = float((self._compliance[np.ix_(face.nodes[mine], face.nodes)] @ f).min()) if mine.any() else 0.0
+                heights[e] = onset[e] + sink
+            surfaces[int(region)] = heights.reshape(self.shape)
+        return surfaces
+
+
+def _onset_noise_m(levels: np.ndarray) -> float:
+    """How much the onsets scatter about the surface they measure: the robust spread of each element's
+    onset about the mean of its neighbours, over every palpated area (relief a few elements wide cancels)."""
+    from scipy import ndimage
+
+    residuals = []
+    kernel = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=float)
+    for region in np.unique(levels["region"]):
+        onset = levels["onset_height_m"][np.flatnonzero(levels["region"] == region)[-1]]
+        known = np.isfinite(onset)
+        if known.sum() < 5:
+            continue
+        total = ndimage.convolve(np.where(known, onset, 0.0), kernel, mode="constant")
+        count = ndimage.convolve(known.astype(float), kernel, mode="constant")
+        inner = known & (count >= 3)
+        residuals.append((onset - total / np.maximum(count, 1))[inner])
+    if not residuals:
+        return 0.0
+    r = np.concatenate(residuals)
+    # the residual of one element against the mean of n ~ 4 neighbours has sd sigma * sqrt(1 + 1/4)
+    return float(1.4826 * np.median(np.abs(r - np.median(r))) / np.sqrt(1.25))
+
+
+def _relief(levels: np.ndarray, onset_noise_m: float) -> dict[int, np.ndarray]:
+    """Per area, each element's largest onset step to a neighbour beyond what the onsets' scatter explains."""
+    out = {}
+    for region in np.unique(levels["region"]):
+        onset = levels["onset_height_m"][np.flatnonzero(levels["region"] == region)[-1]]
+        padded = np.pad(onset, 1, mode="constant", constant_values=np.nan)
+        steps = np.stack([np.abs(onset - padded[:-2, 1:-1]), np.abs(onset - padded[2:, 1:-1]),
+                          np.abs(onset - padded[1:-1, :-2]), np.abs(onset - padded[1:-1, 2:])])
+        with np.errstate(invalid="ignore"):
+            largest = np.nanmax(np.where(np.isfinite(steps), steps, -np.inf), axis=0)
+        out[int(region)] = np.clip(np.where(np.isfinite(largest), largest, 0.0) - 2.0 * onset_noise_m, 0.0, None)
+    return out
+
+
+def _lower_envelope(heights: np.ndarray) -> np.ndarray:
+    """Each element's height, or the lowest of its four neighbours' where lower. A neighbour that never
+    touched counts as falling away by as much as the deepest drop measured under the face; one beyond the
+    array's edge continues the slope from the element on the other side."""
+    h = heights
+    known = h[np.isfinite(h)]
+    floor = float(known.min() - (known.max() - known.min()) - 1e-3) if len(known) else np.nan
+    filled = np.where(np.isfinite(h), h, floor)
+    padded = np.pad(filled, 1, mode="reflect", reflect_type="odd")  # odd reflection: 2 h_edge - h_inner
+    low = np.minimum.reduce([filled, padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])
+    return np.where(np.isfinite(h), low, np.nan)
+
+
+@dataclass(frozen=True)
+class _Face:
+    nodes: np.ndarray  # block nodes under the face
+    weights: np.ndarray  # (elements, nodes): share of each node's force each element takes
+    owner: np.ndarray  # the element taking most of each node's force
+    shape: tuple[int, int]
+    corners: np.ndarray  # (nodes, 4): the element centres around each node, as flat element indices
+    corner_weights: np.ndarray  # (nodes, 4): their bilinear weights at the node
+
+    def elements(self, nodal_forces: np.ndarray) -> np.ndarray:
+        return (self.weights @ nodal_forces).reshape(self.shape)
+
+    def surface(self, heights: np.ndarray) -> np.ndarray:
+        """The surface at each node, interpolated between the element centres (an element's own height
+        where a neighbour never touched: it is the only measurement there)."""
+        h = heights.ravel()
+        around = h[self.corners]
+        value = (around * self.corner_weights).sum(axis=1)
+        return np.where(np.isfinite(value), value, h[self.owner])
+
+
+def _contact(compliance: np.ndarray, nodes: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
+    """Nodal forces of a rigid level face pressing the surface ``nodes`` of a linear-elastic block, where
+    ``gap_m`` is how far each node's undeformed surface rises above the face (NaN: never reaches it):
+    frictionless and unilateral (f >= 0, each node pushed down at least its gap, exactly where it carries
+    force), found by active sets."""
+    gap = np.where(np.isfinite(gap_m), gap_m, -np.inf)
+    f = np.zeros(len(nodes))
+    active = gap > 0
+    for _ in range(4 * len(nodes) + 4):
+        f[:] = 0.0
+        if active.any():
+            idx = np.flatnonzero(active)
+            f[idx] = np.linalg.solve(compliance[np.ix_(nodes[idx], nodes[idx])], gap[idx])
+        pulling = active & (f < 0)
+        if pulling.any():
+            active &= ~pulling
+            continue
+        sink = compliance[np.ix_(nodes, nodes[active])] @ f[active] if active.any() else np.zeros(len(nodes))
+        through = ~active & (sink < gap - 1e-12)
+        if not through.any():
+            return f
+        active |= through
+    raise RuntimeError("the contact of the face with the rebuilt surface did not settle")
+
+
+class PhantomResponse(HomogeneousTissue):
+    """A simulated session's own phantom without its tumours, at each level's pose and measured force."""
+
+    def __init__(self, tissue, cover_spread_m: float, pitch_m: float, shape: tuple[int, int], description: str):
+        super().__init__(description, cover_spread_m, pitch_m, shape)
+        self.tissue = tissue
+
+    @classmethod
+    def load(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
+        from hardware.sim.mechanics.model import ContinuumTissue, MeshSettings
+        from hardware.sim.mechanics.study import without_inclusions
+        from hardware.sim.phantom import parse_phantom
+
+        if not session.simulated or not session.phantom:
+            raise ValueError("only a simulated session knows its phantom")
+        phantom = without_inclusions(parse_phantom(session.phantom, str(session.path)))
+        tissue = ContinuumTissue.load(phantom, cache_dir=cache_dir, progress=progress, settings=MeshSettings())
+        shape = tuple(session.levels.dtype["pressure_pa"].shape)
+        return cls(tissue, _cover_of(session), session.pitch_m, shape,
+                   f"the simulated phantom {phantom.name!r} without its tumours (the simulator's own model)")
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        """The phantom's own surface whatever ``measured_surface`` says: this is the exact answer."""
+        out = np.full(levels["pressure_pa"].shape, np.nan)
+        for k, row in enumerate(levels):
+            x, y, z = (float(v) for v in row["tsi_position_m"])
+            out[k] = self._finish(_at_force(self.tissue, x, y, z, float(row["force_measured_N"])))
+        return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan))
+
+
+def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(C, node (x, y)): the block's surface compliance (vertical displacement per vertical force between
+    its top nodes, every other node free) and where those nodes are; computed once per block and cached."""
+    from hardware.sim.mechanics import cache as cache_mod
+    from hardware.sim.mechanics.fem import condensed_surface_stiffness
+    from hardware.sim.mechanics.model import MeshSettings, phantom_grid, phantom_material
+
+    folder = cache_dir if cache_dir is not None else cache_mod.default_cache_dir()
+    key = f"block-{block.content_hash()}"
+    path = cache_mod.cache_path(folder, key)
+    arrays = cache_mod.load(path, key)
+    if arrays is not None and {"compliance", "nodes"} <= set(arrays):
+        return arrays["compliance"], arrays["nodes"]
+    grid = phantom_grid(block, MeshSettings())
+    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(block), progress=progress)
+    compliance = np.linalg.inv(stiffness)
+    compliance = 0.5 * (compliance + compliance.T)
+    nodes = np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
+    try:
+        cache_mod.store(path, key, {"compliance": compliance, "nodes": nodes})
+    except OSError:
+        pass  # an unwritable cache only costs the recomputation next time
+    return compliance, nodes
+
+
+def _at_force(tissue, x: float, y: float, z_guess: float, force_N: float) -> np.ndarray:
+    """The element forces with the face where the tissue carries ``force_N`` (bisection in height: the
+    force falls monotonically as the face rises)."""
+    lo, hi = z_guess - 0.01, z_guess + 0.01
+    while tissue.element_forces_N(x, y, lo).sum() < force_N and lo > -0.1:
+        lo -= 0.01
+    while tissue.element_forces_N(x, y, hi).sum() > force_N and hi < 0.5:
+        hi += 0.01
+    for _ in range(40):  # 20 mm / 2^40: far below a micrometre
+        mid = 0.5 * (lo + hi)
+        if tissue.element_forces_N(x, y, mid).sum() >= force_N:
+            lo = mid
+        else:
+            hi = mid
+    return tissue.element_forces_N(x, y, 0.5 * (lo + hi))
+
+
+def _cover_of(session: Session) -> float:
+    """The sensor cover's lateral spread the session records (its simulated array's setting), else none."""
+    value = session.calibration.get("cover_spread_m")
+    if value is None:
+        value = ((session.config.get("sim") or {}).get("sensor") or {}).get("cover_spread_m")
+        if value is None and session.simulated:
+            from hardware.sim.settings import SensorSimSettings
+
+            value = SensorSimSettings().cover_spread_m
+    return float(value) if isinstance(value, (int, float)) else 0.0
+
+
+def _cover(spread_m: float, shape: tuple[int, int], pitch_m: float):
+    if spread_m <= 0:
+        return None
+    from hardware.sim.sensor import cover_operators, cover_weight
+
+    return cover_operators(cover_weight(spread_m, pitch_m), shape)
+
+
+PHYSICS = {
+    "rebuilt": "homogeneous tissue rebuilt from the session's own measurements (any session)",
+    "phantom": "the simulated phantom without its tumours (simulated sessions only)",
+    "none": "no physics: the face's pattern is left to the baseline alone",
+}
+
+
+def physics_for(session: Session, name: str = "rebuilt", cache_dir=None,
+                progress: Progress | None = None) -> HomogeneousTissue | None:
+    """The physics :data:`PHYSICS` names for ``session``; raises ValueError saying why it cannot be had."""
+    if name == "none":
+        return None
+    if name == "rebuilt":
+        return HomogeneousTissue.reconstructed(session, cache_dir, progress)
+    if name == "phantom":
+        return HomogeneousTissue.from_phantom(session, cache_dir, progress)
+    raise ValueError(f"unknown physics {name!r}; choose from {', '.join(PHYSICS)}")

@@ -1,0 +1,557 @@
+"""The validation study: how well the console finds tumours and their depth, on phantoms nobody tuned for.
+
+``palpation-console study`` draws phantoms from a documented, seeded distribution
+(:class:`StudyDistribution`), palpates each one with the simulated rig on the fast-forward driver exactly as
+``simulate`` does (the scripted operator, the default ramp, every area of the phantom), records it to a
+session file, analyses that file with the same pipeline the reviewer and the ``stitch`` command use
+(:class:`session.analysis.SessionAnalysis`, default parameters), and scores what was found against the
+phantom's ground truth (:func:`score`). The paper's two phantoms can be added to the set (``--paper``).
+
+Phantoms are independent, so they run in parallel through one executor interface (:class:`Executor`): local
+worker processes by default, or a Dask distributed cluster (``--scheduler ADDRESS``; ``pip install
+palpation-console[study]``) for studies of thousands of phantoms. Both run the same function,
+:func:`run_case`, on the same :class:`StudyCase`; only where it runs differs.
+
+Every case leaves its phantom file (TOML) and, with ``keep_sessions``, its session file in the output
+folder, so any result can be opened in the reviewer and replayed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+import tomllib
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import tomli_w
+
+from hardware.settings import ConfigError
+
+DEPTH_BANDS_M = ((0.0, 3e-3), (3e-3, 6e-3), (6e-3, 9e-3), (9e-3, 12.5e-3))
+SHALLOW_M = 6e-3  # the goal's "tumours whose top is at most 6 mm deep"
+
+
+# ---- the distribution ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StudyDistribution:
+    """Where the study's phantoms come from (all ranges uniform unless said otherwise; lengths in m).
+
+    The phantom is a silicone block on the table like the paper's, as wide as the TSI is long (the TSI
+    spans it, as in Section IV-A), palpated in 8 mm strips along its length. Its surface is flat, sloped
+    (a plane tilted along x and y) or bumpy (one or two half-cylinders along x over part of the length,
+    like the paper's uneven phantom), each with the probability given. It holds 0 to 3 spherical tumours
+    (each count equally likely) at a depth (surface to the sphere's top) of 1-12 mm, 5-12 mm across and
+    3-12 times stiffer than the tissue (log-uniform), anywhere inside the block that keeps 1 mm of tissue
+    between tumours and 2 mm above the table. The tissue's modulus is log-uniform around the paper's
+    20 kPa. A draw that the phantom schema refuses is drawn again.
+    """
+
+    length_m: tuple[float, float] = (0.056, 0.088)
+    width_m: float = 0.030
+    thickness_m: tuple[float, float] = (0.020, 0.032)
+    youngs_modulus_pa: tuple[float, float] = (15e3, 30e3)  # log-uniform
+    poisson_ratio: float = 0.49
+    surface_odds: tuple[float, float, float] = (0.4, 0.3, 0.3)  # flat, sloped, bumpy
+    slope_x: tuple[float, float] = (-0.10, 0.10)  # rise per unit length along x
+    slope_y: tuple[float, float] = (-0.05, 0.05)
+    bump_radius_m: tuple[float, float] = (0.003, 0.006)
+    tumours: tuple[int, int] = (0, 3)
+    depth_m: tuple[float, float] = (1e-3, 12e-3)
+    diameter_m: tuple[float, float] = (5e-3, 12e-3)
+    modulus_ratio: tuple[float, float] = (3.0, 12.0)  # log-uniform
+    min_gap_m: float = 1e-3  # tissue between two tumours
+    table_clearance_m: float = 2e-3  # tissue under a tumour
+
+
+def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(rng.uniform(bounds[0], bounds[1]))
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
+
+
+def draw_phantom(rng: np.random.Generator, name: str, dist: StudyDistribution = StudyDistribution(),
+                 attempts: int = 200) -> dict[str, Any]:
+    """One phantom from ``dist`` as a phantom file's table (see docs/phantoms.md), valid by construction."""
+    from hardware.sim.phantom import PhantomError, parse_phantom
+
+    for _ in range(attempts):
+        length = round(_uniform(rng, dist.length_m), 4)
+        thickness = round(_uniform(rng, dist.thickness_m), 4)
+        tissue_pa = round(_log_uniform(rng, dist.youngs_modulus_pa), -2)
+        table: dict[str, Any] = {
+            "name": name, "length_m": length, "width_m": dist.width_m, "thickness_m": thickness,
+            "youngs_modulus_pa": tissue_pa, "poisson_ratio": dist.poisson_ratio,
+        }
+        kind = ("flat", "sloped", "bumpy")[int(rng.choice(3, p=np.asarray(dist.surface_odds)))]
+        if kind == "sloped":
+            gx, gy = round(_uniform(rng, dist.slope_x), 3), round(_uniform(rng, dist.slope_y), 3)
+            # tilted about the phantom's centre, so the base thickness is its mean height
+            table["surface"] = [{"kind": "slope", "gradient": [gx, gy], "origin_m": [length / 2, dist.width_m / 2],
+                                 "x_range_m": [0.0, length]}]
+        elif kind == "bumpy":
+            table["surface"] = []
+            for _ in range(int(rng.integers(1, 3))):
+                radius = round(_uniform(rng, dist.bump_radius_m), 4)
+                start = round(float(rng.uniform(0.0, 0.5)) * length, 4)
+                end = round(min(length, start + float(rng.uniform(0.3, 0.7)) * length), 4)
+                centre = round(float(rng.choice([radius, dist.width_m - radius])), 4)
+                table["surface"].append({"kind": "half_cylinder", "centre_y_m": centre, "radius_m": radius,
+                                         "x_range_m": [start, end]})
+        table["inclusions"] = []
+        for _ in range(int(rng.integers(dist.tumours[0], dist.tumours[1] + 1))):
+            diameter = round(_uniform(rng, dist.diameter_m), 4)
+            radius = diameter / 2
+            table["inclusions"].append({
+                "centre_xy_m": [round(_uniform(rng, (radius, length - radius)), 4),
+                                round(_uniform(rng, (radius, dist.width_m - radius)), 4)],
+                "diameter_m": diameter,
+                "youngs_modulus_pa": round(tissue_pa * _log_uniform(rng, dist.modulus_ratio), -2),
+                "depth_m": round(_uniform(rng, dist.depth_m), 4),
+            })
+        data = {"phantom": table}
+        try:
+            phantom = parse_phantom(data, name)
+        except PhantomError:
+            continue
+        if _room_around_tumours(phantom, dist):
+            table["description"] = (f"study phantom, {kind} surface, {len(table['inclusions'])} tumour(s), "
+                                    f"E = {tissue_pa / 1e3:.1f} kPa")
+            return data
+    raise RuntimeError(f"no valid phantom after {attempts} draws: the distribution leaves no room")
+
+
+def _room_around_tumours(phantom, dist: StudyDistribution) -> bool:
+    for i, a in enumerate(phantom.inclusions):
+        if a.z_m - a.radius_m < dist.table_clearance_m:
+            return False
+        for b in phantom.inclusions[:i]:
+            if math.dist((a.x_m, a.y_m, a.z_m), (b.x_m, b.y_m, b.z_m)) < a.radius_m + b.radius_m + dist.min_gap_m:
+                return False
+    return True
+
+
+# ---- one case ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StudyCase:
+    name: str
+    phantom: dict[str, Any]  # a phantom file's content
+    rig_seed: int  # the run's sensor noise
+    sensor_seed: int  # the array as manufactured (gains, offsets)
+    force_max_N: float = 7.0  # the ramp runs from 1 N in 1 N steps to this
+    paper: bool = False  # one of the paper's two phantoms
+    tissue: str = "continuum"  # the simulator's tissue model (hardware.sim.settings.TISSUE_MODELS)
+    physics: str = "rebuilt"  # the flat field's physics (app.physics.PHYSICS)
+
+
+def ramp_for(phantom: dict[str, Any]) -> float:
+    """F_max for a phantom, as the paper's operator chose it "based on the stiffness of the tissue"
+    (Section III-B): the paper's 7 N for its 20 kPa, 25 mm phantom, scaled with the tissue's modulus and
+    inversely with its thickness (a layer's stiffness under a punch), in whole newtons from 4 to 8 N, so a
+    soft thick block is not pressed past the default 16 mm indentation ceiling at its free ends."""
+    p = phantom["phantom"]
+    scaled = 7.0 * (p["youngs_modulus_pa"] / 20e3) * (0.025 / p["thickness_m"])
+    return float(min(8.0, max(4.0, round(scaled))))
+
+
+def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution = StudyDistribution(),
+                **overrides) -> list[StudyCase]:
+    """``n`` phantoms drawn with ``seed`` (the same seed gives the same study), then the paper's two."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for k in range(n):
+        name = f"s{seed}-{k:04d}"
+        phantom = draw_phantom(rng, name, dist)
+        cases.append(StudyCase(name, phantom, int(rng.integers(2**31)), int(rng.integers(2**31)),
+                               **{"force_max_N": ramp_for(phantom), **overrides}))
+    if paper:
+        from hardware.sim.phantom import PHANTOM_DIR
+
+        for name in ("flat", "uneven"):
+            data = tomllib.loads((PHANTOM_DIR / f"{name}.toml").read_text(encoding="utf-8"))
+            cases.append(StudyCase(f"paper-{name}", data, rig_seed=seed, sensor_seed=0, paper=True,
+                                   **{k: v for k, v in overrides.items() if k != "force_max_N"}))
+    return cases
+
+
+def run_case(case: StudyCase, out_dir: str, keep_session: bool = True) -> dict[str, Any]:
+    """Palpate ``case`` on the simulated rig, analyse its session and score it; a JSON-able result, with
+    ``error`` (one line) instead of the figures when the case could not be run.
+
+    A top-level function of plain arguments, so any executor can ship it to a worker."""
+    from hardware.interfaces import DeviceError
+    from hardware.sim.phantom import PhantomError
+    from session.reader import SessionFileError
+
+    try:
+        return _run_case(case, Path(out_dir), keep_session)
+    except (ConfigError, PhantomError, DeviceError, SessionFileError, ValueError, OSError) as err:
+        return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
+
+
+def _run_case(case: StudyCase, folder: Path, keep_session: bool) -> dict[str, Any]:
+    from app.config import load_config
+    from app.physics import physics_for
+    from app.recording import record_simulation
+    from hardware.sim.phantom import load_phantom
+    from hardware.sim.rig import build_sim_rig, build_tissue
+    from session.analysis import SessionAnalysis
+    from session.reader import open_session
+
+    folder.mkdir(parents=True, exist_ok=True)
+    phantom_path = folder / f"{case.name}.toml"
+    phantom_path.write_text(tomli_w.dumps(case.phantom), encoding="utf-8")
+    config = load_config(None, {"rig": {"phantom": str(phantom_path), "seed": case.rig_seed},
+                                "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue},
+                                "control": {"ramp": {"force_max_N": case.force_max_N}}})
+    started = time.perf_counter()
+    phantom = load_phantom(phantom_path)
+    tissue = build_tissue(phantom, config.rig.sim)
+    prepared = time.perf_counter()
+    rig = build_sim_rig(phantom, config.rig.sim, tissue=tissue, seed=case.rig_seed)
+    session_path = folder / f"{case.name}.h5" if keep_session else Path(tempfile.mkstemp(suffix=".h5")[1])
+    session_path.unlink(missing_ok=True)
+    try:
+        record_simulation(session_path, config, rig=rig)
+        palpated = time.perf_counter()
+        with open_session(session_path) as session:
+            analysis = SessionAnalysis.run(session, physics=physics_for(session, case.physics))
+            result = _case_result(case, analysis)
+    finally:
+        if not keep_session:
+            session_path.unlink(missing_ok=True)
+    result.update(prepare_s=prepared - started, palpate_s=palpated - prepared,
+                  analyse_s=time.perf_counter() - palpated,
+                  session=str(session_path) if keep_session else None)
+    return result
+
+
+def _case_result(case: StudyCase, analysis) -> dict[str, Any]:
+    session = analysis.session
+    tissue_pa = float(case.phantom["phantom"]["youngs_modulus_pa"])
+    truths = []
+    for t in session.ground_truth:
+        truths.append({"x_m": t["x_m"], "y_m": t["y_m"], "depth_m": t["depth_m"], "diameter_m": t["diameter_m"],
+                       "modulus_ratio": t["youngs_modulus_pa"] / tissue_pa})
+    matches = [asdict(m) for m in analysis.matches]
+    regions = session.regions()
+    return {
+        "name": case.name, "paper": case.paper, "surface": _surface_kind(case.phantom),
+        "regions": len(regions), "regions_done": sum(1 for r in regions if r.outcome == "done"),
+        "truths": truths, "matches": matches, "false_positives": analysis.false_positives,
+        "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
+    }
+
+
+def _surface_kind(phantom: dict[str, Any]) -> str:
+    features = phantom["phantom"].get("surface", [])
+    if not features:
+        return "flat"
+    return "sloped" if features[0]["kind"] == "slope" else "bumpy"
+
+
+# ---- where cases run -------------------------------------------------------------------------------------
+
+
+class Executor(Protocol):
+    """Runs ``fn(item, *args)`` for every item, wherever it runs them; yields results as they finish."""
+
+    def run(self, fn: Callable, items: Iterable, *args) -> Iterator[Any]: ...
+
+    def close(self) -> None: ...
+
+
+class LocalExecutor:
+    """Worker processes on this machine (spawned, so the simulator's native libraries start clean)."""
+
+    def __init__(self, workers: int | None = None):
+        import multiprocessing
+
+        self.workers = workers or os.cpu_count() or 1
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+
+    def run(self, fn: Callable, items: Iterable, *args) -> Iterator[Any]:
+        futures = [self._pool.submit(fn, item, *args) for item in items]
+        for future in as_completed(futures):
+            yield future.result()
+
+    def close(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
+
+
+class DaskExecutor:
+    """A Dask distributed cluster: ``address`` of its scheduler, or a ``distributed.Client`` to use."""
+
+    def __init__(self, address):
+        try:
+            from distributed import Client, as_completed as dask_completed
+        except ImportError:
+            raise ConfigError("--scheduler", "Dask distributed is not installed: pip install "
+                                             "'palpation-console[study]'") from None
+        self._owns = not isinstance(address, Client)
+        try:
+            self._client = Client(address, timeout="10s") if self._owns else address
+        except (OSError, TimeoutError) as err:
+            raise ConfigError("--scheduler", f"cannot reach the Dask scheduler at {address}: {err}") from None
+        self._completed = dask_completed
+        self.workers = max(1, sum(w.get("nthreads", 1) for w in self._client.scheduler_info()["workers"].values()))
+
+    def run(self, fn: Callable, items: Iterable, *args) -> Iterator[Any]:
+        futures = [self._client.submit(fn, item, *args, pure=False) for item in items]
+        for future in self._completed(futures):
+            yield future.result()
+
+    def close(self) -> None:
+        if self._owns:
+            self._client.close()
+
+
+def run_study(cases: list[StudyCase], executor: Executor, out_dir: Path, keep_sessions: bool = True,
+              progress: Callable[[dict], None] | None = None) -> tuple[list[dict], float]:
+    """Every case's result (in the order of ``cases``) and the study's wall time in seconds."""
+    started = time.perf_counter()
+    results = {}
+    for result in executor.run(run_case, cases, str(out_dir), keep_sessions):
+        results[result["name"]] = result
+        if progress is not None:
+            progress(result)
+    return [results[c.name] for c in cases], time.perf_counter() - started
+
+
+# ---- scoring -----------------------------------------------------------------------------------------------
+
+
+def _pct(numerator: float, denominator: float) -> float | None:
+    return 100.0 * numerator / denominator if denominator else None
+
+
+def _quantile(values: list[float], q: float) -> float | None:
+    return float(np.quantile(values, q)) if values else None
+
+
+def _finite(value) -> bool:
+    return value is not None and math.isfinite(value)
+
+
+def _median(values: list[float]) -> float | None:
+    return float(statistics.median(values)) if values else None
+
+
+def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
+    """The study's figures for one map (``source``), over the drawn phantoms; the paper's phantoms apart."""
+    failed = [r for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
+    drawn = [r for r in results if not r["paper"]]
+    truths = [(r, m, r["truths"][m["truth_index"]]) for r in drawn for m in r["matches"]
+              if m["source"] == source and m["palpated"]]
+    found = [(r, m, t) for r, m, t in truths if m["found"]]
+    bands = {}
+    for lo, hi in DEPTH_BANDS_M:
+        inside = [(m, t) for _, m, t in truths if lo <= t["depth_m"] < hi]
+        bands[f"{lo * 1e3:.0f}-{hi * 1e3:.0f}mm"] = {
+            "tumours": len(inside), "found": sum(1 for m, _ in inside if m["found"]),
+            "sensitivity_pct": _pct(sum(1 for m, _ in inside if m["found"]), len(inside))}
+    shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
+    rule_errors = [abs(m["depth_estimate_m"] - m["depth_m"]) * 1e3 for _, m, _ in found
+                   if m["depth_estimate_m"] is not None and math.isfinite(m["depth_estimate_m"])]
+    model_errors = [abs(m["depth_model_m"] - m["depth_m"]) * 1e3 for _, m, _ in found
+                    if m.get("depth_model_m") is not None and math.isfinite(m["depth_model_m"])]
+    covered = [m["depth_low_m"] <= m["depth_m"] <= m["depth_high_m"] for _, m, _ in found
+               if _finite(m.get("depth_low_m")) and _finite(m.get("depth_high_m"))]
+    paper = {r["name"]: r for r in results if r["paper"]}
+    return {
+        "phantoms": len(drawn),
+        "tumours": len(truths),
+        "sensitivity_pct": _pct(len(found), len(truths)),
+        "sensitivity_le6mm_pct": _pct(sum(1 for m in shallow if m["found"]), len(shallow)),
+        "by_depth": bands,
+        "false_positives_per_phantom": (sum(r["false_positives"].get(source, 0) for r in drawn) / len(drawn)
+                                        if drawn else None),
+        "false_positives_tumour_free_phantoms": sum(r["false_positives"].get(source, 0) for r in drawn
+                                                    if not r["truths"]),
+        "loc_err_p90_mm": _quantile([m["error_xy_m"] * 1e3 for _, m, _ in found], 0.9),
+        "loc_err_median_mm": _median([m["error_xy_m"] * 1e3 for _, m, _ in found]),
+        "depth_err_rule_median_mm": _median(rule_errors),
+        "depth_err_model_median_mm": _median(model_errors),
+        "depth_interval_coverage_pct": _pct(sum(covered), len(covered)),
+        "paper_flat_found": _found_count(paper.get("paper-flat"), source),
+        "paper_uneven_found": _found_count(paper.get("paper-uneven"), source),
+        "paper_false_positives": (sum(r["false_positives"].get(source, 0) for r in paper.values())
+                                  if paper else None),
+        "regions_not_done": sum(r["regions"] - r["regions_done"] for r in results),
+        "failed_cases": len(failed),
+        "froc": froc(drawn, source),
+    }
+
+
+def froc(results: list[dict], source: str, scores: Iterable[float] = (3.0, 3.5, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0)
+         ) -> list[dict[str, float | None]]:
+    """Sensitivity against false positives per phantom as the least score a detection needs rises from the
+    analysis' own threshold (points stricter than it: the study analyses at one false-alarm rate)."""
+    from session.detect import Tumour, match_ground_truth
+
+    points = []
+    for least in scores:
+        found = truths = false = 0
+        for r in results:
+            kept = [Tumour(**{**t, "levels_N": tuple(t["levels_N"])})
+                    for t in r["tumours"] if t["source"] == source and t["score"] >= least]
+            matches, fp = match_ground_truth(kept, r["truths"])
+            palpated = {m["truth_index"] for m in r["matches"] if m["source"] == source and m["palpated"]}
+            truths += len(palpated)
+            found += sum(1 for m in matches if m.source == source and m.found and m.truth_index in palpated)
+            false += fp.get(source, 0)
+        points.append({"least_score": least, "sensitivity_pct": _pct(found, truths),
+                       "false_positives_per_phantom": false / len(results) if results else None})
+    return points
+
+
+def _found_count(result: dict | None, source: str) -> int | None:
+    if result is None:
+        return None
+    return sum(1 for m in result["matches"] if m["source"] == source and m["found"])
+
+
+# ---- the command ---------------------------------------------------------------------------------------------
+
+
+def _fmt(value, unit: str = "", decimals: int = 1) -> str:
+    return "—" if value is None else f"{value:.{decimals}f}{unit}"
+
+
+def print_summary(figures: dict[str, dict], wall_s: float, out=None) -> None:
+    out = out or sys.stdout
+    for source, f in figures.items():
+        print(f"\n{source} map: {f['tumours']} tumours in {f['phantoms']} phantoms", file=out)
+        print("  depth band   tumours  found  sensitivity", file=out)
+        for band, b in f["by_depth"].items():
+            print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}", file=out)
+        print(f"  sensitivity {_fmt(f['sensitivity_pct'], ' %')} (<= 6 mm: {_fmt(f['sensitivity_le6mm_pct'], ' %')}), "
+              f"false positives {_fmt(f['false_positives_per_phantom'], ' per phantom', 2)}", file=out)
+        print(f"  localisation p90 {_fmt(f['loc_err_p90_mm'], ' mm', 2)}, depth error median: paper's rule "
+              f"{_fmt(f['depth_err_rule_median_mm'], ' mm', 2)}, model {_fmt(f['depth_err_model_median_mm'], ' mm', 2)}"
+              f"; 90 % intervals cover {_fmt(f['depth_interval_coverage_pct'], ' %')}", file=out)
+        if f["paper_flat_found"] is not None:
+            print(f"  paper phantoms: flat {f['paper_flat_found']} of 3, uneven {f['paper_uneven_found']} of 3, "
+                  f"false positives {f['paper_false_positives']}", file=out)
+    print(f"\nstudy wall time {wall_s:.0f} s", file=out)
+    failed = max((f.get("failed_cases", 0) for f in figures.values()), default=0)
+    if failed:
+        print(f"{failed} case(s) could not be run: see 'cases' in the JSON", file=out)
+
+
+# Stable names of the benchmark file (build/bench/accuracy.json): the stiffness map's figures, the paper's
+# primary map, flat; the full per-map figures and every case follow under "maps" and "cases".
+ACCURACY_KEYS = ("sensitivity_pct", "sensitivity_le6mm_pct", "false_positives_per_phantom", "loc_err_p90_mm",
+                 "depth_err_rule_median_mm", "depth_err_model_median_mm", "depth_interval_coverage_pct",
+                 "paper_flat_found", "paper_uneven_found", "paper_false_positives")
+
+
+def study_document(cases: list[StudyCase], results: list[dict], wall_s: float, seed: int, workers: int,
+                   executor: str) -> dict[str, Any]:
+    figures = {source: score(results, source) for source in ("stiffness", "force")}
+    doc: dict[str, Any] = {key: figures["stiffness"][key] for key in ACCURACY_KEYS}
+    doc.update(study_wall_s=wall_s, phantoms=figures["stiffness"]["phantoms"], seed=seed, workers=workers,
+               executor=executor, distribution=asdict(StudyDistribution()), maps=figures, cases=results)
+    return doc
+
+
+def study_parser():
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="palpation-console study",
+        description="Validate tumour detection and depth on simulated phantoms drawn from a documented, seeded "
+                    "distribution (app/study.py): palpate, analyse, score against the ground truth.")
+    parser.add_argument("-n", "--phantoms", type=int, default=12, help="phantoms to draw (default 12)")
+    parser.add_argument("--seed", type=int, default=1, help="the draw's seed: the same seed, the same study")
+    parser.add_argument("--paper", action="store_true", help="add the paper's flat and uneven phantoms")
+    parser.add_argument("--out", type=Path, default=Path("study"),
+                        help="folder for every case's phantom file and session (default ./study)")
+    parser.add_argument("--json", type=Path, help="the figures and every case as JSON (default OUT/study.json)")
+    parser.add_argument("--plot", type=Path, help="PNG of sensitivity against depth and the FROC "
+                                                  "(default OUT/study.png)")
+    parser.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run on this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786) instead of "
+                             "local processes; needs pip install 'palpation-console[study]'")
+    parser.add_argument("--no-sessions", action="store_true", help="do not keep the session files")
+    return parser
+
+
+def study_main(argv: list[str] | None = None) -> int:
+    import json
+
+    from session.export import json_ready
+
+    parser = study_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as stop:
+        return int(stop.code or 0)
+    problems = [f"--phantoms must be within 0..100000, got {args.phantoms}" if not 0 <= args.phantoms <= 100_000
+                else "", f"--seed must be >= 0, got {args.seed}" if args.seed < 0 else "",
+                f"--workers must be >= 1, got {args.workers}" if args.workers is not None and args.workers < 1
+                else "", "nothing to run: --phantoms 0 without --paper" if not args.phantoms and not args.paper
+                else ""]
+    if any(problems):
+        print(f"error: {next(p for p in problems if p)}", file=sys.stderr)
+        return 2
+    json_path = args.json or args.out / "study.json"
+    plot_path = args.plot or args.out / "study.png"
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        executor = DaskExecutor(args.scheduler) if args.scheduler else LocalExecutor(args.workers)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"error: cannot use {args.out}: {err.strerror or err}", file=sys.stderr)
+        return 2
+    cases = study_cases(args.phantoms, args.seed, args.paper)
+    print(f"study: {len(cases)} phantoms, {executor.workers} workers "
+          f"({'Dask at ' + args.scheduler if args.scheduler else 'local processes'}); cases in {args.out}")
+    done = [0]
+
+    def progress(result: dict) -> None:
+        done[0] += 1
+        found = sum(1 for m in result.get("matches", ()) if m["found"] and m["source"] == "stiffness")
+        what = result.get("error") or (f"{found} of {len(result['truths'])} found, false positives "
+                                       f"{result['false_positives'].get('stiffness', 0)}")
+        print(f"  [{done[0]}/{len(cases)}] {result['name']}: {what}", flush=True)
+
+    try:
+        results, wall_s = run_study(cases, executor, args.out, not args.no_sessions, progress)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        executor.close()
+    doc = study_document(cases, results, wall_s, args.seed, executor.workers,
+                         "dask" if args.scheduler else "local")
+    print_summary(doc["maps"], wall_s)
+    try:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(json_ready(doc), indent=1, allow_nan=False), encoding="utf-8")
+        from widgets.study_plot import render_study_png
+
+        render_study_png(plot_path, doc)
+    except OSError as err:
+        print(f"error: cannot write the results: {err}", file=sys.stderr)
+        return 1
+    print(f"results: {json_path}\nplot: {plot_path}")
+    return 0
+

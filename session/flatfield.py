@@ -1,0 +1,291 @@
+"""The probe's own pattern taken out: each element's contrast against homogeneous tissue, and its uncertainty.
+
+How (written down once, here):
+
+* **Expected pressure.** For the record r of an area at force level k, element e of homogeneous tissue would
+  read ``expected[r, e] = scale[r] * baseline[k, e] * share[r, e]``:
+
+  - ``share`` is the physics: the element forces a homogeneous block gives under the face at that pose and
+    force (edge rows high, inner rows low, soft near a free end, and, for the stiffness map, the contact the
+    level actually had on its measured surface), normalised to a mean of one. It comes from the
+    composition root (``app.physics``), which knows the continuum mechanics; without it the share is one
+    everywhere (the face's pattern is then left to the baseline alone).
+  - ``baseline`` is what the physics does not know and every area shares: the array's own element-to-element
+    sensitivity, its compliant cover, the pattern's systematic error. In order of preference it comes from
+    a **reference palpation** of tumour-free tissue (:class:`Reference`, recorded once and reused), or it
+    is **estimated from the session** itself: for each element, the median over the other areas
+    palpated at that level (an area never vouches for itself) of measured / (scale * share), each area
+    weighted by how sure its share is, which tolerates a minority of areas with tumours. With physics it
+    stays within ``BASELINE_RANGE`` of one; without, it is the whole pattern of the face (and a tumour that
+    lies under the same elements of most areas is taken for part of it: say so, use physics).
+  - ``scale`` is the record's own level (the tissue's modulus there, the force actually reached): the
+    median over its elements of measured / (baseline * share), robust to the elements over a tumour.
+
+* **Contrast** = measured / expected - 1 (0: as homogeneous tissue; +0.2: 20 % harder than expected).
+
+* **Uncertainty** of a contrast (relative, one standard deviation), the root sum of squares of:
+
+  - the sensor's noise on the level's mean: the element's scatter over its settled window
+    (``pressure_std_pa``) over the square root of the frames averaged (``window_frames``);
+  - the scatter of healthy tissue: the robust spread of all contrasts at that level (1.4826 times their
+    median absolute value), never less than ``accuracy``, the repeatability one element's reading can
+    have from one loading to the next; with a reference, the reference's own scatter is added;
+  - the geometry: how well the share is known where the surface had to be rebuilt (``share_sigma``).
+
+* The **stiffness map** (Eq. 1, E = F L0 / (A dL)) is compared with the stiffness homogeneous tissue of the
+  same measured geometry would show by Eq. 1: both use the element's own L0 and dL, so its contrast is
+  measured force / expected force with the share of the measured surface. The **force map** is compared
+  with the face pressing a flat surface: the raw tactile map with the probe's pattern taken out, which is
+  what the paper's force map shows (a thicker or raised part reads as harder).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from session.stitch import level_groups
+
+MAPS = ("stiffness", "force")
+ACCURACY = 0.02  # see DetectParams.accuracy
+MIN_VOUCHING = 3  # records an element's session baseline needs (the median of three outvotes one tumour)
+# An element's baseline is its sensitivity relative to the array's and the physics' systematic error there,
+# which calibration and the model keep within this: a larger departure from one is a tumour the areas
+# share (the paper's three tumours lie under the same elements of three areas), not the array.
+BASELINE_RANGE = 0.15
+REFERENCE_FORMAT = "palpation-console-reference"
+
+
+class Pattern(Protocol):
+    share: np.ndarray  # (records, rows, cols) expected element forces over their mean; NaN where none
+    sigma: np.ndarray  # (records, rows, cols) their relative uncertainty
+
+
+class Physics(Protocol):
+    """What homogeneous tissue would press on each element (``app.physics.HomogeneousTissue``)."""
+
+    description: str
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern: ...
+
+
+class FlatFieldError(ValueError):
+    """A reference that cannot be used (a damaged file, another array, no level); the message says why."""
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A reference palpation of tumour-free tissue: for each force level, each element's baseline (its
+    reading over what the physics expects there, the median over the reference's areas) and its relative
+    scatter between those areas. Saved as JSON (:meth:`save`), reused for later sessions (:meth:`load`)."""
+
+    forces_N: tuple[float, ...]
+    baseline: np.ndarray  # (levels, rows, cols), median 1 over the elements of each level
+    scatter: np.ndarray  # (levels, rows, cols) relative
+    areas: int
+    description: str
+
+    def at(self, force_N: float) -> tuple[np.ndarray, np.ndarray]:
+        """(baseline, scatter) at the reference level nearest ``force_N``."""
+        k = int(np.argmin(np.abs(np.asarray(self.forces_N) - force_N)))
+        return self.baseline[k], self.scatter[k]
+
+    def to_json(self) -> dict:
+        return {"format": REFERENCE_FORMAT, "version": 1, "description": self.description, "areas": self.areas,
+                "forces_N": list(self.forces_N),
+                "baseline": np.where(np.isfinite(self.baseline), self.baseline, -1.0).tolist(),
+                "scatter": np.where(np.isfinite(self.scatter), self.scatter, -1.0).tolist()}
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=1), encoding="utf-8")
+
+    @classmethod
+    def from_json(cls, data, shape: tuple[int, int], where: str = "reference") -> Reference:
+        if not isinstance(data, dict) or data.get("format") != REFERENCE_FORMAT:
+            raise FlatFieldError(f"{where}: not a Palpation Console reference palpation")
+        try:
+            forces = tuple(float(f) for f in data["forces_N"])
+            baseline = np.asarray(data["baseline"], dtype=float)
+            scatter = np.asarray(data["scatter"], dtype=float)
+            areas = int(data.get("areas", 0))
+            description = str(data.get("description", ""))
+        except (KeyError, TypeError, ValueError) as err:
+            raise FlatFieldError(f"{where}: damaged ({err})") from None
+        if not forces or baseline.shape != (len(forces), *shape) or scatter.shape != baseline.shape:
+            raise FlatFieldError(f"{where}: made for another array (levels x elements {baseline.shape}, this "
+                                 f"array has {shape})")
+        if not all(math.isfinite(f) and f > 0 for f in forces):
+            raise FlatFieldError(f"{where}: force levels must be finite and positive")
+        baseline = np.where(baseline > 0, baseline, np.nan)
+        scatter = np.where(scatter >= 0, scatter, np.nan)
+        return cls(forces, baseline, scatter, areas, description)
+
+    @classmethod
+    def load(cls, path: str | Path, shape: tuple[int, int]) -> Reference:
+        try:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise FlatFieldError(f"{path}: cannot read the reference palpation ({err})") from None
+        return cls.from_json(data, shape, str(path))
+
+    @classmethod
+    def from_levels(cls, levels: np.ndarray, share: np.ndarray, share_sigma: np.ndarray,
+                    description: str, physics: bool = True) -> Reference:
+        """The reference a palpation of tumour-free tissue gives (its level records and their physics;
+        ``physics`` False: the share is one everywhere and the baseline is the face's whole pattern)."""
+        forces, baselines, scatters = [], [], []
+        measured = _measured(levels)
+        for force, records in level_groups(levels):
+            base, scale = _session_baseline(measured[records], share[records], share_sigma[records], physics)
+            rel = measured[records] / (scale[:, None, None] * base * share[records]) - 1.0
+            forces.append(force)
+            baselines.append(base)
+            scatters.append(1.4826 * np.nanmedian(np.abs(rel), axis=0) if len(records) > 1
+                            else np.full(base.shape, np.nan))
+        if not forces:
+            raise FlatFieldError("the reference palpation recorded no level")
+        areas = len(np.unique(levels["region"]))
+        return cls(tuple(forces), np.array(baselines), np.array(scatters), areas, description)
+
+
+@dataclass
+class Contrast:
+    """One map's contrast for every level record: (n, rows, cols) arrays, NaN where an element has none."""
+
+    map: str  # "stiffness" or "force"
+    contrast: np.ndarray
+    sigma: np.ndarray  # relative uncertainty (one standard deviation)
+    expected_pa: np.ndarray  # what homogeneous tissue would have read
+    source: str  # "reference" | "session"
+    description: str  # how the expected pattern was obtained, in words
+    share: np.ndarray  # the physics it was made with (see :func:`contrast`)
+    share_sigma: np.ndarray
+    physics: bool  # whether ``share`` came from physics (else it is one everywhere)
+
+    @property
+    def z(self) -> np.ndarray:
+        """Contrast over its uncertainty."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.contrast / self.sigma
+
+
+def _measured(levels: np.ndarray) -> np.ndarray:
+    """Each element's mean pressure where it was in contact (its Eq. 1 inputs exist), NaN elsewhere."""
+    return np.where(np.isfinite(levels["dL_m"]) & (levels["pressure_pa"] > 0), levels["pressure_pa"], np.nan)
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Median along ``axis`` with weights (NaN values and zero weights ignored)."""
+    v = np.moveaxis(values, axis, 0)
+    w = np.moveaxis(np.where(np.isfinite(values), weights, 0.0), axis, 0)
+    order = np.argsort(np.where(np.isfinite(v), v, np.inf), axis=0)
+    v = np.take_along_axis(v, order, 0)
+    w = np.take_along_axis(w, order, 0)
+    cum = np.cumsum(w, axis=0)
+    total = cum[-1]
+    idx = np.argmax(cum >= 0.5 * total, axis=0)
+    out = np.take_along_axis(v, idx[None], 0)[0]
+    return np.where(total > 0, out, np.nan)
+
+
+def _trusted(share_sigma: np.ndarray) -> np.ndarray:
+    """The element-records whose physics is about as sure as is usual at this level: a bump's flank in some
+    areas must not set the baseline, nor the scatter of healthy tissue, of the flat ones."""
+    sigma = np.nan_to_num(share_sigma, nan=np.inf)
+    typical = float(np.median(sigma[np.isfinite(sigma)])) if np.isfinite(sigma).any() else 0.0
+    return sigma <= max(2.0 * typical, ACCURACY)
+
+
+def _session_baseline(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool = True,
+                      iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(baseline per element, scale per record) estimated from the records of one level together. An element
+    counts towards its baseline only in the records that trust their physics there (:func:`_trusted`), and
+    needs ``MIN_VOUCHING`` of them, so that one area with a tumour cannot be taken for the baseline; an
+    element too few records vouch for keeps a baseline of one. ``bounded``: the physics gave the face's
+    pattern, and the baseline only corrects it (within ``BASELINE_RANGE``)."""
+    ratio = measured / share
+    trusted = _trusted(share_sigma) & np.isfinite(ratio)
+    sigma = np.nan_to_num(share_sigma, nan=np.inf)
+    enough = trusted.sum(axis=0) >= MIN_VOUCHING
+    weight = np.where(trusted & enough[None], 1.0 / (ACCURACY ** 2 + sigma ** 2), 0.0)
+    base = np.ones(measured.shape[1:])
+    scale = np.ones(len(measured))
+    for _ in range(iterations):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.nanmedian((ratio / base).reshape(len(measured), -1), axis=1)
+            base = _weighted_median(ratio / scale[:, None, None], weight, axis=0)
+        base = np.where(np.isfinite(base), base, 1.0)
+        base = base / np.median(base)
+        if bounded:
+            base = np.clip(base, 1.0 / (1.0 + BASELINE_RANGE), 1.0 + BASELINE_RANGE)
+    return base, scale
+
+
+def _baseline_without_each(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """(baseline per record and element, scale per record), each record's baseline estimated from the other
+    records of its level: a record must not vouch for itself (the median of five would then return one of
+    its own readings exactly, and the scatter of healthy tissue measured on those residuals would come out
+    too small), nor can a tumour under it lift its own baseline."""
+    n = len(measured)
+    if n <= MIN_VOUCHING:  # too few others to vouch: everything is left to the shared estimate
+        base, scale = _session_baseline(measured, share, share_sigma, bounded)
+        return np.broadcast_to(base, measured.shape).copy(), scale
+    bases = np.empty(measured.shape)
+    scales = np.empty(n)
+    for i in range(n):
+        others = np.arange(n) != i
+        base, _ = _session_baseline(measured[others], share[others], share_sigma[others], bounded)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scales[i] = np.nanmedian(measured[i] / (share[i] * base))
+        bases[i] = base
+    return bases, scales
+
+
+def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
+             share_sigma: np.ndarray | None = None, reference: Reference | None = None,
+             accuracy: float = ACCURACY, description: str = "") -> Contrast:
+    """The ``map_name`` contrast of every level record (see the module docstring). ``share``/``share_sigma``:
+    the physics (None: one everywhere, exactly known); ``reference``: the baseline to use instead of the
+    session's own estimate."""
+    if map_name not in MAPS:
+        raise ValueError(f"unknown map {map_name!r} (known: {', '.join(MAPS)})")
+    measured = _measured(levels)
+    shape = measured.shape
+    physics = share is not None
+    share = np.ones(shape) if share is None else np.where(np.isfinite(measured), share, np.nan)
+    share_sigma = np.zeros(shape) if share_sigma is None else share_sigma
+    noise = levels["pressure_std_pa"] / np.sqrt(np.maximum(levels["window_frames"], 1))[:, None, None]
+    expected = np.full(shape, np.nan)
+    sigma = np.full(shape, np.nan)
+    for force, records in level_groups(levels):
+        m, s, g = measured[records], share[records], share_sigma[records]
+        if reference is not None:
+            base, ref_scatter = reference.at(force)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                scale = np.nanmedian((m / (s * base)).reshape(len(records), -1), axis=1)
+        else:
+            base, scale = _baseline_without_each(m, s, g, physics)
+            ref_scatter = np.zeros(base.shape[1:])
+        exp = scale[:, None, None] * base * s
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = np.where(_trusted(g), m / exp - 1.0, np.nan)
+            healthy = max(accuracy, 1.4826 * float(np.nanmedian(np.abs(rel)))) if np.isfinite(rel).any() else accuracy
+            sensor = np.nan_to_num(noise[records] / m, nan=0.0)
+        expected[records] = exp
+        sigma[records] = np.sqrt(sensor ** 2 + healthy ** 2 + np.nan_to_num(ref_scatter, nan=0.0) ** 2 + g ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        values = measured / expected - 1.0
+    values = np.where(np.isfinite(values) & np.isfinite(sigma), values, np.nan)
+    if reference is not None:
+        source, how = "reference", f"reference palpation ({reference.description})"
+    else:
+        source, how = "session", f"estimated from this session's {len(np.unique(levels['region']))} areas"
+    what = f"{description}; baseline {how}" if description else f"no physics; baseline {how}"
+    return Contrast(map_name, values, np.where(np.isfinite(values), sigma, np.nan), expected, source, what, share,
+                    share_sigma, physics)

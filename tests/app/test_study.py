@@ -1,0 +1,130 @@
+"""The validation study: seeded draws, one code path on local processes and on Dask, honest scoring."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, draw_phantom, run_study,
+                       score, study_cases, study_document, study_main)
+from hardware.sim.phantom import parse_phantom
+
+# small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
+# harness (draws, executors, scoring), not the detector, which `make study` measures
+TINY = StudyDistribution(length_m=(0.024, 0.024), thickness_m=(0.025, 0.025), surface_odds=(1.0, 0.0, 0.0),
+                         tumours=(1, 1), depth_m=(1e-3, 3e-3), diameter_m=(8e-3, 10e-3))
+
+
+def tiny_cases(n: int, seed: int):
+    return study_cases(n, seed, dist=TINY, tissue="winkler", physics="none", force_max_N=2.0)
+
+
+def test_the_same_seed_draws_the_same_valid_phantoms_and_another_seed_others():
+    a = [draw_phantom(np.random.default_rng(5), f"p{k}") for k in range(1)]
+    b = [draw_phantom(np.random.default_rng(5), f"p{k}") for k in range(1)]
+    assert a == b
+    cases = study_cases(20, 11)
+    assert [c.phantom for c in cases] == [c.phantom for c in study_cases(20, 11)]
+    assert [c.phantom for c in cases] != [c.phantom for c in study_cases(20, 12)]
+    kinds = set()
+    for case in cases:
+        phantom = parse_phantom(case.phantom, case.name)  # valid by construction
+        assert 0 <= len(phantom.inclusions) <= 3 and 4.0 <= case.force_max_N <= 8.0
+        for inc in case.phantom["phantom"]["inclusions"]:
+            assert 1e-3 <= inc["depth_m"] <= 12e-3 and 5e-3 <= inc["diameter_m"] <= 12e-3
+        kinds.add(case.phantom["phantom"]["description"].split(",")[1].strip())
+    assert kinds == {"flat surface", "sloped surface", "bumpy surface"}
+
+
+def _without_timings(results) -> str:
+    """The results as comparable text (NaN included), without what depends on the machine or the folder."""
+    return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s") and k != "session"} for r in results],
+                      sort_keys=True)
+
+
+def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    cases = tiny_cases(2, seed=3)
+    local = LocalExecutor(workers=2)
+    try:
+        local_results, _ = run_study(cases, local, tmp_path / "local", keep_sessions=False)
+    finally:
+        local.close()
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        dask = DaskExecutor(client)
+        try:
+            dask_results, _ = run_study(cases, dask, tmp_path / "dask", keep_sessions=True)
+        finally:
+            dask.close()
+    assert [r["name"] for r in local_results] == [c.name for c in cases]
+    assert "error" not in local_results[0], local_results[0].get("error")
+    assert _without_timings(local_results) == _without_timings(dask_results)
+    kept = tmp_path / "dask" / cases[0].name
+    assert kept.with_suffix(".h5").exists() and kept.with_suffix(".toml").exists()
+    assert not (tmp_path / "local" / f"{cases[0].name}.h5").exists()
+    doc = study_document(cases, local_results, 1.0, 3, 2, "local")
+    assert set(ACCURACY_KEYS) <= set(doc) and doc["phantoms"] == 2 and doc["study_wall_s"] == 1.0
+
+
+def _result(name, truths, matches, fps, paper=False):
+    return {"name": name, "paper": paper, "regions": 3, "regions_done": 3, "truths": truths, "matches": matches,
+            "false_positives": {"stiffness": fps, "force": 0}, "tumours": []}
+
+
+def _match(i, depth, found, error=0.0, rule=None, model=None, low=None, high=None, palpated=True):
+    return {"truth_index": i, "source": "stiffness", "depth_m": depth, "found": found, "palpated": palpated,
+            "error_xy_m": error if found else None, "depth_estimate_m": rule, "depth_model_m": model,
+            "depth_low_m": low, "depth_high_m": high}
+
+
+def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apart():
+    truth = {"x_m": 0.0, "y_m": 0.0, "diameter_m": 8e-3, "modulus_ratio": 5.0}
+    results = [
+        _result("a", [{**truth, "depth_m": 2e-3}, {**truth, "depth_m": 10e-3}],
+                [_match(0, 2e-3, True, 1e-3, rule=2.5e-3, model=2.2e-3, low=1e-3, high=3e-3),
+                 _match(1, 10e-3, False)], fps=1),
+        _result("b", [{**truth, "depth_m": 5e-3}, {**truth, "depth_m": 4e-3}],
+                [_match(0, 5e-3, True, 2e-3, rule=2e-3, model=6e-3, low=5.5e-3, high=7e-3),
+                 _match(1, 4e-3, False, palpated=False)], fps=0),
+        _result("paper-flat", [{**truth, "depth_m": 2e-3}], [_match(0, 2e-3, True, 0.5e-3)], fps=2, paper=True),
+    ]
+    f = score(results)
+    assert f["phantoms"] == 2 and f["tumours"] == 3  # the unpalpated one does not count against anyone
+    assert f["sensitivity_pct"] == pytest.approx(200 / 3) and f["sensitivity_le6mm_pct"] == 100.0
+    assert f["by_depth"]["0-3mm"] == {"tumours": 1, "found": 1, "sensitivity_pct": 100.0}
+    assert f["by_depth"]["9-12mm"]["sensitivity_pct"] == 0.0
+    assert f["false_positives_per_phantom"] == 0.5
+    assert f["depth_err_rule_median_mm"] == pytest.approx(1.75)  # 0.5 and 3.0 mm
+    assert f["depth_err_model_median_mm"] == pytest.approx(0.6)  # 0.2 and 1.0 mm
+    assert f["depth_interval_coverage_pct"] == 50.0  # the second interval misses the truth
+    assert f["paper_flat_found"] == 1 and f["paper_uneven_found"] is None and f["paper_false_positives"] == 2
+
+
+def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
+    case = tiny_cases(1, seed=4)[0]
+    broken = type(case)(case.name, {"phantom": {"name": "x"}}, 0, 0, tissue="winkler", physics="none")
+    local = LocalExecutor(workers=1)
+    try:
+        [result], _ = run_study([broken], local, tmp_path)
+    finally:
+        local.close()
+    assert result["error"].startswith("PhantomError") and "\n" not in result["error"]
+    assert score([result])["failed_cases"] == 1
+
+
+def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys, monkeypatch, qapp):
+    assert study_main(["--phantoms", "0"]) == 2
+    assert "nothing to run" in capsys.readouterr().err
+    assert study_main(["--phantoms", "-3"]) == 2
+    assert "--phantoms must be within" in capsys.readouterr().err
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper: tiny_cases(n, seed))
+    out = tmp_path / "s"
+    assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--no-sessions"]) == 0
+    printed = capsys.readouterr().out
+    assert "stiffness map: 1 tumours in 1 phantoms" in printed and "[1/1] s2-0000" in printed
+    doc = json.loads((out / "study.json").read_text())
+    assert set(ACCURACY_KEYS) | {"study_wall_s", "maps", "cases"} <= set(doc)
+    assert (out / "study.png").read_bytes().startswith(b"\x89PNG")

@@ -1,0 +1,85 @@
+"""The probe's own pattern taken out: a rigid face's edge rows must not read as tumours, a reference
+palpation is saved and reused, and a file that is not one is refused in one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from session.detect import detect
+from session.flatfield import FlatFieldError, Reference, contrast
+from session.synthetic import level_record
+
+from tests.session.test_stitch import PITCH, levels_of
+
+AREAS_X = (0.012, 0.020, 0.028, 0.036, 0.044)
+FORCES = (1.0, 2.0, 3.0)
+# a rigid face on a layer: its two long edge rows carry about 2.5 times what the inner rows carry
+FACE = np.array([2.5, 1.0, 1.0, 2.5])[:, None] * np.ones((4, 15))
+
+
+def faced(record, tumour_xy=None):
+    """A synthetic record as a rigid face would read it (the pattern, and the same force in total)."""
+    levels = levels_of(record)
+    pattern = FACE / FACE.mean()
+    for name in ("pressure_pa", "element_force_N", "stiffness_pa"):
+        levels[name] = levels[name] * pattern
+    return levels
+
+
+def session(tumour_area=None, noise=0.02):
+    rows = [faced(level_record(r, k, f, (x, 0.015), noise=noise, seed=31 * r + k,
+                               tumours_xy_m=((x, 0.015),) if r == tumour_area else (), tumour_factor=1.4))
+            for r, x in enumerate(AREAS_X) for k, f in enumerate(FORCES)]
+    return np.concatenate(rows)
+
+
+def test_the_face_pattern_is_not_a_tumour_and_a_tumour_still_is():
+    healthy = session()
+    c = contrast(healthy, "force")
+    assert np.nanmax(np.abs(c.contrast)) < 0.15  # the 2.5x edge rows are gone
+    assert detect(healthy, c, PITCH) == []
+    with_tumour = session(tumour_area=2)
+    found = detect(with_tumour, contrast(with_tumour, "force"), PITCH)
+    assert len(found) == 1 and abs(found[0].x_m - AREAS_X[2]) < 1e-3
+
+
+def test_without_the_flat_field_the_face_edges_would_read_as_hard():
+    healthy = session()
+    edge, inner = healthy["pressure_pa"][:, 0, :].mean(), healthy["pressure_pa"][:, 1, :].mean()
+    assert edge / inner > 2.0  # what the raw map shows, and why the raw map cannot be thresholded
+
+
+def test_a_reference_palpation_round_trips_and_is_used(tmp_path):
+    healthy = session()
+    share = np.ones(healthy["pressure_pa"].shape)
+    reference = Reference.from_levels(healthy, share, np.zeros(share.shape), "five healthy areas", physics=False)
+    path = tmp_path / "reference.json"
+    reference.save(path)
+    again = Reference.load(path, (4, 15))
+    assert again.forces_N == FORCES and again.areas == len(AREAS_X)
+    np.testing.assert_allclose(again.baseline, reference.baseline)
+    with_tumour = session(tumour_area=2)
+    c = contrast(with_tumour, "force", reference=again)
+    assert c.source == "reference" and "five healthy areas" in c.description
+    found = detect(with_tumour, c, PITCH)
+    assert len(found) == 1 and abs(found[0].x_m - AREAS_X[2]) < 1e-3
+
+
+@pytest.mark.parametrize("content, message", [
+    ("not json", "cannot read the reference palpation"),
+    (json.dumps({"format": "something else"}), "not a Palpation Console reference palpation"),
+    (json.dumps({"format": "palpation-console-reference", "forces_N": [1.0], "baseline": [[1.0]],
+                 "scatter": [[0.0]]}), "made for another array"),
+    (json.dumps({"format": "palpation-console-reference", "forces_N": [float("nan")],
+                 "baseline": np.ones((1, 4, 15)).tolist(), "scatter": np.zeros((1, 4, 15)).tolist()}),
+     "finite and positive"),
+])
+def test_a_file_that_is_not_a_reference_is_refused_in_one_line(tmp_path, content, message):
+    path = tmp_path / "ref.json"
+    path.write_text(content)
+    with pytest.raises(FlatFieldError) as info:
+        Reference.load(path, (4, 15))
+    assert message in str(info.value) and "\n" not in str(info.value)
