@@ -1,6 +1,12 @@
 """The whole-tissue maps of a session under way: every level the loop records is kept, and the maps are
 stitched again (:mod:`session.stitch`, the same placement, overlap averaging and coverage as the reviewer
-and the exported maps) when someone asks for them after a new level arrived."""
+and the exported maps) when someone asks for them after a new level arrived.
+
+With them come the contrast maps and the tumours found so far, by the same flat field and detection as
+the reviewer (:mod:`session.flatfield`, :mod:`session.detect`). Live there is no finite-element physics
+(it would be rebuilt for every new area); the face's pattern comes from a reference palpation when one is
+loaded, else from the other areas palpated at the same level, which needs ``MIN_VOUCHING`` + 1 areas
+before it says anything (:meth:`LiveMaps.flat_field_ready`)."""
 
 from __future__ import annotations
 
@@ -8,6 +14,9 @@ import numpy as np
 
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
+from session.analysis import CONTRAST_MAPS
+from session.detect import SOURCES, DetectParams, Tumour, detect
+from session.flatfield import MIN_VOUCHING, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, stitch
 
@@ -23,10 +32,13 @@ class LiveMaps:
         self._rows: list[tuple] = []
         self._regions: set[int] = set()
         self._result: StitchResult | None = None
+        self._tumours: list[Tumour] = []
         self._dirty = False
+        self.reference: Reference | None = None
+        self.detect_params = DetectParams()
 
     def add(self, record: LevelRecord) -> None:
-        self._rows.append(level_row(record))
+        self._rows.append(level_row(record))  # [1] is the region
         self._regions.add(record.region)
         self._dirty = True
 
@@ -40,9 +52,36 @@ class LiveMaps:
         if self._dirty:
             self._dirty = False
             levels = np.array(self._rows, dtype=LEVEL_DTYPE)
+            extra = None
+            self._tumours = []
+            if self.flat_field_ready():
+                contrasts = {s: contrast(levels, s, reference=self.reference, accuracy=self.detect_params.accuracy)
+                             for s in SOURCES}
+                extra = {CONTRAST_MAPS[s]: c.contrast for s, c in contrasts.items()}
+                self._tumours = [t for s in SOURCES
+                                 for t in detect(levels, contrasts[s], self._sensor.pitch_m, self.detect_params)]
             self._result = stitch(levels, self._sensor.pitch_m, self._sensor.element_area_m2, self._params,
-                                  self._min_indentation_m)
+                                  self._min_indentation_m, extra)
         return self._result
+
+    def flat_field_ready(self) -> bool:
+        """Whether the probe's pattern can be taken out yet: a reference is loaded, or enough areas were
+        palpated for each one's baseline to come from the others."""
+        return self.reference is not None or len(self._regions) > MIN_VOUCHING
+
+    def tumours(self) -> list[Tumour]:
+        """The tumours found so far (as of the last :meth:`stitched`)."""
+        self.stitched()
+        return list(self._tumours)
+
+    def findings_in(self, region: int) -> list[Tumour]:
+        """The tumours found so far that area ``region`` saw (one of their spots lies in its records)."""
+        self.stitched()
+        return [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
+
+    def set_reference(self, reference: Reference | None) -> None:
+        self.reference = reference
+        self._dirty = True
 
     @property
     def level_count(self) -> int:

@@ -150,7 +150,7 @@ class RmseGauge(QtWidgets.QWidget):
 
 class FlowchartPanel(QtWidgets.QWidget):
     """Child objectNames: ``phaseLabel``, ``phaseHint``, ``levelLabel``, ``levelLadder``, ``rmseLabel``,
-    ``rmseGauge``, ``regionDone``."""
+    ``rmseGauge``, ``regionDone``, ``regionFindings`` (what the last finished area showed)."""
 
     def __init__(self, ramp: RampSettings, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
@@ -171,6 +171,7 @@ class FlowchartPanel(QtWidgets.QWidget):
         self._done = QtWidgets.QLabel("region not done", objectName="regionDone")
         self._done.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
         self._done.setProperty("done", False)
+        self._findings = QtWidgets.QLabel("", objectName="regionFindings", wordWrap=True)
         # the hint wraps over one or two lines: reserve both so the panel below never jumps
         self._hint.setMinimumHeight(2 * QtGui.QFontMetrics(self._hint.font()).height() + 6)
 
@@ -186,6 +187,7 @@ class FlowchartPanel(QtWidgets.QWidget):
         col.addWidget(self._gauge)
         col.addSpacing(8)
         col.addWidget(self._done)
+        col.addWidget(self._findings)
 
     def set_ramp(self, ramp: RampSettings) -> None:
         self._eps_N = ramp.rmse_threshold_N
@@ -254,6 +256,10 @@ class FlowchartPanel(QtWidgets.QWidget):
         label.setProperty("done", done)
         label.style().unpolish(label)
         label.style().polish(label)
+
+    def show_findings(self, text: str) -> None:
+        """What the area just finished showed (position, first level, depth), or that it showed nothing."""
+        self._set_text(self._findings, text)
 
     def _set_text(self, label: QtWidgets.QLabel, text: str) -> None:
         if self._texts.get(label) != text:

@@ -40,7 +40,8 @@ from control.autopilot import Autopilot, AutopilotError, AutopilotPlan, Autopilo
 from control.config import ControlConfig, RampSettings
 from control.console_state import ConsoleState
 from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop, FaultKind, Jog,
-                              LevelRecorded, LevelTimedOut, Notice, RegionAborted, SetGains, SetRamp, SetSz, Tare)
+                              LevelRecorded, LevelTimedOut, Notice, RegionAborted, RegionDone, SetGains, SetRamp, SetSz,
+                              Tare)
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import TactileConstraints
 from hardware.settings import ConfigError
@@ -670,10 +671,29 @@ class LiveWindow(QtWidgets.QMainWindow):
             self.statusBar().showMessage(f"{event.command_name} refused: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, LevelTimedOut):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
+        elif isinstance(event, RegionDone):
+            self._tell_findings(event.region)
         elif isinstance(event, RegionAborted):
             self.statusBar().showMessage(f"Region {event.region + 1} aborted: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, (Notice, CommandApplied)):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
+
+    def _tell_findings(self, region: int) -> None:
+        """At "region done": what that area showed, in the messages and under the flowchart's flag."""
+        findings = self._tissue.findings_in(region)
+        f_max = self._ramp_editor.applied().force_max_N
+        if findings is None:
+            text = (f"Area {region + 1}: findings from the 4th area on (the probe's pattern is estimated from the "
+                    "other areas), or load a reference palpation")
+        elif not findings:
+            text = f"Area {region + 1}: nothing significant up to {f_max:g} N"
+        else:
+            text = f"Area {region + 1}: " + "; ".join(
+                f"{t.source} map: tumour at x {t.x_m * 1e3:.1f} mm, y {t.y_m * 1e3:.1f} mm, first at "
+                f"{t.first_level_N:g} N, depth {t.depth_m * 1e3:.1f} mm (paper's rule), z {t.score:.1f}"
+                for t in findings)
+        self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
+        self._flow.show_findings(text)
 
     def _show_settings(self) -> None:
         """The S_z switch, ramp and gains as the controller has them, with what is pending or refused."""

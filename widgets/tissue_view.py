@@ -33,8 +33,13 @@ COVERAGE_LEVELS = (0.0, 2.0)  # 1 = palpated once, 2 = two areas overlap
 QUANTITIES = (
     ("tissuePressure", "Pressure", "pressure_pa", "kPa", 1e-3),
     ("tissueStiffness", "Stiffness", "stiffness_pa", "kPa", 1e-3),
+    ("tissueStiffnessContrast", "Stiffness contrast", "stiffness_contrast", "%", 100.0),
     ("tissueCoverage", "Coverage", "coverage", "×", 1.0),
 )
+# the map whose tumours each quantity marks
+_SOURCE = {"pressure_pa": "force", "stiffness_pa": "stiffness", "stiffness_contrast": "stiffness",
+           "coverage": "stiffness"}
+CONTRAST_SPAN = 0.2  # the contrast colour range is at least ±20 %: noise of a few % stays one colour
 
 
 class WholeTissueView(QtWidgets.QWidget):
@@ -108,6 +113,11 @@ class WholeTissueView(QtWidgets.QWidget):
         self._footprint.setZValue(8)
         self._footprint.setVisible(False)
         self._view.addItem(self._footprint)
+        self._spots = pg.ScatterPlotItem(symbol="o", size=16, pen=pg.mkPen((255, 255, 255), width=2.5),
+                                         brush=None, pxMode=True)
+        self._spots.setObjectName("tissueSpots")
+        self._spots.setZValue(9)
+        self._view.addItem(self._spots)
         self._bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=CONTOUR_COLORMAP, label="kPa", interactive=False,
                                     colorMapMenu=False, width=16)
         self._bar.setObjectName("tissueColorBar")
@@ -142,6 +152,19 @@ class WholeTissueView(QtWidgets.QWidget):
 
     def result(self) -> StitchResult | None:
         return self._result
+
+    def set_reference(self, reference) -> None:
+        """A reference palpation (:class:`session.flatfield.Reference`) for the live flat field, or None."""
+        self._maps.set_reference(reference)
+        self.refresh()
+
+    def findings_in(self, region: int) -> list | None:
+        """The tumours found so far that area ``region`` saw; None while the flat field cannot be had."""
+        self.refresh()
+        return self._maps.findings_in(region) if self._maps.flat_field_ready() else None
+
+    def spot_count(self) -> int:
+        return len(self._spots.data)
 
     def record_count(self) -> int:
         return self._maps.level_count
@@ -232,11 +255,16 @@ class WholeTissueView(QtWidgets.QWidget):
             return
         result = self._result
         level = result.levels[index]
-        values = level.quantity(self._quantity)
         if self._quantity == "coverage":
-            values = np.where(values > 0, values, np.nan)
+            values = np.where(level.coverage > 0, level.coverage, np.nan)
             levels = COVERAGE_LEVELS
+        elif self._quantity.endswith("_contrast"):
+            values = level.extra.get(self._quantity, np.full(level.coverage.shape, np.nan))
+            finite = np.abs(values[np.isfinite(values)])
+            span = max(CONTRAST_SPAN, float(finite.max()) if finite.size else 0.0) * scale
+            levels = (-span, span)
         else:
+            values = level.quantity(self._quantity)
             finite = values[np.isfinite(values)]
             top = float(finite.max()) * scale if finite.size else 0.0
             levels = auto_levels(top, self._levels[self._quantity], self._floors[self._quantity])
@@ -247,6 +275,9 @@ class WholeTissueView(QtWidgets.QWidget):
         self._bar.setLevels(levels, update_items=False)
         if self._extent is None:
             self._show_extent(result.grid.extent_m)
+        found = [t for t in self._maps.tumours()
+                 if t.source == _SOURCE[self._quantity] and level.force_N >= t.first_level_N - 1e-9]
+        self._spots.setData([t.y_m * 1e3 for t in found], [t.x_m * 1e3 for t in found])
         self._summary.setText(self._describe(level))
 
     def _describe(self, level) -> str:
@@ -261,6 +292,10 @@ class WholeTissueView(QtWidgets.QWidget):
             text += f" · {covered_m2 * 1e6:.0f} mm² covered at {level.force_N:g} N"
         if math.isfinite(level.tsi_indentation_m):
             text += f" · mean depth {level.tsi_indentation_m * 1e3:.1f} mm"
+        if not self._maps.flat_field_ready():
+            text += " · contrast and tumours from the 4th area on (or with a reference palpation)"
+        else:
+            text += f" · {sum(1 for t in self._maps.tumours() if t.source == 'stiffness')} tumour(s) so far"
         return text
 
     def _show_extent(self, extent_m) -> None:

@@ -472,3 +472,34 @@ def test_a_double_click_on_the_tissue_sends_the_probe_there_only_off_the_tissue(
     push(controller, make_tick(phase=Phase.HOLD, fault=FaultKind.ESTOP))
     tissue.move_requested.emit(0.030, 0.010)
     assert len(controller.sent) == 1 and "a fault holds the robot" in window.statusBar().currentMessage()
+
+
+def test_region_done_says_what_the_area_showed(window, controller):
+    import math
+    import re
+
+    from control.messages import RegionDone
+    from session.synthetic import level_record
+
+    def area(region, x, tumour=False):
+        records = [level_record(region, k, f, (x, 0.015), noise=0.02, seed=31 * region + k, t_s=10.0 * region + k,
+                                tumours_xy_m=((x, 0.015),) if tumour else (), tumour_factor=1.5)
+                   for k, f in enumerate((1.0, 2.0, 3.0))]
+        return [LevelRecorded(r.t_s, r) for r in records] + [RegionDone(10.0 * region + 3, region, 3)]
+
+    push(controller, make_tick(t_s=1.0), events=area(0, 0.012))
+    assert "findings from the 4th area on" in label(window, "regionFindings").text()
+    for region, x in ((1, 0.020), (2, 0.028)):
+        push(controller, make_tick(t_s=1.0 + region), events=area(region, x))
+    push(controller, make_tick(t_s=4.0), events=area(3, 0.036, tumour=True))
+    text = label(window, "regionFindings").text()
+    found = re.match(r"Area 4: stiffness map: tumour at x ([\d.]+) mm, y ([\d.]+) mm, first at 1 N, depth [\d.]+ mm "
+                     r"\(paper's rule\), z [\d.]+", text)
+    assert found and math.hypot(float(found[1]) - 36.0, float(found[2]) - 15.0) < 1.0
+    assert any(line.endswith(text) for line in window.messages().lines())
+    tissue = window.findChild(WholeTissueView)
+    tissue.set_quantity("stiffness_contrast")
+    assert np.nanmax(tissue.shown_values()) > 0.3  # over homogeneous tissue, over the tumour
+    assert tissue.spot_count() == 1
+    push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
+    assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
