@@ -29,6 +29,7 @@ from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
+STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step that matters
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 
@@ -77,6 +78,8 @@ class ControlLoop:
         self._force_N = 0.0
         self._max_pressure_pa = 0.0
         self._indentation_m = math.nan
+        self._force_start_z_m = math.nan  # where the TSI was when force control began
+        self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
         self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
@@ -170,6 +173,7 @@ class ControlLoop:
             else:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 sm.start(now_s, self._x_s[Z])
+                self._force_start_z_m = self._x_s[Z]
                 self._set_sz(now_s, False, cmd.source, events)
         elif sm.force_control:
             sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
@@ -259,6 +263,14 @@ class ControlLoop:
                 p, sm.tracker.onset_height_m, pos[Z], self.config.contact, area)
             fr["dL_m"] = dL
             fr["stiffness_pa"] = stiffness
+            pressed_blind = sm.tracker.blind & (p >= self.config.contact.onset_threshold_pa)
+            if pressed_blind.any():
+                # Elements already pressed when force control began have no onset, so no indentation: they
+                # are in at least as far as the TSI went down since. Without this the ceiling sees NaN and
+                # the probe may be driven to the table.
+                travel = self._force_start_z_m - pos[Z]
+                if not self._indentation_m >= travel:
+                    self._indentation_m = max(travel, 0.0) if math.isfinite(travel) else math.inf
         else:
             self._indentation_m = math.nan
             fr["dL_m"] = np.nan
@@ -322,6 +334,7 @@ class ControlLoop:
             self._set_sz(now_s, True, Source.CONTROLLER, events)
 
         self._reference(now_s, dt, result, events)
+        self._guard(now_s, dt, result, events)
         events.extend(sm.take_events())
         result.feedback = MasterFeedback(now_s, int(sm.phase), sm.region_done, self._force_N, self.safety.faulted)
         self._fill_tick(now_s)
@@ -357,6 +370,37 @@ class ControlLoop:
         result.position_ref_m = (law.x_r[0], law.x_r[1], law.x_r[2])
         result.velocity_ref_m_s = (law.v_r[0], law.v_r[1], law.v_r[2])
         result.hold = False
+
+    def _guard(self, now_s: float, dt: float, result: StepResult, events: list) -> None:
+        """The last check before a reference leaves the loop, in every state (faulted included): finite, in
+        the workspace, and no farther from the last one sent than the velocity limit allows in this tick.
+        A reference that fails is not sent: the robot holds where it is, and the fault says why."""
+        if result.hold:
+            self._sent = None
+            return
+        x = result.position_ref_m
+        lim = self.safety.limits
+        last = self._sent if self._sent is not None else self._x_s
+        problem = None
+        if not all(math.isfinite(v) for v in x):
+            problem = (FaultKind.WORKSPACE, f"Invalid reference: the controller computed a non-finite position "
+                                            f"({x[0]:g}, {x[1]:g}, {x[2]:g}). The robot was stopped where it is.")
+        else:
+            problem = self.safety.outside_workspace(x)
+            step = math.dist(x, last)
+            allowed = lim.velocity_limit_m_s * max(dt, 1.0 / self.config.rate_hz) + STEP_TOLERANCE_M
+            if problem is None and step > allowed:
+                problem = (FaultKind.VELOCITY_LIMIT, (
+                    f"Velocity limit: the next reference was {step * 1e3:.2f} mm from the last one sent, more "
+                    f"than the {allowed * 1e3:.2f} mm the {lim.velocity_limit_m_s * 1e3:.0f} mm/s limit allows "
+                    f"in one tick. It was not sent; the robot was stopped where it is."))
+        if problem is None:
+            self._sent = x
+            return
+        self._raise_fault(now_s, problem[0], problem[1], events)
+        self.law.reset(self._x_s, ZERO3)
+        result.position_ref_m, result.velocity_ref_m_s, result.hold = self._x_s, ZERO3, True
+        self._sent = None
 
     def _advance_jog(self, dt: float) -> None:
         pending = self._jog_pending

@@ -73,11 +73,11 @@ class SafetySupervisor:
                 and not (grace and math.isinf(master_age_s)):
             return FaultKind.MASTER_STALE, _stale("master device", master_age_s, lim.master_timeout_s,
                                                   "The probe was lifted off the tissue and holds there.")
-        if force_N > lim.force_ceiling_N:
+        if not force_N <= lim.force_ceiling_N:  # NaN included: an unknown force is not a safe one
             return FaultKind.FORCE_CEILING, (
                 f"Force ceiling exceeded: the tactile sensor measured {force_N:.2f} N, above the "
                 f"{lim.force_ceiling_N:.2f} N limit. The probe was lifted off the tissue.")
-        if max_pressure_pa > lim.element_pressure_ceiling_pa:
+        if not max_pressure_pa <= lim.element_pressure_ceiling_pa:
             return FaultKind.PRESSURE_CEILING, (
                 f"Pressure ceiling exceeded: one element read {max_pressure_pa / 1e3:.1f} kPa, above the "
                 f"{lim.element_pressure_ceiling_pa / 1e3:.1f} kPa limit (the sensor saturates there). "
@@ -91,6 +91,10 @@ class SafetySupervisor:
             return FaultKind.VELOCITY_LIMIT, (
                 f"Velocity limit exceeded: the reference moved at {speed * 1e3:.0f} mm/s, above the "
                 f"{lim.velocity_limit_m_s * 1e3:.0f} mm/s limit. The robot was stopped where it is.")
+        return self.outside_workspace(x_ref_m)
+
+    def outside_workspace(self, x_ref_m) -> tuple[FaultKind, str] | None:
+        lim = self.limits
         for i, axis in enumerate("xyz"):
             if not (lim.workspace_min_m[i] <= x_ref_m[i] <= lim.workspace_max_m[i]):
                 return FaultKind.WORKSPACE, (

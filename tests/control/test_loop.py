@@ -256,3 +256,49 @@ def test_cancel_jog_stops_the_move_where_it_is():
     h.run(2.0)
     assert 0.004 < stopped - x0 < 0.006  # 0.5 s at the 10 mm/s jog speed
     assert h.loop.tick["x_des_m"][0] == pytest.approx(stopped, abs=1e-9)
+
+
+def test_the_indentation_ceiling_holds_when_force_control_starts_already_pressing():
+    """Issue 14, finding 1: elements pressed before force control have no onset; the ceiling must still see
+    the travel since, not NaN, and lift the probe before it reaches the table."""
+    soft = LayerPlant(modulus_pa=20e3, start_m=(0.03, 0.015, 0.0238))  # 1.2 mm in; 7 N is beyond 16 mm here
+    h = Harness(plant=soft)
+    start_region(h)
+    lowest = [h.plant.x[2]]
+    h.run(60, until=lambda h: lowest.append(h.plant.x[2]) or h.loop.safety.faulted)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.INDENTATION_CEILING
+    # the travel since S_z = 0 reached the 16 mm ceiling; the probe was already 1.2 mm in
+    assert min(lowest) > 0.025 - 0.0012 - 0.016 - 0.5e-3
+
+
+def test_a_non_finite_force_is_a_fault_not_a_pass():
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    h.plant.extra_force_pa = math.nan
+    h.run(0.1, until=lambda h: h.loop.safety.faulted)
+    assert h.of(FaultRaised)[0].kind == FaultKind.FORCE_CEILING
+
+
+def test_a_reference_is_checked_before_it_leaves_the_loop():
+    """Issue 14, finding 6: a step beyond v_max * dt is never sent, not even once; nor is a non-finite one,
+    whatever fault is already latched."""
+    h = Harness()
+    h.run(0.1)
+    sent = h.last.position_ref_m
+    h.loop.law.x_r[0] += 0.03  # X_r jumps 30 mm, inside the workspace
+    h.run(0.001)
+    assert h.of(FaultRaised)[0].kind == FaultKind.VELOCITY_LIMIT
+    assert h.last.hold and math.dist(h.plant.x, sent) < 1e-6  # the jump never reached the robot
+
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    h.plant.sensor_alive = False
+    h.run(0.2, until=lambda h: h.loop.safety.faulted)
+    assert h.loop.safety.retract
+    h.run(0.05)
+    h.loop.law.x_r[2] = math.nan  # the retract reference diverges
+    h.run(0.001)
+    assert h.last.hold and all(math.isfinite(v) for v in h.plant.x)
