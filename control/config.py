@@ -6,7 +6,12 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from hardware.settings import ConfigError, Settings, Vec3, number, positive, vec3
+from hardware.settings import ConfigError, Settings, Vec3, bounded, number, positive, vec3
+
+# The stiffest environment the loop must stay stable against: the whole 8 x 30 mm face on 1 mm of a
+# 400 kPa silicone over the table (E A / h), well beyond any tissue the console palpates.
+ENVIRONMENT_STIFFNESS_MAX_N_M = 1e5
+RATE_HZ_RANGE = (100.0, 5000.0)  # the paper's loop runs at 1 kHz; below 100 Hz it lags the 10 ms sensor frames
 
 
 @dataclass(frozen=True)
@@ -88,6 +93,8 @@ class ContactSettings(Settings):
 
 @dataclass(frozen=True)
 class SafetyLimits(Settings):
+    """The supervisor's limits; each bounded so a typing slip cannot switch a limit off (the bounds say why)."""
+
     force_ceiling_N: float = 12.0
     element_pressure_ceiling_pa: float = 95e3
     indentation_ceiling_m: float = 0.016
@@ -99,12 +106,21 @@ class SafetyLimits(Settings):
     slave_timeout_s: float = 0.01
 
     def __post_init__(self):
-        for name in ("force_ceiling_N", "element_pressure_ceiling_pa", "indentation_ceiling_m", "velocity_limit_m_s",
-                     "sensor_timeout_s", "master_timeout_s", "slave_timeout_s"):
-            object.__setattr__(self, name, positive(name, getattr(self, name)))
+        for name, top, why in (
+                ("force_ceiling_N", 30.0, "the TSI's full scale is 95 kPa over 240 mm^2, 23 N"),
+                ("element_pressure_ceiling_pa", 1e6, "a capacitive element saturates far below 1 MPa"),
+                ("indentation_ceiling_m", 0.05, "deeper than any palpated tissue is thick"),
+                ("velocity_limit_m_s", 0.5, "a palpation robot near tissue"),
+                ("sensor_timeout_s", 1.0, "a second without data is a lost device"),
+                ("master_timeout_s", 1.0, "a second without data is a lost device"),
+                ("slave_timeout_s", 1.0, "a second without data is a lost device")):
+            value = positive(name, getattr(self, name))
+            object.__setattr__(self, name, bounded(name, value, 0.0, top, why))
         lo = vec3("workspace_min_m", self.workspace_min_m)
         hi = vec3("workspace_max_m", self.workspace_max_m)
         for i, axis in enumerate("xyz"):
+            for key, v in (("workspace_min_m", lo[i]), ("workspace_max_m", hi[i])):
+                bounded(f"{key}[{i}]", v, -1.0, 1.0, "a bench robot's reach, in m")
             if hi[i] <= lo[i]:
                 raise ConfigError("workspace_max_m", f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
         object.__setattr__(self, "workspace_min_m", lo)
@@ -126,6 +142,14 @@ class MasterMapping(Settings):
         object.__setattr__(self, "derivative_filter_s", positive("derivative_filter_s", self.derivative_filter_s))
 
 
+def stable_for_environment(gains: ImpedanceGains, dt_s: float, stiffness_N_m: float) -> bool:
+    """Whether the impedance law (control/law.py: backward Euler in its own B and K) stays stable against an
+    environment of ``stiffness_N_m`` fed back explicitly through F_e at step ``dt_s``, on every axis:
+    dt^2 k < 2 (2 M + dt B), Jury's test on the force-control axis (the least damped)."""
+    return all(dt_s * dt_s * stiffness_N_m < 2.0 * (2.0 * m + dt_s * b)
+               for m, b in zip(gains.mass_kg, gains.damping_N_s_m))
+
+
 @dataclass(frozen=True)
 class ControlConfig(Settings):
     rate_hz: float = 1000.0
@@ -137,10 +161,26 @@ class ControlConfig(Settings):
     master: MasterMapping = field(default_factory=MasterMapping)
 
     def __post_init__(self):
-        object.__setattr__(self, "rate_hz", positive("rate_hz", self.rate_hz))
+        object.__setattr__(self, "rate_hz", bounded("rate_hz", self.rate_hz, *RATE_HZ_RANGE,
+                                                     "the paper's loop runs at 1 kHz"))
         object.__setattr__(self, "max_step_s", positive("max_step_s", self.max_step_s))
         if self.max_step_s < 1.0 / self.rate_hz:
             raise ConfigError("max_step_s", f"must be at least one period ({1.0 / self.rate_hz:g} s)")
+        if self.max_step_s > 10.0 / self.rate_hz:
+            raise ConfigError("max_step_s", f"must be at most ten periods ({10.0 / self.rate_hz:g} s): a longer step "
+                                            "moves the reference too far at once")
+        if self.ramp.force_max_N > self.safety.force_ceiling_N:
+            raise ConfigError("ramp.force_max_N", f"{self.ramp.force_max_N:g} N is above the force ceiling "
+                                                  f"({self.safety.force_ceiling_N:g} N): the last level would trip it")
+        for key, speed in (("contact.retract_speed_m_s", self.contact.retract_speed_m_s),
+                           ("master.jog_speed_m_s", self.master.jog_speed_m_s)):
+            if speed > self.safety.velocity_limit_m_s:
+                raise ConfigError(key, f"{speed:g} m/s is above the velocity limit "
+                                       f"({self.safety.velocity_limit_m_s:g} m/s)")
+        if not stable_for_environment(self.gains, self.max_step_s, ENVIRONMENT_STIFFNESS_MAX_N_M):
+            raise ConfigError("gains", "the impedance law would go unstable against stiff tissue: need dt^2 k < "
+                                       "2 (2 M + dt B) on every axis with dt = max_step_s and k = "
+                                       f"{ENVIRONMENT_STIFFNESS_MAX_N_M:g} N/m; raise mass_kg or damping_N_s_m")
 
     @property
     def period_s(self) -> float:

@@ -9,7 +9,13 @@ sign: Fe is the force the probe exerts on the environment, so in force control (
 settles where Fe = Fd. A palpation force of magnitude F pushing down into the tissue is Fd_z = -F.
 
 The reference (Xr, Xr') is the integrator state; changing S changes only its acceleration, never the
-state itself, so switching S_z at run time is bumpless by construction. The JI part (mapping Xr to joint
+state itself, so switching S_z at run time is bumpless by construction.
+
+The integration is implicit (backward Euler) in the law's own damping and stiffness, with the measured
+force held over the step: the reference's own dynamics are then stable for every positive M, B, K and
+step, where the explicit (semi-implicit Euler) scheme diverged once dt * B / M or dt^2 * K / M passed 2
+(M = 0.03 kg with B = 80 ran the reference to 1e8 m in 56 ms). What remains explicit is the tissue's
+reaction through F_e; :func:`control.config.stable_for_environment` bounds it, and the configuration refuses gains that fail it. The JI part (mapping Xr to joint
 references through the inverse Jacobian) belongs to the slave's inner position loop.
 """
 
@@ -49,12 +55,13 @@ class HybridImpedanceLaw:
         self._s[axis] = 1.0 if position_control else 0.0
 
     def step(self, dt: float, x_d: Vec3, v_d: Vec3, a_d: Vec3, f_e: Vec3, f_d: Vec3) -> None:
-        """Advance the reference by dt (semi-implicit Euler: velocity first, then position)."""
+        """Advance the reference by dt: backward Euler in B and K (module docstring), F_e held."""
         x_r, v_r, a_r = self.x_r, self.v_r, self.a_r
         for i in range(3):
-            s = self._s[i]
-            a = (-f_e[i] + (1.0 - s) * f_d[i] - self._b[i] * (v_r[i] - s * v_d[i])
-                 - self._k[i] * s * (x_r[i] - x_d[i])) / self._m[i] + s * a_d[i]
-            a_r[i] = a
-            v_r[i] += a * dt
-            x_r[i] += v_r[i] * dt
+            s, m, b, k = self._s[i], self._m[i], self._b[i], self._k[i]
+            drive = -f_e[i] + (1.0 - s) * f_d[i] + b * s * v_d[i] - k * s * (x_r[i] - x_d[i]) + m * s * a_d[i]
+            v = (m * v_r[i] + dt * drive) / (m + dt * b + dt * dt * k * s)
+            a_r[i] = (v - v_r[i]) / dt if dt > 0 else 0.0
+            v_r[i] = v
+            x_r[i] += v * dt
+

@@ -22,8 +22,8 @@ class ConfigError(ValueError):
 
 
 def number(key: str, value: Any) -> float:
-    """A finite number (TOML's true/false are refused, not read as 1/0)."""
-    if isinstance(value, bool):
+    """A finite number (TOML's true/false and strings such as "12" are refused, not read as numbers)."""
+    if isinstance(value, (bool, str, bytes)):
         raise ConfigError(key, f"must be a number, got {value!r}")
     try:
         v = float(value)
@@ -38,6 +38,14 @@ def positive(key: str, value: Any) -> float:
     v = number(key, value)
     if v <= 0:
         raise ConfigError(key, f"must be > 0, got {v:g}")
+    return v
+
+
+def bounded(key: str, value: Any, lo: float, hi: float, why: str) -> float:
+    """A number in [lo, hi]; ``why`` says where the bounds come from."""
+    v = number(key, value)
+    if not lo <= v <= hi:
+        raise ConfigError(key, f"must lie between {lo:g} and {hi:g} ({why}), got {v:g}")
     return v
 
 

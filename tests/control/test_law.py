@@ -75,3 +75,28 @@ def test_switching_sz_is_bumpless():
     assert abs(law.v_r[2] - before[1][2]) < 0.01 * 1.0 + 1e-3 * max(abs(a) for a in law.a_r) + 1e-12
     law.set_selection(2, position_control=True)
     assert law.sz == 1
+
+
+@pytest.mark.parametrize("mass, damping", [(0.03, 80.0), (1.0, 5000.0), (0.1, 40.0)])
+def test_gains_the_configuration_accepts_never_diverge(mass, damping):
+    """Issue 14, finding 2: with these gains the explicit scheme ran the reference to 1e8 m within 56 ms.
+    The loop's own step (1 ms) and its longest (2 ms), position and force control, against a 20 kN/m
+    environment fed back through F_e as the loop does, for two seconds."""
+    from control.config import ControlConfig
+
+    gains = ImpedanceGains(mass_kg=(mass,) * 3, damping_N_s_m=(damping,) * 3)
+    ControlConfig(gains=gains)  # accepted
+    for dt in (1e-3, 2e-3):
+        for force_control in (False, True):
+            law = HybridImpedanceLaw(gains)
+            law.reset((0.0, 0.0, 0.0), (0.0, 0.0, -0.05))  # on the surface, moving into it
+            law.set_selection(2, not force_control)
+            for _ in range(int(2.0 / dt)):
+                f_e = (0.0, 0.0, 2e4 * min(law.x_r[2], 0.0))  # pressed (z < 0): the probe pushes down
+                law.step(dt, (0.0, 0.0, 0.0), (0, 0, 0), (0, 0, 0), f_e, (0.0, 0.0, -5.0))
+                assert all(math.isfinite(v) and abs(v) < 0.1 for v in law.x_r)
+            # and it settles where the impedance says: F_e = F_d in force control, near X_d in position control
+            if force_control:
+                assert 2e4 * law.x_r[2] == pytest.approx(-5.0, rel=1e-3)
+            else:
+                assert abs(law.x_r[2]) < 1e-3

@@ -302,3 +302,24 @@ def test_a_reference_is_checked_before_it_leaves_the_loop():
     h.loop.law.x_r[2] = math.nan  # the retract reference diverges
     h.run(0.001)
     assert h.last.hold and all(math.isfinite(v) for v in h.plant.x)
+
+
+@pytest.mark.parametrize("section, key, value, said", [
+    ("safety", "force_ceiling_N", 1e6, "between 0 and 30"),
+    ("safety", "indentation_ceiling_m", 10.0, "between 0 and 0.05"),
+    ("safety", "velocity_limit_m_s", 1000.0, "between 0 and 0.5"),
+    ("safety", "force_ceiling_N", "12", "must be a number"),
+    ("ramp", "force_max_N", 13.0, "above the force ceiling"),
+    (None, "rate_hz", 0.001, "between 100 and 5000"),
+    (None, "rate_hz", 1e9, "between 100 and 5000"),
+    ("gains", "mass_kg", [1e-300] * 3, "unstable against stiff tissue"),
+    ("contact", "retract_speed_m_s", 0.2, "above the velocity limit"),
+])
+def test_configuration_refuses_the_absurd_with_the_reason(section, key, value, said):
+    """Issue 14, finding 7."""
+    from hardware.settings import ConfigError
+
+    table = {key: value} if section is None else {section: {key: value}}
+    with pytest.raises(ConfigError, match=said) as caught:
+        ControlConfig.from_mapping(table)
+    assert "\n" not in str(caught.value)
