@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: bootstrap run test bench study simulate lint clean screenshot
+.PHONY: bootstrap run test bench study depth-library simulate lint clean screenshot
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -26,6 +26,11 @@ bench: bootstrap
 study: bootstrap
 	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --out build/study \
 		--json build/bench/accuracy.json --plot build/bench/accuracy.png
+
+# The model-based depth's library of finite-element solves (app/depth_model.py), shipped in resources/:
+# rebuild it after a change to the continuum mechanics (about 15 minutes on two cores).
+depth-library: bootstrap
+	$(PY) -m app.depth_model --out resources/depth_library.npz
 
 clean:
 	rm -rf $(VENV) build .pytest_cache

@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+from app.depth_model import DepthModel, DepthModelError
 from app.physics import PHYSICS, physics_for
 from session.analysis import AnalysisParams, SessionAnalysis
 from session import export
@@ -39,6 +40,8 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--reference", type=Path,
                        help="a reference palpation of tumour-free tissue (saved with --save-reference) whose "
                             "per-element baseline replaces the session's own estimate")
+    group.add_argument("--no-depth-model", action="store_true",
+                       help="skip the model-based depth (the paper's indentation rule is always given)")
     group.add_argument("--l0", choices=[s.value for s in L0Source], default=L0Source.ELEMENT.value,
                        help="where Eq. 1's initial thickness L0 comes from: each element's onset (element, "
                             "as recorded), one per region (region), or a given thickness (fixed, with --l0-mm)")
@@ -66,7 +69,16 @@ def analyse(session: Session, args) -> SessionAnalysis:
             reference = Reference.load(args.reference, tuple(session.levels.dtype["pressure_pa"].shape))
         except FlatFieldError as err:
             raise AnalysisInputError(str(err)) from None
-    return SessionAnalysis.run(session, analysis_params(args), physics, reference)
+    depth_model = None
+    if not args.no_depth_model:
+        try:
+            depth_model = DepthModel.for_session(session)
+        except DepthModelError as err:
+            raise AnalysisInputError(f"{err} (--no-depth-model analyses without it)") from None
+    try:
+        return SessionAnalysis.run(session, analysis_params(args), physics, reference, depth_model)
+    except FlatFieldError as err:
+        raise AnalysisInputError(f"--reference {args.reference}: {err}") from None
 
 
 class AnalysisInputError(ValueError):
@@ -224,7 +236,7 @@ def review_main(argv: list[str] | None = None) -> int:
     from widgets.review import ReviewWindow
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
-    window = ReviewWindow(start_folder=sessions_dir(), physics=physics_options())
+    window = ReviewWindow(start_folder=sessions_dir(), physics=physics_options(), depth_model=DepthModel.for_session)
     window.resize(1400, 900)
     window.show()
     if args.file is not None:

@@ -205,6 +205,7 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True) -> dict[s
 
 def _run_case(case: StudyCase, folder: Path, keep_session: bool) -> dict[str, Any]:
     from app.config import load_config
+    from app.depth_model import DepthModel
     from app.physics import physics_for
     from app.recording import record_simulation
     from hardware.sim.phantom import load_phantom
@@ -229,7 +230,8 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool) -> dict[str, An
         record_simulation(session_path, config, rig=rig)
         palpated = time.perf_counter()
         with open_session(session_path) as session:
-            analysis = SessionAnalysis.run(session, physics=physics_for(session, case.physics))
+            analysis = SessionAnalysis.run(session, physics=physics_for(session, case.physics),
+                                           depth_model=DepthModel.for_session(session))
             result = _case_result(case, analysis)
     finally:
         if not keep_session:

@@ -13,6 +13,9 @@ an analysis is derived data, recomputable from the file alone with other paramet
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
 
 from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect, match_ground_truth
 from session.flatfield import Contrast, Physics, Reference, contrast
@@ -20,6 +23,13 @@ from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
 
 CONTRAST_MAPS = {"stiffness": "stiffness_contrast", "force": "force_contrast"}
+
+
+class DepthModel(Protocol):
+    """The model-based depth of a tumour (``app.depth_model.DepthModel``): (estimate, 5th and 95th
+    percentiles) in m from the level records and the stiffness contrast, NaNs when it cannot say."""
+
+    def estimate(self, tumour: Tumour, levels: np.ndarray, contrast: Contrast) -> tuple[float, float, float]: ...
 
 
 @dataclass(frozen=True)
@@ -45,7 +55,7 @@ class SessionAnalysis:
 
     @classmethod
     def run(cls, session: Session, params: AnalysisParams | None = None, physics: Physics | None = None,
-            reference: Reference | None = None) -> SessionAnalysis:
+            reference: Reference | None = None, depth_model: DepthModel | None = None) -> SessionAnalysis:
         params = params or AnalysisParams()
         levels = session.levels
         contrasts = {}
@@ -58,6 +68,9 @@ class SessionAnalysis:
             contrasts[source] = contrast(levels, source, share, sigma, reference, params.detect.accuracy,
                                          physics.description if physics is not None else "")
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
+        if depth_model is not None:
+            # the stiffness contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
+            tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)

@@ -89,6 +89,7 @@ class Reference:
     scatter: np.ndarray  # (levels, rows, cols) relative
     areas: int
     description: str
+    physics: bool = False  # the baseline is over the physics' share; else it is the face's whole pattern
 
     def at(self, force_N: float) -> tuple[np.ndarray, np.ndarray]:
         """(baseline, scatter) at the reference level nearest ``force_N``."""
@@ -97,6 +98,7 @@ class Reference:
 
     def to_json(self) -> dict:
         return {"format": REFERENCE_FORMAT, "version": 1, "description": self.description, "areas": self.areas,
+                "physics": self.physics,
                 "forces_N": list(self.forces_N),
                 "baseline": np.where(np.isfinite(self.baseline), self.baseline, -1.0).tolist(),
                 "scatter": np.where(np.isfinite(self.scatter), self.scatter, -1.0).tolist()}
@@ -114,6 +116,10 @@ class Reference:
             scatter = np.asarray(data["scatter"], dtype=float)
             areas = int(data.get("areas", 0))
             description = str(data.get("description", ""))
+            # files written before the key existed came from ``stitch``, whose default has physics
+            physics = data.get("physics", True)
+            if not isinstance(physics, bool):
+                raise ValueError(f"physics must be true or false, not {physics!r}")
         except (KeyError, TypeError, ValueError) as err:
             raise FlatFieldError(f"{where}: damaged ({err})") from None
         if not forces or baseline.shape != (len(forces), *shape) or scatter.shape != baseline.shape:
@@ -123,7 +129,7 @@ class Reference:
             raise FlatFieldError(f"{where}: force levels must be finite and positive")
         baseline = np.where(baseline > 0, baseline, np.nan)
         scatter = np.where(scatter >= 0, scatter, np.nan)
-        return cls(forces, baseline, scatter, areas, description)
+        return cls(forces, baseline, scatter, areas, description, physics)
 
     @classmethod
     def load(cls, path: str | Path, shape: tuple[int, int]) -> Reference:
@@ -150,7 +156,7 @@ class Reference:
         if not forces:
             raise FlatFieldError("the reference palpation recorded no level")
         areas = len(np.unique(levels["region"]))
-        return cls(tuple(forces), np.array(baselines), np.array(scatters), areas, description)
+        return cls(tuple(forces), np.array(baselines), np.array(scatters), areas, description, physics)
 
 
 @dataclass
@@ -252,9 +258,16 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
              accuracy: float = ACCURACY, description: str = "") -> Contrast:
     """The ``map_name`` contrast of every level record (see the module docstring). ``share``/``share_sigma``:
     the physics (None: one everywhere, exactly known); ``reference``: the baseline to use instead of the
-    session's own estimate."""
+    session's own estimate: one made without physics holds the face's whole pattern, so it stands in for
+    the physics too; one made over the physics' share needs the same physics here (raises FlatFieldError)."""
     if map_name not in MAPS:
         raise ValueError(f"unknown map {map_name!r} (known: {', '.join(MAPS)})")
+    if reference is not None and reference.physics and share is None:
+        raise FlatFieldError("the reference palpation was made over the finite-element physics' pattern; use it "
+                             "with that physics, or save one without physics")
+    if reference is not None and not reference.physics:
+        share = share_sigma = None
+        description = ""
     measured = _measured(levels)
     shape = measured.shape
     physics = share is not None

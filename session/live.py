@@ -16,7 +16,7 @@ from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS
 from session.detect import SOURCES, DetectParams, Tumour, detect
-from session.flatfield import MIN_VOUCHING, Reference, contrast
+from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, stitch
 
@@ -80,8 +80,22 @@ class LiveMaps:
         return [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
 
     def set_reference(self, reference: Reference | None) -> None:
+        """Raises FlatFieldError for a reference made over physics the live maps do not have."""
+        if reference is not None and reference.physics:
+            raise FlatFieldError("this reference palpation was made over the finite-element physics, which the live "
+                                 "maps do not have: save one from the console (File menu) or with stitch "
+                                 "--physics none --save-reference")
         self.reference = reference
         self._dirty = True
+
+    def reference_from_levels(self, description: str) -> Reference:
+        """The levels recorded so far as a reference palpation of tumour-free tissue (the face's whole
+        pattern, no physics); raises FlatFieldError before the first level."""
+        if not self._rows:
+            raise FlatFieldError("no level recorded yet: palpate tumour-free tissue first")
+        levels = np.array(self._rows, dtype=LEVEL_DTYPE)
+        ones = np.ones(levels["pressure_pa"].shape)
+        return Reference.from_levels(levels, ones, np.zeros_like(ones), description, physics=False)
 
     @property
     def level_count(self) -> int:

@@ -69,6 +69,18 @@ def colour_range(values: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
+CONTRAST_SPAN = (0.2, 1.0)  # a contrast map's colour range: at least ±20 %, at most ±100 % (measured / expected - 1)
+
+
+def contrast_range(values: np.ndarray) -> tuple[float, float]:
+    """A symmetric range for a contrast map, so healthy tissue (0) is always the middle colour: ±20 % at
+    least (a few % of noise stays one colour), and at most ±100 %, beyond which a tumour saturates in dark
+    red rather than turning every weaker one into the background."""
+    finite = np.abs(values[np.isfinite(values)])
+    span = float(np.clip(finite.max() if finite.size else 0.0, *CONTRAST_SPAN))
+    return -span, span
+
+
 def map_rgb(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """(ny, nx, 3) uint8 image of an (nx, ny) map, y upwards (row 0 is the highest y)."""
     image = values.T[::-1]

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,7 @@ from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop,
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import TactileConstraints
 from hardware.settings import ConfigError
+from session.flatfield import FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.flowchart import FlowchartPanel
 from widgets.health import HealthPanel, health_degraded, health_summary
@@ -136,7 +138,9 @@ class LiveWindow(QtWidgets.QMainWindow):
     ``clearFault``, ``loopHealth``; docks ``controlDock``, ``tissueDock``, ``jogDock``, ``settingsDock``,
     ``historyDock``, ``messagesDock``, ``healthDock``, ``sessionDock`` (a
     :class:`~widgets.session_panel.SessionPanel`); File menu actions ``openSessionAction``,
-    ``recentSessionsMenu`` (the submenu's action), ``quitAction``.
+    ``recentSessionsMenu`` (the submenu's action), ``loadReferenceAction``, ``saveReferenceAction``,
+    ``clearReferenceAction`` (a reference palpation of tumour-free tissue for the live flat field, see
+    :meth:`save_reference`), ``quitAction``.
 
     Recorded sessions are opened read-only, each in a :class:`~widgets.review.ReviewWindow` of its own;
     ``sessions_folder`` is where the Open dialog starts, ``recent`` the shared recent-sessions list.
@@ -386,6 +390,14 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._recent_menu = file.addMenu("&Recent sessions")
         self._recent_menu.menuAction().setObjectName("recentSessionsMenu")
         self._recent_menu.aboutToShow.connect(lambda: self._recent.fill_menu(self._recent_menu, self.open_session))
+        file.addSeparator()
+        for name, label, slot in (("loadReferenceAction", "&Load reference palpation…", self._load_reference_dialog),
+                                  ("saveReferenceAction", "Save these levels as a &reference palpation…",
+                                   self._save_reference_dialog),
+                                  ("clearReferenceAction", "Clear the reference palpation", self.clear_reference)):
+            action = file.addAction(label)
+            action.setObjectName(name)
+            action.triggered.connect(slot)
         file.addSeparator()
         quit_action = file.addAction("&Quit")
         quit_action.setObjectName("quitAction")
@@ -677,6 +689,53 @@ class LiveWindow(QtWidgets.QMainWindow):
             self.statusBar().showMessage(f"Region {event.region + 1} aborted: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, (Notice, CommandApplied)):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
+
+    # ---- reference palpation -----------------------------------------------------------------------------
+
+    def load_reference(self, path: str | Path) -> bool:
+        """Use the reference palpation at ``path`` for the live flat field; says why in the messages if not."""
+        try:
+            reference = Reference.load(path, (self._sensor.rows, self._sensor.cols))
+            self._tissue.set_reference(reference)
+        except FlatFieldError as err:
+            self._messages.add(f"Reference palpation not loaded: {err}", Severity.WARNING)
+            return False
+        self._messages.add(f"Reference palpation {Path(path).name} loaded ({reference.areas} areas, "
+                           f"{len(reference.forces_N)} levels): contrast and findings from the first area on")
+        return True
+
+    def save_reference(self, path: str | Path) -> bool:
+        """Save the levels recorded so far (tumour-free tissue) as a reference palpation at ``path``."""
+        try:
+            reference = self._tissue.reference_from_levels(
+                f"reference palpation recorded {time.strftime('%Y-%m-%d %H:%M')} in the console")
+            reference.save(path)
+        except FlatFieldError as err:
+            self._messages.add(f"Reference palpation not saved: {err}", Severity.WARNING)
+            return False
+        except OSError as err:
+            self._messages.add(f"Reference palpation not saved: cannot write {path}: {err.strerror or err}",
+                               Severity.WARNING)
+            return False
+        self._messages.add(f"Reference palpation saved to {path} ({reference.areas} areas, "
+                           f"{len(reference.forces_N)} levels)")
+        return True
+
+    def clear_reference(self) -> None:
+        self._tissue.set_reference(None)
+        self._messages.add("Reference palpation cleared: the flat field comes from the areas palpated")
+
+    def _load_reference_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Load reference palpation", str(self._sessions_folder),
+                                                        "Reference palpation (*.json)")
+        if path:
+            self.load_reference(path)
+
+    def _save_reference_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Save reference palpation", str(self._sessions_folder),
+                                                        "Reference palpation (*.json)")
+        if path:
+            self.save_reference(path)
 
     def _tell_findings(self, region: int) -> None:
         """At "region done": what that area showed, in the messages and under the flowchart's flag."""

@@ -21,7 +21,7 @@ from session.analysis import SessionAnalysis
 from session.detect import Tumour
 from session.export import ExportError, report_lines
 from session.stitch import LevelMap, StitchResult
-from widgets.colormaps import CONTOUR_LUT, colour_range, map_rgb
+from widgets.colormaps import CONTOUR_LUT, colour_range, contrast_range, map_rgb
 
 # (LevelMap attribute, detection source, title, unit, display scale)
 # Each raw map beside its contrast (when the analysis made one): the raw map is what was measured, the
@@ -92,7 +92,7 @@ class MapPainter:
         h = w / aspect
         target = QtCore.QRectF(avail.left(), avail.top(), w, h)
         values = lm.quantity(field)
-        lo, hi = colour_range(values)
+        lo, hi = contrast_range(values) if field.endswith("_contrast") else colour_range(values)
         rgb = map_rgb(values, lo, hi)
         image = QtGui.QImage(rgb.data, rgb.shape[1], rgb.shape[0], rgb.strides[0], QtGui.QImage.Format.Format_RGB888)
         painter.drawImage(target, image)

@@ -24,7 +24,7 @@ from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.live import LiveMaps
 from session.stitch import StitchResult
-from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.colormaps import CONTOUR_COLORMAP, contrast_range
 from widgets.plot_style import add_map_layers, follow_palette, map_view
 from widgets.tactile_map import auto_levels
 
@@ -39,7 +39,6 @@ QUANTITIES = (
 # the map whose tumours each quantity marks
 _SOURCE = {"pressure_pa": "force", "stiffness_pa": "stiffness", "stiffness_contrast": "stiffness",
            "coverage": "stiffness"}
-CONTRAST_SPAN = 0.2  # the contrast colour range is at least ±20 %: noise of a few % stays one colour
 
 
 class WholeTissueView(QtWidgets.QWidget):
@@ -154,9 +153,17 @@ class WholeTissueView(QtWidgets.QWidget):
         return self._result
 
     def set_reference(self, reference) -> None:
-        """A reference palpation (:class:`session.flatfield.Reference`) for the live flat field, or None."""
+        """A reference palpation (:class:`session.flatfield.Reference`) for the live flat field, or None;
+        raises FlatFieldError for one the live maps cannot use."""
         self._maps.set_reference(reference)
         self.refresh()
+
+    def reference(self):
+        return self._maps.reference
+
+    def reference_from_levels(self, description: str):
+        """The levels recorded so far as a reference palpation (raises FlatFieldError before the first)."""
+        return self._maps.reference_from_levels(description)
 
     def findings_in(self, region: int) -> list | None:
         """The tumours found so far that area ``region`` saw; None while the flat field cannot be had."""
@@ -260,9 +267,7 @@ class WholeTissueView(QtWidgets.QWidget):
             levels = COVERAGE_LEVELS
         elif self._quantity.endswith("_contrast"):
             values = level.extra.get(self._quantity, np.full(level.coverage.shape, np.nan))
-            finite = np.abs(values[np.isfinite(values)])
-            span = max(CONTRAST_SPAN, float(finite.max()) if finite.size else 0.0) * scale
-            levels = (-span, span)
+            levels = tuple(v * scale for v in contrast_range(values))
         else:
             values = level.quantity(self._quantity)
             finite = values[np.isfinite(values)]

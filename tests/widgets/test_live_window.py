@@ -503,3 +503,41 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert tissue.spot_count() == 1
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
+
+
+def test_a_reference_palpation_is_saved_from_the_console_and_gives_findings_from_the_first_area(
+        window, controller, tmp_path):
+    import json
+
+    from control.messages import RegionDone
+    from session.synthetic import level_record
+
+    def area(region, x, tumour=False):
+        records = [level_record(region, k, f, (x, 0.015), noise=0.02, seed=17 * region + k, t_s=10.0 * region + k,
+                                tumours_xy_m=((x, 0.015),) if tumour else (), tumour_factor=1.5)
+                   for k, f in enumerate((1.0, 2.0, 3.0))]
+        return [LevelRecorded(r.t_s, r) for r in records] + [RegionDone(10.0 * region + 3, region, 3)]
+
+    path = tmp_path / "reference.json"
+    assert not window.save_reference(path)  # nothing palpated yet
+    assert window.messages().lines()[-1].endswith("Reference palpation not saved: no level recorded yet: palpate "
+                                                  "tumour-free tissue first")
+    for region, x in ((0, 0.012), (1, 0.020)):  # tumour-free tissue
+        push(controller, make_tick(t_s=1.0 + region), events=area(region, x))
+    assert window.save_reference(path)
+    assert json.loads(path.read_text())["physics"] is False
+
+    # a later patient: with the reference, the very first area says what it showed
+    window.clear_reference()
+    assert window.load_reference(path)
+    tissue = window.findChild(WholeTissueView)
+    tissue.set_reference(tissue.reference())  # still usable after a reload
+    push(controller, make_tick(t_s=4.0), events=area(2, 0.028, tumour=True))
+    assert "tumour at x 28" in label(window, "regionFindings").text()
+
+    # one made over the finite-element physics cannot serve the live maps, and says so
+    data = json.loads(path.read_text())
+    data["physics"] = True
+    path.write_text(json.dumps(data))
+    assert not window.load_reference(path)
+    assert "made over the finite-element physics" in window.messages().lines()[-1]

@@ -2,7 +2,8 @@
 whose unit is not a pressure (the indentation, in mm).
 
 x runs to the right and y upwards, in mm, with the real aspect ratio. The colour range is the map's own
-[2nd percentile, maximum] (see :func:`widgets.colormaps.colour_range`), the same as in the exported
+[2nd percentile, maximum] (see :func:`widgets.colormaps.colour_range`), or for a contrast map a range
+symmetric about healthy tissue (:func:`widgets.colormaps.contrast_range`), the same as in the exported
 images, so a spot looks alike on screen and on paper. Cells without a value are drawn in the no-data grey.
 Markers: white rings (found tumours), dashed dark circles of the true size (a simulated phantom's tumours).
 """
@@ -13,7 +14,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from widgets.colormaps import CONTOUR_COLORMAP, colour_range
+from widgets.colormaps import CONTOUR_COLORMAP, colour_range, contrast_range
 from widgets.plot_style import add_map_layers, follow_palette, map_view
 
 FOUND_RING_MM = 6.0
@@ -30,9 +31,10 @@ class GridMapView(QtWidgets.QWidget):
     """
 
     def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3, x_horizontal: bool = True,
-                 parent: QtWidgets.QWidget | None = None):
+                 contrast: bool = False, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._unit, self._scale = unit, scale
+        self._range = contrast_range if contrast else colour_range
         self._x_horizontal = x_horizontal
         self._values = np.full((1, 1), np.nan)
         self._title = QtWidgets.QLabel(title, objectName="title")
@@ -94,7 +96,7 @@ class GridMapView(QtWidgets.QWidget):
         if not (x1 > x0 and y1 > y0):
             raise ValueError(f"{self._title.text()}: empty extent {extent_m}")
         self._values = values
-        lo, hi = colour_range(values)
+        lo, hi = self._range(values)
         # row-major images put their first index upwards: (ny, nx) draws x to the right
         shown = values.T if self._x_horizontal else values
         image = np.ascontiguousarray(shown * self._scale, dtype=np.float32)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from session.analysis import CONTRAST_MAPS, AnalysisParams, SessionAnalysis
+from session.analysis import CONTRAST_MAPS, AnalysisParams, DepthModel, SessionAnalysis
 from session.detect import SOURCES, DetectError, DetectParams, Tumour
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Physics, Reference
@@ -62,7 +62,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
 
     ``physics`` names the ways of knowing the probe's pattern on homogeneous tissue the composition root
     offers (label -> factory for a session; the first is the default); without any, the flat field is the
-    session's own baseline alone.
+    session's own baseline alone. ``depth_model`` makes the model-based depth estimator for a session
+    (without it, or if it cannot be had, only the paper's rule gives depths).
     """
 
     session_opened = QtCore.Signal(str)
@@ -72,10 +73,13 @@ class ReviewWindow(QtWidgets.QMainWindow):
     def __init__(self, path: str | Path | None = None, *, start_folder: str | Path | None = None,
                  settings: QtCore.QSettings | None = None,
                  physics: Mapping[str, Callable[[Session], Physics | None]] | None = None,
+                 depth_model: Callable[[Session], DepthModel] | None = None,
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._physics_factories = dict(physics or {})
         self._physics: dict[str, Physics | None] = {}  # per option, for the open session (a solve when new)
+        self._depth_factory = depth_model
+        self._depth_model: tuple[DepthModel | None, str] | None = None  # for the open session, and any problem
         self._reference: Reference | None = None
         self.setWindowTitle("Palpation Console — session review")
         self.recent = RecentSessions(settings)
@@ -162,7 +166,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._quantity_combo.currentIndexChanged.connect(lambda _: self._show_stitched())
         self._stitched_map = GridMapView("Whole tissue")
         self._stitched_map.setObjectName("stitchedMap")
-        self._contrast_map = GridMapView("Contrast", unit="%", scale=100.0)
+        self._contrast_map = GridMapView("Contrast", unit="%", scale=100.0, contrast=True)
         self._contrast_map.setObjectName("contrastMap")
 
         def spin(name: str, lo: float, hi: float, value: float, step: float, suffix: str, decimals: int = 2):
@@ -324,6 +328,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
             self._session.close()
         self._session = None
         self._physics = {}
+        self._depth_model = None
         self._analysis = None
         self._record = None
         self._timeline.clear()
@@ -375,7 +380,13 @@ class ReviewWindow(QtWidgets.QMainWindow):
             self._summary.setText(f"<b>Not applied:</b> {err}")
             return
         physics, problem = self._current_physics()
-        self._analysis = SessionAnalysis.run(session, params, physics, self._reference)
+        depth_model, depth_problem = self._current_depth_model()
+        problem = " ".join(p for p in (problem, depth_problem) if p)
+        try:
+            self._analysis = SessionAnalysis.run(session, params, physics, self._reference, depth_model)
+        except FlatFieldError as err:
+            problem = " ".join(p for p in (problem, f"Reference palpation not used: {err}.") if p)
+            self._analysis = SessionAnalysis.run(session, params, physics, None, depth_model)
         if problem:
             self._show_banner(problem, "warning")
         stitched = self._analysis.stitched
@@ -412,6 +423,16 @@ class ReviewWindow(QtWidgets.QMainWindow):
                                           f"{len(self._reference.forces_N)} levels")
         self.reanalyse()
         return True
+
+    def _current_depth_model(self) -> tuple[DepthModel | None, str]:
+        if self._depth_factory is None:
+            return None, ""
+        if self._depth_model is None:
+            try:
+                self._depth_model = (self._depth_factory(self._session), "")
+            except ValueError as err:
+                self._depth_model = (None, f"Model-based depth unavailable: {err}.")
+        return self._depth_model
 
     def _current_physics(self) -> tuple[Physics | None, str]:
         """The chosen physics for the open session (made once per session and option) and, if it could

@@ -1,0 +1,374 @@
+"""How deep a tumour lies, from how it showed: the model-based depth with its 90 % interval.
+
+The paper reads a tumour's depth off the TSI indentation at the first level where it shows (the rule in
+:mod:`session.detect`). This module gives the second estimate issue 11 asks for: invert what the tumour
+did to the elements with a forward model of the probe on a layer with a spherical inclusion.
+
+**The forward model** is the project's own continuum mechanics (:mod:`hardware.sim.mechanics`: finite
+elements of a block bonded to its table, condensed onto its surface). A library (:func:`build_library`,
+``make depth-library``, shipped in ``resources/depth_library.npz``) holds, for a flat homogeneous block
+40 mm long and as wide as the TSI is long, the nodal forces under the rigid face pressed evenly into it,
+without and with one spherical inclusion under the middle of the TSI, for every combination of
+
+* layer thickness 20 and 32 mm (interpolated between, held outside),
+* depth of the sphere's top 1-12 mm, diameter 5-12 mm, modulus ratio 3-12 (:class:`LibraryGrid`),
+* the face's centre 0-4 mm along x from the tumour (an area's strip is 8 mm: every tumour lies within 4 mm
+  of the centre of the area that covers it).
+
+Linear elasticity makes the pattern independent of the tissue's modulus and of how far the face is pressed,
+so one solve per combination serves every level and tissue.
+
+**The inversion** (:meth:`DepthModel.estimate`) takes the tumour's contrast in every area whose face
+centre lay within 4 mm of it, averaged over the levels that pressed every element near it (inverse
+variance), and compares it with the model's contrast of the same elements: the library's forces at the
+tumour's offset from the face and along the array (shifted to its position, the rest of the face as in
+homogeneous tissue), seen through the sensor's cover, each element's force over the homogeneous block's,
+over the median of that ratio (the flat-field's own scale). The misfit counts each element's measured
+uncertainty, a model error of :attr:`DepthModel.model_error` of the predicted contrast, and a floor.
+Depth, diameter and modulus ratio are given a prior (uniform in depth over 1-12 mm and in diameter over
+5-12 mm, log-uniform in ratio over 3-12, the sphere inside the layer with 1 mm to spare), the posterior is
+evaluated on a grid (the library interpolated), and diameter and ratio are marginalised out: the estimate
+is the posterior median of the depth, the interval its 5th to 95th percentiles. A tumour the library
+cannot explain (a depth outside it, or thickness or array it was not built for) gets no estimate (NaN)
+rather than a wrong one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+LIBRARY_PATH = Path(__file__).resolve().parents[1] / "resources" / "depth_library.npz"
+LIBRARY_FORMAT = "palpation-console-depth-library"
+LIBRARY_VERSION = 1
+NU = 0.49  # as app.physics: nearly incompressible tissue and silicone
+CLEARANCE_M = 1e-3  # tissue kept between the sphere and the table
+
+
+@dataclass(frozen=True)
+class LibraryGrid:
+    """The configurations the library holds (lengths in m). The ranges are the validation study's
+    distribution (app.study.StudyDistribution), which is what the console is meant to find."""
+
+    thickness_m: tuple[float, ...] = (0.020, 0.032)
+    depth_m: tuple[float, ...] = (1e-3, 2.5e-3, 4e-3, 6e-3, 8e-3, 10e-3, 12e-3)
+    diameter_m: tuple[float, ...] = (5e-3, 8.5e-3, 12e-3)
+    modulus_ratio: tuple[float, ...] = (3.0, 6.0, 12.0)
+    offset_x_m: tuple[float, ...] = (0.0, 1e-3, 2e-3, 3e-3, 4e-3)
+    length_m: float = 0.040
+    rows: int = 4  # the TSI: rows along x, cols along y, pitch
+    cols: int = 15
+    pitch_m: float = 2e-3
+    grid_m: float = 1e-3  # the mesh's node spacing (MeshSettings' default)
+
+    @property
+    def width_m(self) -> float:
+        return self.cols * self.pitch_m
+
+    @property
+    def tumour_xy_m(self) -> tuple[float, float]:
+        """Where the library's tumour sits: a node line, with room for every face offset on one side."""
+        return round(self.length_m / 2 - 2e-3, 9), self.width_m / 2
+
+
+def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None
+                 ) -> np.ndarray:
+    """(offsets, face nodes along x, along y): the face's nodal forces at a unit indentation (per unit
+    modulus) for each face offset; ``inclusion`` = (depth of its top, diameter, modulus ratio)."""
+    from app.physics import SurfaceBlock
+    from hardware.sim.mechanics.fem import condensed_surface_stiffness
+    from hardware.sim.mechanics.model import MeshSettings, phantom_grid, phantom_material
+    from hardware.sim.phantom import Inclusion
+
+    nx = int(round(grid.length_m / grid.grid_m)) + 1
+    ny = int(round(grid.width_m / grid.grid_m)) + 1
+    inclusions = ()
+    if inclusion is not None:
+        depth, diameter, ratio = inclusion
+        x, y = grid.tumour_xy_m
+        inclusions = (Inclusion(x, y, thickness_m - depth - diameter / 2, diameter, ratio),)
+    block = SurfaceBlock(np.full((nx, ny), thickness_m), grid.length_m, grid.width_m, 1.0, NU, inclusions)
+    mesh = phantom_grid(block, MeshSettings(spacing_m=grid.grid_m))
+    half = grid.rows * grid.pitch_m / 2
+    tx = grid.tumour_xy_m[0]
+    gx, _ = np.meshgrid(mesh.x_m, mesh.y_m, indexing="ij")
+    # every face position the offsets need, condensed at once: the other retained nodes carry no load
+    strip = (gx >= tx - half - 1e-9) & (gx <= tx + max(grid.offset_x_m) + half + 1e-9)
+    ij, stiffness = condensed_surface_stiffness(mesh, phantom_material(block), mask=strip)
+    compliance = np.linalg.inv(stiffness)
+    node_x = mesh.x_m[ij[:, 0]]
+    face_nodes = int(round(2 * half / grid.grid_m)) + 1
+    out = np.empty((len(grid.offset_x_m), face_nodes, ny))
+    for k, off in enumerate(grid.offset_x_m):
+        under = np.flatnonzero(np.abs(node_x - (tx + off)) <= half + 1e-9)
+        forces = np.linalg.solve(compliance[np.ix_(under, under)], np.ones(len(under)))
+        out[k] = forces.reshape(face_nodes, ny)  # ij is i-major: rows of x, columns of y
+    return out
+
+
+def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
+                  progress: Callable[[str], None] | None = None) -> Path:
+    """Solve every configuration of ``grid`` and write the library to ``path`` (a few minutes per
+    thickness on two cores); configurations whose sphere would not fit in the layer are NaN."""
+    shape = (len(grid.thickness_m), len(grid.depth_m), len(grid.diameter_m), len(grid.modulus_ratio))
+    face = (len(grid.offset_x_m), int(round(grid.rows * grid.pitch_m / grid.grid_m)) + 1,
+            int(round(grid.width_m / grid.grid_m)) + 1)
+    homogeneous = np.empty((len(grid.thickness_m), *face))
+    inclusion = np.full((*shape, *face), np.nan)
+    started = time.perf_counter()
+    for t, h in enumerate(grid.thickness_m):
+        homogeneous[t] = _block_solve(grid, h, None)
+        for index in np.ndindex(shape[1:]):
+            d, a, r = (grid.depth_m[index[0]], grid.diameter_m[index[1]], grid.modulus_ratio[index[2]])
+            if h - d - a < CLEARANCE_M:
+                continue
+            inclusion[(t, *index)] = _block_solve(grid, h, (d, a, r))
+            if progress is not None:
+                progress(f"h {h * 1e3:.0f} mm, depth {d * 1e3:g} mm, diameter {a * 1e3:g} mm, ratio {r:g} "
+                         f"({time.perf_counter() - started:.0f} s)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        path, format=np.array(LIBRARY_FORMAT), version=np.array(LIBRARY_VERSION),
+        thickness_m=np.array(grid.thickness_m), depth_m=np.array(grid.depth_m),
+        diameter_m=np.array(grid.diameter_m), modulus_ratio=np.array(grid.modulus_ratio),
+        offset_x_m=np.array(grid.offset_x_m), geometry=np.array([grid.length_m, grid.rows, grid.cols,
+                                                                  grid.pitch_m, grid.grid_m]),
+        homogeneous=homogeneous.astype(np.float32), inclusion=inclusion.astype(np.float32))
+    return path
+
+
+class DepthModelError(ValueError):
+    """The library cannot be used (missing, damaged, another array); the message says why in one line."""
+
+
+@dataclass(frozen=True)
+class _Library:
+    thickness_m: np.ndarray
+    depth_m: np.ndarray
+    diameter_m: np.ndarray
+    modulus_ratio: np.ndarray
+    offset_x_m: np.ndarray
+    rows: int
+    cols: int
+    pitch_m: float
+    grid_m: float
+    homogeneous: np.ndarray  # (thickness, offset, face nodes x, face nodes y)
+    inclusion: np.ndarray  # (thickness, depth, diameter, ratio, offset, face nodes x, face nodes y)
+
+
+def load_library(path: Path = LIBRARY_PATH) -> _Library:
+    """The library at ``path``, checked; raises :class:`DepthModelError`."""
+    try:
+        # our own handle: np.load leaves its own open when the file is not an archive
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise DepthModelError(f"depth model library {path}: cannot be read ({err})") from None
+    if str(arrays.get("format", "")) != LIBRARY_FORMAT or int(arrays.get("version", -1)) != LIBRARY_VERSION:
+        raise DepthModelError(f"depth model library {path}: not a version {LIBRARY_VERSION} {LIBRARY_FORMAT} file")
+    try:
+        length, rows, cols, pitch, grid = (float(v) for v in arrays["geometry"])
+        axes = [np.asarray(arrays[k], float) for k in ("thickness_m", "depth_m", "diameter_m", "modulus_ratio",
+                                                         "offset_x_m")]
+        face = (int(round(rows * pitch / grid)) + 1, int(round(cols * pitch / grid)) + 1)
+        homogeneous = np.asarray(arrays["homogeneous"], float)
+        inclusion = np.asarray(arrays["inclusion"], float)
+    except (KeyError, ValueError, TypeError) as err:
+        raise DepthModelError(f"depth model library {path}: incomplete ({err})") from None
+    if (homogeneous.shape != (len(axes[0]), len(axes[4]), *face)
+            or inclusion.shape != (*(len(a) for a in axes[:4]), len(axes[4]), *face)
+            or any(len(a) < 2 or np.any(np.diff(a) <= 0) for a in axes[:4])
+            or not np.all(np.isfinite(homogeneous)) or not np.all(homogeneous > 0)):
+        raise DepthModelError(f"depth model library {path}: its arrays do not fit its axes")
+    return _Library(*axes, int(rows), int(cols), pitch, grid, homogeneous, inclusion)
+
+
+def _lerp_axis(values: np.ndarray, axis: np.ndarray, at: np.ndarray, dim: int) -> np.ndarray:
+    """``values`` interpolated linearly along dimension ``dim`` (tabulated at ``axis``) to points ``at``."""
+    k = np.clip(np.searchsorted(axis, at) - 1, 0, len(axis) - 2)
+    w = np.clip((at - axis[k]) / (axis[k + 1] - axis[k]), 0.0, 1.0)
+    lo, hi = np.take(values, k, axis=dim), np.take(values, k + 1, axis=dim)
+    shape = [1] * values.ndim
+    shape[dim] = len(at)
+    return lo * (1 - w.reshape(shape)) + hi * w.reshape(shape)
+
+
+class DepthModel:
+    """The inversion of one session's tumours (module docstring): the library, and what the session says of
+    its array (pitch, shape, the cover that spreads each element's load) and its table."""
+
+    model_error = 0.25  # relative: mesh, tumour off the array's middle, gain spread the flat-field left
+    contrast_floor = 0.02  # absolute, per element
+    reach_m = 6e-3  # elements nearer the tumour than this carry its signature
+    depth_step_m = 0.25e-3
+    fine_diameters = 8
+    fine_ratios = 7
+
+    def __init__(self, library: _Library, shape: tuple[int, int], pitch_m: float, table_height_m: float,
+                 cover: Callable[[np.ndarray], np.ndarray] | None = None):
+        if (library.rows, library.cols) != tuple(shape) or abs(library.pitch_m - pitch_m) > 1e-9:
+            raise DepthModelError(f"the depth model was built for a {library.rows} x {library.cols} array at "
+                                  f"{library.pitch_m * 1e3:g} mm, this session's is {shape[0]} x {shape[1]} at "
+                                  f"{pitch_m * 1e3:g} mm")
+        from hardware.sim.mechanics.contact import tributary_weights
+
+        self.library = library
+        self.shape = tuple(shape)
+        self.pitch_m = pitch_m
+        self.table_height_m = table_height_m
+        self.cover = cover
+        nx, ny = library.homogeneous.shape[-2:]
+        xs, ys = np.meshgrid(np.arange(nx) * library.grid_m, np.arange(ny) * library.grid_m, indexing="ij")
+        self._weights = tributary_weights(xs.ravel(), ys.ravel(), (0.0, xs.max(), 0.0, ys.max()), (0.0, 0.0),
+                                          pitch_m, self.shape)
+        lib = library
+        self.depths = np.arange(lib.depth_m[0], lib.depth_m[-1] + 1e-9, self.depth_step_m)
+        self.diameters = np.linspace(lib.diameter_m[0], lib.diameter_m[-1], self.fine_diameters)
+        self.ratios = np.exp(np.linspace(math.log(lib.modulus_ratio[0]), math.log(lib.modulus_ratio[-1]),
+                                         self.fine_ratios))
+
+    @classmethod
+    def for_session(cls, session, path: Path = LIBRARY_PATH) -> DepthModel:
+        from app.physics import _cover, _cover_of
+
+        shape = tuple(session.levels.dtype["pressure_pa"].shape)
+        operators = _cover(_cover_of(session), shape, session.pitch_m)
+        cover = None if operators is None else (lambda f: operators[0] @ f @ operators[1])
+        return cls(load_library(path), shape, session.pitch_m,
+                   float(session.calibration.get("table_height_m", 0.0)), cover)
+
+    # ---- the forward model ----
+
+    def _elements(self, nodal: np.ndarray) -> np.ndarray:
+        forces = np.einsum("en,...n->...e", self._weights, nodal.reshape(*nodal.shape[:-2], -1))
+        forces = forces.reshape(*nodal.shape[:-2], *self.shape)
+        return forces if self.cover is None else self.cover(forces)
+
+    def predict(self, thickness_m: float, offset_x_m: float, tumour_y_m: float) -> np.ndarray:
+        """(depth, diameter, ratio, rows, cols) contrast on the library's axes for a tumour ``offset_x_m``
+        before the face's centre along x (face centre minus tumour) and ``tumour_y_m`` from the face's first
+        column edge; NaN where the library holds no solve."""
+        lib = self.library
+        t = np.clip(np.searchsorted(lib.thickness_m, thickness_m) - 1, 0, len(lib.thickness_m) - 2)
+        w = float(np.clip((thickness_m - lib.thickness_m[t]) / (lib.thickness_m[t + 1] - lib.thickness_m[t]), 0, 1))
+        out = []
+        for tk, wk in ((t, 1.0 - w), (t + 1, w)):
+            out.append((self._predict_at(tk, abs(offset_x_m), tumour_y_m), wk))
+        (a, wa), (b, wb) = out
+        # a sphere that fits only the thicker layer is taken from it alone
+        blended = np.where(np.isfinite(a) & np.isfinite(b), wa * a + wb * b, np.where(np.isfinite(a), a, b))
+        return blended[..., ::-1, :] if offset_x_m < 0 else blended
+
+    def _predict_at(self, t: int, offset_m: float, tumour_y_m: float) -> np.ndarray:
+        lib = self.library
+        hom = _lerp_axis(lib.homogeneous[t], lib.offset_x_m, np.array([offset_m]), 0)[0]
+        inc = _lerp_axis(lib.inclusion[t], lib.offset_x_m, np.array([offset_m]), 3)[:, :, :, 0]
+        ratio = inc / hom
+        # the library's tumour lies mid-array; move its disturbance to where this one is, node by node
+        shift = (tumour_y_m - lib.cols * lib.pitch_m / 2) / lib.grid_m
+        lo = int(math.floor(shift))
+        frac = shift - lo
+        moved = (1 - frac) * _shift_y(ratio, lo) + frac * _shift_y(ratio, lo + 1)
+        q = self._elements(hom * moved) / self._elements(hom)
+        scale = np.median(q.reshape(*q.shape[:-2], -1), axis=-1)[..., None, None]  # NaN where no solve
+        return q / scale - 1.0
+
+    def _fine(self, coarse: np.ndarray) -> np.ndarray:
+        lib = self.library
+        fine = _lerp_axis(coarse, lib.depth_m, self.depths, 0)
+        fine = _lerp_axis(fine, lib.diameter_m, self.diameters, 1)
+        return _lerp_axis(fine, np.log(lib.modulus_ratio), np.log(self.ratios), 2)
+
+    # ---- the inversion ----
+
+    def estimate(self, tumour, levels: np.ndarray, contrast) -> tuple[float, float, float]:
+        """(depth, 5th percentile, 95th percentile) of the tumour's depth in m (module docstring); NaNs when
+        no area pressed it near enough its face's centre or the library cannot explain what it showed."""
+        from session.stitch import element_offsets_m
+
+        offsets = element_offsets_m(self.shape[0], self.shape[1], self.pitch_m)
+        log_like = None
+        thickness = []
+        for region in np.unique(levels["region"]):
+            rows = np.flatnonzero(levels["region"] == region)
+            centre = levels["tsi_position_m"][rows[-1]]
+            off_x = float(centre[0]) - tumour.x_m
+            y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
+            if abs(off_x) > self.library.offset_x_m[-1] + 1e-9 or not 0.0 <= y_from_edge <= self.shape[1] * self.pitch_m:
+                continue
+            near = np.hypot(offsets[..., 0] + float(centre[0]) - tumour.x_m,
+                            offsets[..., 1] + float(centre[1]) - tumour.y_m) <= self.reach_m
+            measured, sigma = _level_mean(contrast.contrast[rows], contrast.sigma[rows], near)
+            if measured is None:
+                continue
+            onset = levels["onset_height_m"][rows[-1]][near] - self.table_height_m
+            if not np.isfinite(onset).any():
+                continue
+            h = float(np.nanmedian(onset))
+            thickness.append(h)
+            predicted = self._fine(self.predict(h, off_x, y_from_edge))[..., near]
+            variance = sigma**2 + (self.model_error * predicted) ** 2 + self.contrast_floor**2
+            term = -0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
+            log_like = term if log_like is None else log_like + term
+        if log_like is None:
+            return math.nan, math.nan, math.nan
+        h = float(np.median(thickness))
+        d, a = np.meshgrid(self.depths, self.diameters, indexing="ij")
+        fits = (h - d - a >= CLEARANCE_M)[:, :, None] & np.isfinite(log_like)
+        if not fits.any():
+            return math.nan, math.nan, math.nan
+        log_post = np.where(fits, log_like, -np.inf)
+        post = np.exp(log_post - log_post.max()).sum(axis=(1, 2))
+        cdf = np.cumsum(post) / post.sum()
+        # each grid depth stands for the bin around it: read the percentiles off the bins' edges
+        edges = np.concatenate([[self.depths[0] - self.depth_step_m / 2], self.depths + self.depth_step_m / 2])
+        cdf = np.concatenate([[0.0], cdf])
+        low, median, high = np.interp([0.05, 0.5, 0.95], cdf, edges)
+        return float(median), float(max(low, self.depths[0])), float(min(high, self.depths[-1]))
+
+
+def _shift_y(ratio: np.ndarray, nodes: int) -> np.ndarray:
+    """``ratio`` moved ``nodes`` along its last axis, homogeneous (1) where it moved in from beyond."""
+    out = np.ones_like(ratio)
+    n = ratio.shape[-1]
+    if abs(nodes) >= n:
+        return out
+    if nodes >= 0:
+        out[..., nodes:] = ratio[..., :n - nodes]
+    else:
+        out[..., :n + nodes] = ratio[..., -nodes:]
+    return out
+
+
+def _level_mean(contrast: np.ndarray, sigma: np.ndarray, near: np.ndarray
+                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The inverse-variance mean over an area's levels of the contrast of the ``near`` elements, from the
+    levels that pressed every one of them; (None, None) if none did."""
+    c, s = contrast[:, near], sigma[:, near]
+    whole = np.all(np.isfinite(c) & np.isfinite(s) & (s > 0), axis=1)
+    if not whole.any():
+        return None, None
+    precision = 1.0 / s[whole] ** 2
+    return (c[whole] * precision).sum(axis=0) / precision.sum(axis=0), 1.0 / np.sqrt(precision.sum(axis=0))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m app.depth_model",
+                                     description="Rebuild the depth model's library of finite-element solves.")
+    parser.add_argument("--out", type=Path, default=LIBRARY_PATH, help=f"where to write it (default {LIBRARY_PATH})")
+    args = parser.parse_args(argv)
+    built = build_library(args.out, progress=lambda line: print(line, flush=True))
+    print(f"wrote {built}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,107 @@
+"""The model-based depth (app/depth_model.py): the shipped library is what the project's mechanics gives, a
+damaged one is refused in one line, and the inversion's interval covers a tumour the library never held."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from app.depth_model import (LIBRARY_PATH, DepthModel, DepthModelError, LibraryGrid, _block_solve, build_library,
+                             load_library)
+
+PITCH = 2e-3
+SHAPE = (4, 15)
+
+
+@pytest.fixture(scope="module")
+def library():
+    return load_library()
+
+
+def test_the_shipped_library_is_what_the_mechanics_gives(library):
+    grid = LibraryGrid()
+    t, d, a, r = 0, 1, 0, 1  # 20 mm layer, top 2.5 mm deep, 5 mm across, 6 times stiffer
+    solved = _block_solve(grid, grid.thickness_m[t], (grid.depth_m[d], grid.diameter_m[a], grid.modulus_ratio[r]))
+    np.testing.assert_allclose(library.inclusion[t, d, a, r], solved, rtol=1e-5)
+    np.testing.assert_allclose(library.homogeneous[t], _block_solve(grid, grid.thickness_m[t], None), rtol=1e-5)
+    # a sphere that does not fit in the layer has no solve
+    assert np.isnan(library.inclusion[0, -1, -1, 0]).all()
+
+
+def test_a_damaged_foreign_or_missing_library_is_refused_in_one_line(tmp_path):
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, format=np.array("something else"), version=np.array(1))
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(LIBRARY_PATH.read_bytes()[:5000])
+    for path, said in ((foreign, "not a version"), (truncated, "cannot be read"),
+                       (tmp_path / "missing.npz", "cannot be read")):
+        with pytest.raises(DepthModelError, match=said) as caught:
+            load_library(path)
+        assert "\n" not in str(caught.value)
+
+
+def test_an_array_the_library_was_not_built_for_is_refused(library):
+    with pytest.raises(DepthModelError, match="built for a 4 x 15 array"):
+        DepthModel(library, (4, 16), PITCH, 0.0)
+
+
+def _one_area(contrast: np.ndarray, sigma: float, thickness_m: float, tumour_x: float, tumour_y: float,
+              face_x: float, levels: int = 3):
+    """Level records of one area, its face centred at (face_x, mid-array), flat surface at ``thickness_m``."""
+    rows = np.zeros(levels, dtype=[("region", "i4"), ("tsi_position_m", "f8", 3), ("onset_height_m", "f8", SHAPE)])
+    rows["tsi_position_m"] = (face_x, SHAPE[1] * PITCH / 2, thickness_m - 2e-3)
+    rows["onset_height_m"] = thickness_m
+    rng = np.random.default_rng(7)
+    noisy = contrast[None] + rng.normal(0.0, sigma, (levels, *SHAPE))
+    measured = SimpleNamespace(contrast=noisy, sigma=np.full_like(noisy, sigma))
+    return rows, measured, SimpleNamespace(x_m=tumour_x, y_m=tumour_y)
+
+
+def test_the_interval_covers_a_tumour_the_library_never_held(library):
+    """An independent solve: a 25 mm layer (the library holds 20 and 32), the sphere's top 5 mm deep, 7 mm
+    across, 8 times stiffer, the face 2 mm off it; sensor noise on top. The estimate comes within the
+    library's spacing, the interval covers the truth and says something (narrower than the prior)."""
+    thickness, depth = 0.025, 5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (depth, 7e-3, 8.0))[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    truth = q / np.median(q) - 1.0
+    tumour_x = 0.030
+    rows, measured, tumour = _one_area(truth, 0.02, thickness, tumour_x, SHAPE[1] * PITCH / 2, tumour_x + 2e-3)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 2e-3
+    assert high - low < 0.6 * (library.depth_m[-1] - library.depth_m[0])
+
+
+def test_deeper_tumours_read_deeper(library):
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2 + 1e-3
+    found = []
+    for d in (1, 3, 5):  # library depths 2.5, 6 and 10 mm; 8.5 mm across, 6 times stiffer
+        truth = model.predict(thickness, -2e-3, y)[d, 1, 1]
+        rows, measured, tumour = _one_area(truth, 0.02, thickness, 0.030, y, 0.028)
+        found.append(model.estimate(tumour, rows, measured))
+    assert found[0][0] < found[1][0] < found[2][0]
+    for (estimate, low, high), d in zip(found, (1, 3, 5)):
+        assert low <= library.depth_m[d] <= high and low <= estimate <= high
+
+
+def test_no_estimate_without_an_area_over_the_tumour(library):
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    rows, measured, tumour = _one_area(np.zeros(SHAPE), 0.02, 0.025, 0.030, 0.015, 0.040)  # face 10 mm away
+    assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))
+
+
+def test_the_library_builder_writes_what_the_loader_reads(tmp_path):
+    grid = LibraryGrid(thickness_m=(0.006, 0.008), depth_m=(1e-3, 2e-3), diameter_m=(2e-3, 3e-3),
+                       modulus_ratio=(3.0, 6.0), offset_x_m=(0.0, 4e-3), length_m=0.016)
+    lib = load_library(build_library(tmp_path / "small.npz", grid))
+    assert lib.inclusion.shape[:5] == (2, 2, 2, 2, 2)
+    assert np.isfinite(lib.inclusion[1, 0, 0, 0]).all()
