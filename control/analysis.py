@@ -45,6 +45,10 @@ class ContactTracker:
         self._z1 = np.full(self.shape, np.nan)
         self._confirmed = np.zeros(self.shape, dtype=bool)
         self._blind = np.zeros(self.shape, dtype=bool)  # in contact before tracking began
+        # a blind element: its reading when tracking began, and where it then rose by the onset threshold
+        # (at once if it was pressing tissue; later if that reading was a residual in air)
+        self._blind_base_pa = np.zeros(self.shape)
+        self.blind_onset_m = np.full(self.shape, np.nan)
         self._settled = np.zeros(self.shape, dtype=bool)  # confirmed or blind: nothing more to find
         self._prev_p: np.ndarray | None = None
         self._prev_z = np.nan
@@ -54,11 +58,15 @@ class ContactTracker:
         p_on, p_c = s.onset_threshold_pa, s.confirm_threshold_pa
         if self._prev_p is None:
             self._blind = pressure_pa >= p_on
+            self._blind_base_pa = np.where(self._blind, pressure_pa, 0.0)
             self._settled = self._blind.copy()
             self._prev_p, self._prev_z = pressure_pa.copy(), tsi_z_m
             return
         if not self._settled.all():
             self._track(pressure_pa, tsi_z_m, p_on, p_c)
+        rising = self._blind & np.isnan(self.blind_onset_m) & (pressure_pa >= self._blind_base_pa + p_on)
+        if rising.any():
+            self.blind_onset_m[rising] = self._prev_z
         self._prev_p[...] = pressure_pa
         self._prev_z = tsi_z_m
 

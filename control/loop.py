@@ -78,7 +78,6 @@ class ControlLoop:
         self._force_N = 0.0
         self._max_pressure_pa = 0.0
         self._indentation_m = math.nan
-        self._force_start_z_m = math.nan  # where the TSI was when force control began
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
@@ -173,7 +172,6 @@ class ControlLoop:
             else:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 sm.start(now_s, self._x_s[Z])
-                self._force_start_z_m = self._x_s[Z]
                 self._set_sz(now_s, False, cmd.source, events)
         elif sm.force_control:
             sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
@@ -263,14 +261,16 @@ class ControlLoop:
                 p, sm.tracker.onset_height_m, pos[Z], self.config.contact, area)
             fr["dL_m"] = dL
             fr["stiffness_pa"] = stiffness
-            pressed_blind = sm.tracker.blind & (p >= self.config.contact.onset_threshold_pa)
+            # Elements already pressed when force control began have no onset, so no indentation; without
+            # this the ceiling sees NaN and the probe may be driven to the table. Each is in at least as far
+            # as the TSI went down since its reading began to rise (at once if it was pressing tissue; not
+            # the descent through air if its reading was a residual from the last area).
+            blind_onset = sm.tracker.blind_onset_m
+            pressed_blind = sm.tracker.blind & np.isfinite(blind_onset)
             if pressed_blind.any():
-                # Elements already pressed when force control began have no onset, so no indentation: they
-                # are in at least as far as the TSI went down since. Without this the ceiling sees NaN and
-                # the probe may be driven to the table.
-                travel = self._force_start_z_m - pos[Z]
+                travel = float(np.mean(blind_onset[pressed_blind])) - pos[Z]
                 if not self._indentation_m >= travel:
-                    self._indentation_m = max(travel, 0.0) if math.isfinite(travel) else math.inf
+                    self._indentation_m = max(travel, 0.0)
         else:
             self._indentation_m = math.nan
             fr["dL_m"] = np.nan

@@ -323,3 +323,13 @@ def test_configuration_refuses_the_absurd_with_the_reason(section, key, value, s
     with pytest.raises(ConfigError, match=said) as caught:
         ControlConfig.from_mapping(table)
     assert "\n" not in str(caught.value)
+
+
+def test_a_residual_reading_in_air_does_not_count_the_descent_as_indentation():
+    """A sensor still reading a few hundred Pa after the last area (creep) marks every element as pressed
+    when force control begins; the descent through air to the tissue is not indentation."""
+    h = Harness(plant=LayerPlant(start_m=(0.03, 0.015, 0.040)))  # 15 mm above the tissue
+    h.plant.extra_force_pa = 500.0  # above the 300 Pa onset threshold, in air
+    start_region(h)
+    h.run(60, until=lambda h: phase(h) == Phase.DONE)
+    assert not h.of(FaultRaised) and h.of(RegionDone)
