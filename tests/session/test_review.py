@@ -264,3 +264,15 @@ def test_a_damaged_stretch_of_the_stream_is_reported_not_raised(qtbot, window, r
     info = child(window, QtWidgets.QLabel, "timelineInfo").text()
     assert info.startswith("Cannot show every tick here: the file is corrupt")
     assert "rows" in info and "/stream/ticks" in info
+
+
+def test_the_whole_tissue_page_fits_a_laptop_screen(qtbot, window, recorded, reference_file):
+    """Long map titles wrap: with the tumours listed, the window still fits 1280 x 800."""
+    open_in(qtbot, window, recorded[0])
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        assert window.set_reference(reference_file)
+    window.findChild(QtWidgets.QTabWidget, "tabs").setCurrentIndex(1)
+    hint = window.minimumSizeHint()
+    assert hint.width() <= 1280 and hint.height() <= 800, hint
+    for name in ("stitchedMap", "contrastMap"):  # however long the title, a map can narrow
+        assert window.findChild(QtWidgets.QWidget, name).minimumSizeHint().width() <= 400

@@ -41,6 +41,9 @@ class GridMapView(QtWidgets.QWidget):
         font = self._title.font()
         font.setBold(True)
         self._title.setFont(font)
+        # a long title wraps rather than widening the window past a laptop's screen
+        self._title.setWordWrap(True)
+        self._title.setMinimumWidth(200)
 
         self._plot = pg.PlotWidget()
         self._plot.setObjectName("plot")
