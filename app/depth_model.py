@@ -235,13 +235,11 @@ class DepthModel:
 
     @classmethod
     def for_session(cls, session, path: Path = LIBRARY_PATH) -> DepthModel:
-        from app.physics import _cover, _cover_of
+        from app.physics import cover_for
 
         shape = tuple(session.levels.dtype["pressure_pa"].shape)
-        operators = _cover(_cover_of(session), shape, session.pitch_m)
-        cover = None if operators is None else (lambda f: operators[0] @ f @ operators[1])
         return cls(load_library(path), shape, session.pitch_m,
-                   float(session.calibration.get("table_height_m", 0.0)), cover)
+                   float(session.calibration.get("table_height_m", 0.0)), cover_for(session))
 
     # ---- the forward model ----
 

@@ -498,6 +498,12 @@ def _cover_of(session: Session) -> float:
     return float(value) if isinstance(value, (int, float)) else 0.0
 
 
+def cover_for(session: Session) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The sensor cover's spread of element forces on ``session``'s array (None: it records no cover)."""
+    operators = _cover(_cover_of(session), tuple(session.levels.dtype["pressure_pa"].shape), session.pitch_m)
+    return None if operators is None else (lambda forces: operators[0] @ forces @ operators[1])
+
+
 def _cover(spread_m: float, shape: tuple[int, int], pitch_m: float):
     if spread_m <= 0:
         return None

@@ -15,8 +15,9 @@ The integration is implicit (backward Euler) in the law's own damping and stiffn
 force held over the step: the reference's own dynamics are then stable for every positive M, B, K and
 step, where the explicit (semi-implicit Euler) scheme diverged once dt * B / M or dt^2 * K / M passed 2
 (M = 0.03 kg with B = 80 ran the reference to 1e8 m in 56 ms). What remains explicit is the tissue's
-reaction through F_e; :func:`control.config.stable_for_environment` bounds it, and the configuration refuses gains that fail it. The JI part (mapping Xr to joint
-references through the inverse Jacobian) belongs to the slave's inner position loop.
+reaction through F_e; :func:`control.config.stable_for_environment` bounds it, and the configuration
+refuses gains that fail it. The JI part (mapping Xr to joint references through the inverse Jacobian)
+belongs to the slave's inner position loop.
 """
 
 from __future__ import annotations
@@ -64,4 +65,3 @@ class HybridImpedanceLaw:
             a_r[i] = (v - v_r[i]) / dt if dt > 0 else 0.0
             v_r[i] = v
             x_r[i] += v * dt
-

@@ -381,7 +381,6 @@ class ControlLoop:
         x = result.position_ref_m
         lim = self.safety.limits
         last = self._sent if self._sent is not None else self._x_s
-        problem = None
         if not all(math.isfinite(v) for v in x):
             problem = (FaultKind.WORKSPACE, f"Invalid reference: the controller computed a non-finite position "
                                             f"({x[0]:g}, {x[1]:g}, {x[2]:g}). The robot was stopped where it is.")

@@ -91,6 +91,14 @@ class Reference:
     description: str
     physics: bool = False  # the baseline is over the physics' share; else it is the face's whole pattern
 
+    def check_usable(self, with_physics: bool) -> None:
+        """Raises FlatFieldError if this reference needs the finite-element physics and it is not there (one
+        made without physics holds the face's whole pattern and serves either way)."""
+        if self.physics and not with_physics:
+            raise FlatFieldError("this reference palpation was made over the finite-element physics' pattern: "
+                                 "use it with that physics, or save one without physics (the console's File "
+                                 "menu, or stitch --physics none --save-reference)")
+
     def at(self, force_N: float) -> tuple[np.ndarray, np.ndarray]:
         """(baseline, scatter) at the reference level nearest ``force_N``."""
         k = int(np.argmin(np.abs(np.asarray(self.forces_N) - force_N)))
@@ -262,9 +270,8 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
     the physics too; one made over the physics' share needs the same physics here (raises FlatFieldError)."""
     if map_name not in MAPS:
         raise ValueError(f"unknown map {map_name!r} (known: {', '.join(MAPS)})")
-    if reference is not None and reference.physics and share is None:
-        raise FlatFieldError("the reference palpation was made over the finite-element physics' pattern; use it "
-                             "with that physics, or save one without physics")
+    if reference is not None:
+        reference.check_usable(with_physics=share is not None)
     if reference is not None and not reference.physics:
         share = share_sigma = None
         description = ""

@@ -80,11 +80,9 @@ class LiveMaps:
         return [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
 
     def set_reference(self, reference: Reference | None) -> None:
-        """Raises FlatFieldError for a reference made over physics the live maps do not have."""
-        if reference is not None and reference.physics:
-            raise FlatFieldError("this reference palpation was made over the finite-element physics, which the live "
-                                 "maps do not have: save one from the console (File menu) or with stitch "
-                                 "--physics none --save-reference")
+        """Raises FlatFieldError for a reference made over physics (the live maps have none)."""
+        if reference is not None:
+            reference.check_usable(with_physics=False)
         self.reference = reference
         self._dirty = True
 
