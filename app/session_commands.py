@@ -81,6 +81,11 @@ def analyse(session: Session, args) -> SessionAnalysis:
         raise AnalysisInputError(f"--reference {args.reference}: {err}") from None
 
 
+def _model_depth(t) -> str:
+    model = export.depth_model_text(t)
+    return "" if model == "—" else f", {model} mm (model, 90 %)"
+
+
 class AnalysisInputError(ValueError):
     """A re-analysis option that cannot be applied to this session; the message says why."""
 
@@ -125,14 +130,13 @@ def _print_summary(analysis: SessionAnalysis, out) -> None:
         print("No tumour found with these parameters.", file=out)
     for t in tumours:
         depth = f"{t.depth_m * 1e3:5.2f}" if t.depth_m == t.depth_m else "  n/a"
-        model = export.depth_model_text(t)
         print(f"  {t.source:<9} x {t.x_m * 1e3:6.1f} mm  y {t.y_m * 1e3:6.1f} mm  z {t.score:5.1f}  "
               f"contrast {t.contrast * 100:+4.0f} %  first at {t.first_level_N:g} N  depth {depth} mm (rule)"
-              + ("" if model == "—" else f", {model} mm (model, 90 %)"), file=out)
+              + _model_depth(t), file=out)
     if analysis.has_ground_truth:
         for m in analysis.matches:
             result = (f"found {m.error_xy_m * 1e3:.1f} mm away, depth {m.depth_estimate_m * 1e3:.2f} mm (rule)"
-                      if m.found else "not found" if m.palpated else "not palpated")
+                      + _model_depth(m) if m.found else "not found" if m.palpated else "not palpated")
             print(f"  truth {m.truth_index + 1} ({m.x_m * 1e3:.0f}, {m.y_m * 1e3:.0f}) mm, {m.depth_m * 1e3:.1f} mm "
                   f"deep, {m.source} map: {result}", file=out)
         print(f"  false positives (no true tumour within {MATCH_RADIUS_M * 1e3:g} mm): "
