@@ -21,7 +21,7 @@ from control.analysis import PoseHistory, element_analysis
 from control.config import ControlConfig
 from control.law import HybridImpedanceLaw
 from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
-                              FaultCleared, FaultKind, FaultRaised, Jog, SetGains, SetRamp, SetRegion, SetSz,
+                              FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
 from control.safety import RETRACT_FAULTS, SafetySupervisor
@@ -29,6 +29,7 @@ from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
+AT_REST_M_S = 1e-3  # a robot slower than this has come to rest (its stop distance is then reported)
 STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step that matters
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
@@ -81,6 +82,8 @@ class ControlLoop:
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
+        self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
+        self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
         self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
         self._seen = [-math.inf, -math.inf, -math.inf]  # newest reading time of sensor, master, slave
         self._xd: Vec3 = ZERO3  # this tick's X_d
@@ -187,6 +190,18 @@ class ControlLoop:
         self._hold_xy = (self.law.x_r[0], self.law.x_r[1])
         if not self.safety.retract:
             self.law.reset(self._x_s, ZERO3)
+            self._stopping_from = self._x_s
+            self.stop_distance_m = math.nan
+
+    def _watch_stop(self, now_s: float, events: list) -> None:
+        """Once the robot has come to rest after a stop-where-it-is fault, say how far it went."""
+        start = self._stopping_from
+        if start is None or math.sqrt(sum(v * v for v in self._v_s)) > AT_REST_M_S:
+            return
+        self._stopping_from = None
+        self.stop_distance_m = math.dist(start, self._x_s)
+        events.append(Notice(now_s, f"The robot came to rest {self.stop_distance_m * 1e3:.2f} mm from where it "
+                                    f"was when the stop was ordered."))
 
     def _clear_fault(self, now_s: float, cmd: ClearFault, events: list) -> None:
         kind = self.safety.fault
@@ -335,6 +350,7 @@ class ControlLoop:
 
         self._reference(now_s, dt, result, events)
         self._guard(now_s, dt, result, events)
+        self._watch_stop(now_s, events)
         events.extend(sm.take_events())
         result.feedback = MasterFeedback(now_s, int(sm.phase), sm.region_done, self._force_N, self.safety.faulted)
         self._fill_tick(now_s)

@@ -75,6 +75,7 @@ class RobotBody:
         self.velocity: list[float] = [0.0, 0.0, 0.0]
         self.reference: list[float] = list(settings.home_m)
         self.reference_velocity: list[float] = [0.0, 0.0, 0.0]
+        self.holding = False  # a hold's stop point is planned once, not re-planned ahead of the robot
         self._exact: dict[float, tuple[float, float, float, float]] = {}
 
     def _transition(self, dt: float) -> tuple[float, float, float, float]:
@@ -97,14 +98,24 @@ class RobotBody:
                 p, v = self._hi[i], min(v, 0.0)
             self.reference[i] = p
             self.reference_velocity[i] = v
+        self.holding = False
 
     def hold(self) -> None:
-        """Brake to a stop (at the planned deceleration, within the acceleration limit) and stay there."""
+        """Brake to a stop (at the planned deceleration, within the acceleration limit) and stay there.
+
+        The stop point is planned at the first call and kept by the ones after it until the next
+        reference: re-planning it from the moving robot each tick would put it ahead again every time,
+        and the robot would coast instead of braking. It is clamped into the workspace (the soft limits
+        bind a hold as they bind a reference), where the brake may then use the full acceleration.
+        """
+        if self.holding:
+            return
         v = self.velocity
         speed = _norm(*v)
         brake = speed / (2.0 * self._brake)  # stopping distance / speed
-        self.reference = [self.position[i] + v[i] * brake for i in range(3)]
+        self.reference = [min(max(self.position[i] + v[i] * brake, self._lo[i]), self._hi[i]) for i in range(3)]
         self.reference_velocity = [0.0, 0.0, 0.0]
+        self.holding = True
 
     def settle(self) -> None:
         """At rest on the reference position (the end of a stall longer than the catch-up)."""

@@ -6,7 +6,7 @@ import pytest
 from app.fastforward import FastForward, FastForwardTimeout
 from app.rigs import RigSpec, build_rig
 from control.config import ControlConfig
-from control.messages import ClearFault, CommandApplied, EStop, FaultCleared, FaultKind, FaultRaised, Tare
+from control.messages import ClearFault, CommandApplied, EStop, FaultCleared, FaultKind, FaultRaised, Jog, Notice, Tare
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from hardware.interfaces import Phase
 
@@ -107,3 +107,21 @@ def test_the_tick_applies_a_tare_the_loop_asks_for(ff, monkeypatch):
     ff.step()
     assert tared == [pytest.approx(0.1)]
     assert any(isinstance(e, CommandApplied) and isinstance(e.command, Tare) and "tared" in e.message for e in ff.events)
+
+
+def test_an_estop_while_moving_stops_within_the_braking_plan_and_says_how_far_it_went():
+    # Before the simulated robot latched its stop point, an e-stop at 0.075 m/s travelled 4.2 mm (plan 0.94 mm).
+    config = ControlConfig.from_mapping({"safety": {"velocity_limit_m_s": 0.1},
+                                      "master": {"jog_speed_m_s": 0.075}})
+    with FastForward(config, build_rig(RigSpec())) as driver:
+        driver.run_for(0.05)
+        driver.send(Jog((0.03, 0.0, 0.0)))
+        driver.run_for(0.15)
+        speed = float(np.linalg.norm(driver.rig.slave.latest().velocity_m_s))
+        assert speed > 0.07
+        driver.send(EStop("test"))
+        driver.run_for(0.5)
+        plan = speed**2 / (2 * 0.6 * driver.rig.slave.world.settings.robot.max_accel_m_s2)
+        assert 0.5 * plan < driver.loop.stop_distance_m <= plan + 0.1e-3
+        told = [e for e in driver.events if isinstance(e, Notice) and "came to rest" in e.message]
+        assert len(told) == 1 and f"{driver.loop.stop_distance_m * 1e3:.2f} mm" in told[0].message

@@ -95,6 +95,49 @@ def test_hold_brakes_within_the_acceleration_limit_and_stays_put():
     assert abs(still[-1].position_m[0] - x[-1]) < 1e-9
 
 
+def hold_every_tick(slave: SimSlave, start_s: float, duration_s: float) -> list:
+    """What the control loop does while it holds: call hold() on every 1 kHz tick."""
+    out = []
+    for m in range(int(round(duration_s / MS))):
+        slave.hold(start_s + m * MS)
+        slave.poll(start_s + (m + 1) * MS)
+        out.append(slave.latest())
+    return out
+
+
+@pytest.mark.parametrize("speed", [0.075, 0.094, 0.2])
+def test_a_hold_repeated_every_tick_stops_within_the_braking_plan(speed):
+    # Before the stop point was latched, each call re-planned it ahead of the moving robot: an e-stop
+    # at 0.075 m/s travelled 4.2 mm against a 0.94 mm plan.
+    slave = make_slave(max_speed_m_s=speed, max_accel_m_s2=5.0)
+    home = slave.latest().position_m
+    slave.command((home[0] + 0.1, home[1], home[2]), (0.0, 0.0, 0.0), T0)
+    moving = run(slave, T0, 0.2)
+    v0 = moving[-1].velocity_m_s[0]
+    assert v0 > 0.99 * speed
+    readings = hold_every_tick(slave, T0 + 0.2, 0.5)
+    travelled = readings[-1].position_m[0] - moving[-1].position_m[0]
+    plan = v0**2 / (2 * 0.6 * 5.0)
+    assert abs(readings[-1].velocity_m_s[0]) < 1e-6
+    assert travelled <= plan + 0.05e-3
+
+
+def test_a_hold_near_the_workspace_limit_stops_inside_it():
+    # From 0.25 m/s the re-planned hold once ran 40 mm past the robot's own workspace.
+    slave = make_slave(max_speed_m_s=0.25, max_accel_m_s2=5.0, workspace_max_m=(0.15, 0.10, 0.12))
+    home = slave.latest().position_m
+    for m in range(1, 2000):  # a reference ramping at full speed, as the loop sends one each tick
+        t = T0 + m * MS
+        slave.command((home[0] + 0.25 * (m * MS), home[1], home[2]), (0.25, 0.0, 0.0), t)
+        slave.poll(t)
+        if slave.latest().position_m[0] > 0.15 - 8e-3:  # inside its 10 mm braking distance, at speed
+            break
+    assert slave.latest().velocity_m_s[0] > 0.2
+    readings = hold_every_tick(slave, T0 + m * MS, 0.5)
+    assert max(r.position_m[0] for r in readings) <= 0.15 + 1e-3
+    assert abs(readings[-1].velocity_m_s[0]) < 1e-6
+
+
 def test_readings_come_at_the_robot_rate_and_do_not_depend_on_how_it_is_polled():
     regular = make_slave()
     irregular = make_slave()
