@@ -11,7 +11,8 @@ from collections.abc import Iterable
 
 from control.config import ControlConfig
 from control.loop import ControlLoop, StepResult
-from control.messages import Command
+from control.messages import Command, CommandApplied, CommandRefused
+from hardware.interfaces import DeviceError
 from hardware.rig import Rig
 
 
@@ -44,8 +45,14 @@ def run_tick(loop: ControlLoop, rig: Rig, now_s: float, commands: Iterable[Comma
         rig.slave.hold(now_s)
     else:
         rig.slave.command(result.position_ref_m, result.velocity_ref_m_s, now_s)
-    if result.tare:
-        rig.sensor.tare()
+    if result.tare is not None:
+        try:
+            rig.sensor.tare()
+        except DeviceError as err:
+            result.events.append(CommandRefused(now_s, result.tare, str(err)))
+        else:
+            result.events.append(CommandApplied(now_s, result.tare, "Tactile sensor tared: the current reading is "
+                                                                    "the new zero."))
     if master is not None and result.feedback is not None:
         master.feedback(result.feedback)
     row = loop.tick

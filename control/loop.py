@@ -42,7 +42,7 @@ class StepResult:
     new_frame: bool  # True: loop.frame holds the analysis of a sensor frame first seen this tick
     events: list[Event] = field(default_factory=list)
     feedback: MasterFeedback | None = None
-    tare: bool = False  # True: the driver must tare the tactile sensor now
+    tare: Tare | None = None  # the driver must tare the tactile sensor now, and say whether it did
 
 
 class ControlLoop:
@@ -78,6 +78,7 @@ class ControlLoop:
         self._sensor_seq = -1
         self._force_N = 0.0
         self._max_pressure_pa = 0.0
+        self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
@@ -132,11 +133,11 @@ class ControlLoop:
             else:
                 self._refuse(now_s, cmd, "no region is being palpated", events)
         elif isinstance(cmd, Tare):
-            if sm.force_control or sm.phase == Phase.RETRACT:
-                self._refuse(now_s, cmd, "tare only with the probe off the tissue (not during a ramp)", events)
+            problem = self._tare_problem()
+            if problem is not None:
+                self._refuse(now_s, cmd, problem, events)
             else:
-                result.tare = True
-                events.append(CommandApplied(now_s, cmd, "Tactile sensor tared: the current reading is the new zero."))
+                result.tare = cmd  # the device has the last word: it refuses a reading no unloaded array gives
         elif isinstance(cmd, (SetRamp, SetGains, SetRegion)):
             if not (sm.phase.idle or sm.phase == Phase.HOLD):
                 self._refuse(now_s, cmd, "settings can change only between regions", events)
@@ -162,6 +163,22 @@ class ControlLoop:
                     self._jog_pending[i] += cmd.delta_m[i]
         else:
             self._refuse(now_s, cmd, "unknown command", events)
+
+    def _tare_problem(self) -> str | None:
+        """Why the sensor may not be tared now (None: it may). A zero taken while the probe presses would
+        hide that force from every ceiling, so only with the operator in position control between areas,
+        nothing faulted, and no element reading contact or saturated."""
+        if not self.sm.phase.idle:
+            return "tare only between areas, with the probe lifted off the tissue (not during a ramp, a retract or a fault)"
+        if self._sensor_seq < 0:
+            return "no tactile frame has arrived yet"
+        confirm = self.config.contact.confirm_threshold_pa
+        if self._saturated:
+            return f"{self._saturated} element(s) saturated: the probe is pressing; lift it clear of the tissue"
+        if not self._max_pressure_pa < confirm:
+            return (f"an element reads {self._max_pressure_pa / 1e3:.2f} kPa, above the "
+                    f"{confirm / 1e3:.2f} kPa contact threshold: the probe is touching something; lift it clear")
+        return None
 
     def _command_sz(self, now_s: float, cmd: SetSz, events: list) -> None:
         sm = self.sm
@@ -224,6 +241,7 @@ class ControlLoop:
             v_ref_m_s=self.law.v_r,
             force_N=self._force_N,
             max_pressure_pa=self._max_pressure_pa,
+            saturated_elements=self._saturated,
             indentation_m=self._indentation_m,
             sensor_age_s=self._ages[0],
             master_age_s=self._ages[1] if self.has_master else None,
@@ -262,6 +280,7 @@ class ControlLoop:
         area = self.sensor.element_area_m2
         self._force_N = float(p.sum()) * area
         self._max_pressure_pa = float(p.max())
+        self._saturated = int(frame.saturated.sum()) if frame.saturated is not None else 0
         pos = self.history.at(frame.t_s)
         sm = self.sm
         sm.on_frame(frame.t_s, p, self._force_N, pos)

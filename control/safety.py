@@ -55,6 +55,7 @@ class SafetySupervisor:
         v_ref_m_s,
         force_N: float,
         max_pressure_pa: float,
+        saturated_elements: int,
         indentation_m: float,
         sensor_age_s: float,
         master_age_s: float | None,
@@ -77,6 +78,10 @@ class SafetySupervisor:
             return FaultKind.FORCE_CEILING, (
                 f"Force ceiling exceeded: the tactile sensor measured {force_N:.2f} N, above the "
                 f"{lim.force_ceiling_N:.2f} N limit. The probe was lifted off the tissue.")
+        if saturated_elements:  # the force is at least what is read, and could be any amount more
+            return FaultKind.FORCE_CEILING, (
+                f"Force unknown: {saturated_elements} tactile element(s) saturated, so the force is at least "
+                f"the {force_N:.2f} N measured and may be far more. The probe was lifted off the tissue.")
         if not max_pressure_pa <= lim.element_pressure_ceiling_pa:
             return FaultKind.PRESSURE_CEILING, (
                 f"Pressure ceiling exceeded: one element read {max_pressure_pa / 1e3:.1f} kPa, above the "

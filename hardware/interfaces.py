@@ -102,6 +102,27 @@ class TactileFrame:
     seq: int
     t_s: float
     pressure_pa: np.ndarray  # (rows, cols), calibrated and tared, >= 0 apart from noise
+    # (rows, cols) bool: the element's converter is at its limit, so the true load is at least what it reads
+    # and may be far more; None: the device cannot tell
+    saturated: np.ndarray | None = None
+
+
+# An unloaded capacitive element reads its baseline, a few % of full scale (1 % in the simulated array's
+# defaults); a reading beyond this fraction is a load, and taking it as zero would hide that load.
+TARE_MAX_FRACTION = 0.1
+
+
+def tare_problem(untared_pa: np.ndarray, saturated: np.ndarray | None, full_scale_pa: float) -> str | None:
+    """Why a frame cannot serve as the zero of an unloaded array (None: it can)."""
+    if saturated is not None and saturated.any():
+        i, j = np.argwhere(saturated)[0]
+        return (f"{int(saturated.sum())} element(s) saturated (first: row {i}, column {j}); "
+                f"an unloaded array cannot saturate")
+    top = float(np.max(np.abs(untared_pa))) if untared_pa.size else 0.0
+    if not top <= TARE_MAX_FRACTION * full_scale_pa:
+        return (f"an element reads {top / 1e3:.1f} kPa, more than {TARE_MAX_FRACTION:.0%} of full scale "
+                f"({full_scale_pa / 1e3:.0f} kPa): the array is loaded")
+    return None
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,7 +194,10 @@ class TactileSensor(Device):
 
     @abstractmethod
     def tare(self) -> None:
-        """Take the current unloaded reading as zero for every element."""
+        """Take the current unloaded reading as zero for every element.
+
+        Raises DeviceError, changing nothing, when that reading is not one an unloaded array gives
+        (:func:`tare_problem`) or there is none yet."""
 
 
 class SlaveManipulator(Device):

@@ -10,7 +10,12 @@ Sequence numbers: a gap is frames the device sampled that never arrived (``frame
 ignored (``duplicates``); a step back means the device restarted (``device_restarts``: its clock is
 re-learnt). The published ``seq`` keeps increasing across restarts and reconnections, so the loop
 always recognises a new frame. The tare survives reconnections: re-taring a probe that may be pressing
-on tissue would hide that force from the safety supervisor.
+on tissue would hide that force from the safety supervisor. For the same reason a first frame that an
+unloaded array cannot give (saturated, or loaded beyond a fraction of full scale) is not taken as zero on
+opening: the frames are then published untared (the baseline reads as a small force, which is the safe
+side) and ``tare_refused`` says why.
+
+An element whose calibrated reading is at or beyond full scale is flagged saturated in the frame.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame
+from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, tare_problem
 from hardware.serial_tactile.calibration import Calibration, CalibrationError, load_equilibration
 from hardware.serial_tactile.clock import DeviceClock
 from hardware.serial_tactile.config import boolean, in_range, optional_path
@@ -90,6 +95,8 @@ class TactileStream:
         self._seq = -1
         self._zero: np.ndarray | None = None
         self._untared: np.ndarray | None = None
+        self._saturated: np.ndarray | None = None
+        self.tare_refused = ""  # why the first frame was not taken as zero on opening ("" if it was, or not asked)
         self._rate_t0: float | None = None
         self._rate_n = 0
         self.frame_rate_hz = float("nan")  # measured over the last second or so
@@ -97,6 +104,7 @@ class TactileStream:
     def start(self) -> None:
         """A fresh connection: the first frame is taken as zero if ``tare_on_open``."""
         self._zero = None if self.tare_on_open else np.zeros(self.constraints.shape)
+        self.tare_refused = ""
         self.link_reset()
 
     def link_reset(self) -> None:
@@ -107,8 +115,14 @@ class TactileStream:
         self._rate_t0 = None
 
     def tare(self) -> None:
-        """Zero every element at its latest reading (at the next frame if there is none yet)."""
-        self._zero = None if self._untared is None else self._untared.copy()
+        """Zero every element at its latest reading; DeviceError (nothing changed) if there is none or it is
+        not a reading of an unloaded array."""
+        if self._untared is None:
+            raise DeviceError("tactile sensor: no frame has arrived yet to take as zero")
+        problem = tare_problem(self._untared, self._saturated, self.constraints.full_scale_pa)
+        if problem is not None:
+            raise DeviceError(f"tactile sensor: not tared: {problem}")
+        self._zero = self._untared.copy()
 
     def feed(self, data: bytes | bytearray | memoryview, now_s: float) -> int:
         """Parse ``data`` read by ``now_s``; returns how many new frames were accepted."""
@@ -138,10 +152,16 @@ class TactileStream:
             self.overruns += 1
         t_s = self.clock.map(raw.device_time_us, now_s)
         untared = self.calibration.pressure_pa(raw.counts)
-        self._untared = untared
+        saturated = untared >= self.constraints.full_scale_pa
+        self._untared, self._saturated = untared, saturated
         if self._zero is None:
-            self._zero = untared.copy()
-        self.latest = TactileFrame(seq=self._seq, t_s=t_s, pressure_pa=untared - self._zero)
+            problem = tare_problem(untared, saturated, self.constraints.full_scale_pa)
+            if problem is None:
+                self._zero = untared.copy()
+            else:
+                self._zero = np.zeros_like(untared)
+                self.tare_refused = f"not tared on opening: {problem}"
+        self.latest = TactileFrame(seq=self._seq, t_s=t_s, pressure_pa=untared - self._zero, saturated=saturated)
         self.last_rx_s = now_s
         self._count_rate(now_s)
         return True

@@ -15,8 +15,11 @@ the sample index as ``seq`` (a jump in ``seq`` is a frame the host never saw). P
    zero_offset]``, so a tared element saturates at about full scale;
 5. minus the tare (the raw reading taken as zero), giving the calibrated, tared pressure.
 
-On connection the array takes its first frame as zero, as acquisition software does on start-up;
-:meth:`tare` takes the latest frame's reading instead.
+On connection the array takes its first frame as zero, as acquisition software does on start-up, unless
+an unloaded array could not give it (:func:`~hardware.interfaces.tare_problem`: the probe starts pressed
+into the tissue): then nothing is taken as zero and ``tare_refused`` says why. :meth:`tare` takes the
+latest frame's reading instead, under the same rule. An element whose converter is at its limit is
+flagged saturated in the frame.
 
 A frame is computed half-way through its latency (at the first poll after ``t_s + latency_s / 2``), not
 at its sampling instant: what it describes is fixed by ``t_s`` alone (the world keeps its recent
@@ -32,7 +35,7 @@ from collections import deque
 
 import numpy as np
 
-from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, TactileSensor
+from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, TactileSensor, tare_problem
 from hardware.sim.world import SimDevice, SimWorld
 
 
@@ -63,11 +66,13 @@ class SimTactileSensor(SimDevice, TactileSensor):
         self._zero_pa: np.ndarray | None = None
         self._latest: TactileFrame | None = None
         self._latest_raw: np.ndarray | None = None
+        self.tare_refused = ""  # why the first frame was not taken as zero on connection
 
     def _on_open(self) -> None:
         self._in_flight.clear()
         self._next_index = None
         self._zero_pa = None
+        self.tare_refused = ""
 
     def close(self) -> None:
         super().close()
@@ -77,8 +82,15 @@ class SimTactileSensor(SimDevice, TactileSensor):
         return self._latest
 
     def tare(self) -> None:
-        """Zero every element at its latest reading (at the next frame if there is none yet)."""
-        self._zero_pa = None if self._latest_raw is None else self._latest_raw.copy()
+        """Zero every element at its latest reading; DeviceError (nothing changed) if there is none or an
+        unloaded array could not give it."""
+        raw, frame = self._latest_raw, self._latest
+        if raw is None or frame is None:
+            raise DeviceError("sim tactile sensor: no frame has arrived yet to take as zero")
+        problem = tare_problem(raw, frame.saturated, self.constraints.full_scale_pa)
+        if problem is not None:
+            raise DeviceError(f"sim tactile sensor: not tared: {problem}")
+        self._zero_pa = raw.copy()
 
     def true_pressure_pa(self, t_s: float) -> np.ndarray:
         """What an ideal array would read at ``t_s``: the tissue model's forces over the element area,
@@ -116,10 +128,13 @@ class SimTactileSensor(SimDevice, TactileSensor):
                 frame[3] = self._sample(frame[2])
         while in_flight and in_flight[0][0] <= now_s:
             _, seq, t, raw = in_flight.popleft()
+            saturated = raw >= self._raw_max_pa
             if self._zero_pa is None:
-                self._zero_pa = raw.copy()
+                problem = tare_problem(raw, saturated, self.constraints.full_scale_pa)
+                self._zero_pa = raw.copy() if problem is None else np.zeros_like(raw)
+                self.tare_refused = "" if problem is None else f"not tared on connection: {problem}"
             self._latest_raw = raw
-            self._latest = TactileFrame(seq=seq, t_s=t, pressure_pa=raw - self._zero_pa)
+            self._latest = TactileFrame(seq=seq, t_s=t, pressure_pa=raw - self._zero_pa, saturated=saturated)
 
     def _sample(self, t_s: float) -> np.ndarray:
         # in place where it can be: this runs on a control tick, and every temporary costs a microsecond

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
-                                 TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3)
+                                 TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3, tare_problem)
 from hardware.serial_tactile.config import in_range, integer, text
 from hardware.settings import ConfigError, Settings
 from hardware.udp import protocol as P
@@ -354,8 +354,14 @@ class UdpTactileSensor(TactileSensor):
         return self._latest
 
     def tare(self) -> None:
-        if self._untared is not None:
-            self._zero = self._untared.copy()
+        """Re-zero the forwarded frames at the latest one; DeviceError (nothing changed) if there is none or
+        an unloaded array could not give it."""
+        if self._untared is None or self._latest is None:
+            raise DeviceError("forwarded tactile sensor: no frame has arrived yet to take as zero")
+        problem = tare_problem(self._untared, self._latest.saturated, self.constraints.full_scale_pa)
+        if problem is not None:
+            raise DeviceError(f"forwarded tactile sensor: not tared: {problem}")
+        self._zero = self._untared.copy()
 
     @property
     def stats(self) -> dict[str, Any]:
@@ -371,9 +377,12 @@ class UdpTactileSensor(TactileSensor):
         if offset is None:
             self.unmapped += 1
             return
-        self._untared = tac.pressure_pa
+        saturated = tac.saturated if tac.saturated is not None else np.zeros(self.constraints.shape, bool)
+        # a saturated element reads full scale here (a floor: its true load is unknown and may be more)
+        untared = np.where(saturated, self.constraints.full_scale_pa + self._zero, tac.pressure_pa)
+        self._untared = untared
         self.frames += 1
         self._last_rx = now_s
         self._latest = TactileFrame(seq=self.frames, t_s=min(tac.t_sample_s - offset, now_s),
-                                    pressure_pa=tac.pressure_pa - self._zero)
+                                    pressure_pa=untared - self._zero, saturated=saturated)
 

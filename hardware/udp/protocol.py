@@ -35,7 +35,8 @@ Every datagram is one packet, little-endian, no padding::
       0   4  sensor_seq: u32
       4   8  t_sample_s: f64 (slave clock, already mapped from the sensor's own clock)
       12  1  rows (4)    13  1  cols (15)    14  2  reserved, 0
-      16 240 pressure: rows x cols f32, Pa, row-major, calibrated and tared
+      16 240 pressure: rows x cols f32, Pa, row-major, calibrated and tared; +inf marks a saturated
+             element (its converter at its limit: the load is unknown); NaN and -inf are refused
 
     PING     anyone allowed -> slave, empty body (24-byte packet): answered with a STATE (PING_REPLY set)
              that echoes it; it does not count as a command (it neither feeds nor resets the watchdog)
@@ -146,7 +147,8 @@ class State:
 class Tactile:
     sensor_seq: int
     t_sample_s: float
-    pressure_pa: np.ndarray  # (ROWS, COLS) float64
+    pressure_pa: np.ndarray  # (ROWS, COLS) float64; +inf where saturated
+    saturated: np.ndarray | None = None  # (ROWS, COLS) bool
 
 
 def _seal(header: bytes, body: bytes) -> bytes:
@@ -174,6 +176,8 @@ def pack_tactile(session: int, seq: int, t_send_s: float, tac: Tactile) -> bytes
     p = np.asarray(tac.pressure_pa)
     if p.shape != (ROWS, COLS):
         raise ValueError(f"a TACTILE packet carries a {ROWS} x {COLS} array, got shape {p.shape}")
+    if tac.saturated is not None and tac.saturated.any():
+        p = np.where(tac.saturated, np.inf, p)
     return _seal(_header(PacketType.TACTILE, session, seq, t_send_s),
                  TACTILE_HEAD.pack(tac.sensor_seq % U32, tac.t_sample_s, ROWS, COLS) + p.astype("<f4").tobytes())
 
@@ -229,9 +233,11 @@ def unpack(data: bytes | bytearray | memoryview) -> tuple[Header, Command | Stat
             raise PacketError("malformed", f"TACTILE packet for a {rows} x {cols} array, expected {ROWS} x {COLS}")
         p = np.frombuffer(data, dtype="<f4", count=ROWS * COLS, offset=off + TACTILE_HEAD.size)
         _finite((t_sample,), "the tactile sample time")
-        if not np.isfinite(p).all():
-            raise PacketError("invalid_values", "the tactile pressures are not finite")
-        return header, Tactile(sensor_seq, t_sample, p.reshape(ROWS, COLS).astype(float))
+        p = p.reshape(ROWS, COLS).astype(float)
+        saturated = p == np.inf
+        if not np.isfinite(p[~saturated]).all():
+            raise PacketError("invalid_values", "the tactile pressures are NaN or -inf")
+        return header, Tactile(sensor_seq, t_sample, p, saturated)
     return header, None
 
 

@@ -282,7 +282,7 @@ class SlaveServer:
         if frame is None or frame.seq == self._sent_sensor_seq:
             return
         self._sent_sensor_seq = frame.seq
-        tac = P.Tactile(frame.seq, frame.t_s, frame.pressure_pa)
+        tac = P.Tactile(frame.seq, frame.t_s, frame.pressure_pa, frame.saturated)
         self._send(P.pack_tactile(self._session, self._tactile_seq, now_s, tac), addr)
         self._tactile_seq += 1
 

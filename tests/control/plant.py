@@ -18,7 +18,8 @@ SHAPE = (4, 15)
 
 class LayerPlant:
     def __init__(self, surface_m=0.025, modulus_pa=60e3, frame_period_s=0.01, latency_s=0.005,
-                 start_m=(0.03, 0.015, 0.032), stiff_mask=None, stiff_factor=1.0, noise_pa=0.0):
+                 start_m=(0.03, 0.015, 0.032), stiff_mask=None, stiff_factor=1.0, noise_pa=0.0,
+                 full_scale_pa=None):
         self.surface_m = surface_m
         self.modulus = np.full(SHAPE, modulus_pa)
         if stiff_mask is not None:
@@ -35,6 +36,7 @@ class LayerPlant:
         self.slave_alive = True
         self.extra_force_pa = 0.0
         self.noise_pa = noise_pa
+        self.full_scale_pa = full_scale_pa  # None: an array that never saturates
         self.rng = np.random.default_rng(1)
 
     def pressure_at(self, z: float) -> np.ndarray:
@@ -48,7 +50,12 @@ class LayerPlant:
             t_sample = now - self.latency_s
             z = np.interp(t_sample, [h[0] for h in self.history[-50:]], [h[1] for h in self.history[-50:]])
             self.seq += 1
-            self.frame = TactileFrame(self.seq, t_sample, self.pressure_at(float(z)))
+            p = self.pressure_at(float(z))
+            saturated = None
+            if self.full_scale_pa is not None:
+                saturated = p >= self.full_scale_pa
+                p = np.minimum(p, self.full_scale_pa)
+            self.frame = TactileFrame(self.seq, t_sample, p, saturated)
             self.next_frame_t = now + self.frame_period_s
         self._slave = SlaveState(int(now * 1e6), now, tuple(self.x), tuple(self.v))
 

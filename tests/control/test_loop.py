@@ -212,14 +212,38 @@ def test_settings_only_between_regions_and_tare_only_off_tissue():
     h.run(0.1)
     h.send(Tare())
     h.run(0.001)
-    assert h.last.tare
+    assert h.last.tare is not None
     h.send(SetRamp(RampSettings(force_min_N=1, force_max_N=3, force_step_N=1)))
     start_region(h)
     assert h.loop.sm.n_levels == 3
     h.send(Tare(), SetRamp(RampSettings()))
     h.run(0.001)
     refused = [e.command_name for e in h.of(CommandRefused)]
-    assert refused == ["Tare", "SetRamp"] and not h.last.tare
+    assert refused == ["Tare", "SetRamp"] and h.last.tare is None
+
+
+def test_tare_is_refused_while_the_probe_presses_in_position_control():
+    """Issue 14, finding 3: pressed 13 mm in, tared, then ramped, the true force passed the ceiling while
+    far less was measured. A zero is taken only with no element reading contact."""
+    h = Harness()
+    h.run(0.1)
+    h.send(Jog((0.0, 0.0, -0.020)))  # X_d from 7 mm above the surface to 13 mm into it
+    h.run(2.5)
+    assert h.plant.x[2] < 0.025 - 0.009  # the impedance yields a little to the tissue's push
+    h.send(Tare())
+    h.run(0.001)
+    (refused,) = h.of(CommandRefused)
+    assert "contact threshold" in refused.reason and "lift it clear" in refused.reason and h.last.tare is None
+
+
+def test_a_saturated_element_is_a_force_ceiling_breach():
+    # an array with a 20 kPa full scale: the 7 N level needs about 29 kPa per element
+    h = Harness(plant=LayerPlant(full_scale_pa=20e3))
+    start_region(h)
+    h.run(40, until=lambda h: h.loop.safety.faulted)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.FORCE_CEILING and "saturated" in fault.message
+    assert h.loop.frame["pressure_pa"].max() == 20e3
 
 
 def test_tick_row_reflects_the_state():

@@ -175,6 +175,24 @@ def test_tare_zeroes_the_current_reading(emulator, sensor):
     assert np.allclose(sensor.latest().pressure_pa, 0.0, atol=QUANTUM)
 
 
+def test_a_saturated_first_frame_is_not_taken_as_zero_and_saturation_is_flagged(emulator, sensor):
+    # Issue 14, finding 3: a saturated first frame was the zero, and a true 48 N load then read -336 N.
+    deliver(sensor, T0, lambda: emulator.send(np.full((4, 15), 150e3), T0))
+    assert "not tared on opening" in sensor.stats["last_error"] and "saturated" in sensor.stats["last_error"]
+    load = np.full((4, 15), 200e3)  # 48 N over the array, twice its full scale
+    deliver(sensor, T0 + 0.01, lambda: emulator.send(load, T0 + 0.01))
+    frame = sensor.latest()
+    assert frame.saturated.all()
+    assert frame.pressure_pa.sum() * 4e-6 > 45.0  # what the load reads is never less than what it is
+    with pytest.raises(DeviceError, match="not tared: 60 element.s. saturated"):
+        sensor.tare()
+    deliver(sensor, T0 + 0.02, lambda: emulator.send(np.zeros((4, 15)), T0 + 0.02))
+    assert not sensor.latest().saturated.any()
+    sensor.tare()  # clear of the tissue, the operator tares
+    deliver(sensor, T0 + 0.03, lambda: emulator.send(pressure(1), T0 + 0.03))
+    assert np.allclose(sensor.latest().pressure_pa, pressure(1), atol=QUANTUM)
+
+
 def test_open_failures_are_sentences_a_user_can_act_on(emulator, tmp_path):
     with pytest.raises(DeviceError, match="there is no serial port .*plugged in"):
         SerialTactileSensor(SerialTactileSettings(port=str(tmp_path / "nothing"))).open()

@@ -68,6 +68,18 @@ def test_non_finite_state_or_tactile_values_are_refused():
     p[1, 2] = np.nan
     with pytest.raises(P.PacketError, match="tactile pressures"):
         P.unpack(P.pack_tactile(1, 1, 0.0, P.Tactile(0, 0.0, p)))
+    p[1, 2] = -np.inf
+    with pytest.raises(P.PacketError, match="tactile pressures"):
+        P.unpack(P.pack_tactile(1, 1, 0.0, P.Tactile(0, 0.0, p)))
+
+
+def test_saturated_elements_cross_the_link_flagged():
+    p = np.full((4, 15), 5e3)
+    saturated = np.zeros((4, 15), bool)
+    saturated[2, 7] = True
+    _, body = P.unpack(P.pack_tactile(1, 1, 0.0, P.Tactile(0, 0.0, p, saturated)))
+    assert np.array_equal(body.saturated, saturated) and body.pressure_pa[2, 7] == np.inf
+    assert np.array_equal(body.pressure_pa[~saturated], p[~saturated])
 
 
 def test_sequence_tracker_accepts_only_news_and_counts_the_rest():
