@@ -4,16 +4,24 @@ Each :meth:`SlaveServer.step` (1 kHz in :meth:`SlaveServer.serve`) polls the rob
 without blocking, applies the newest command, runs the link watchdog and sends the robot's state (and a
 tactile frame when the slave-side sensor has a new one) to the master.
 
-Safety rules, all on this side so they hold whatever the master does:
+Safety rules, all on this side so they hold whatever the master does, from the slave's own settings:
 
 * Only peers on the allow-list may command or ping; the socket binds to loopback unless told otherwise,
   and binding elsewhere requires an explicit allow-list.
+* One master at a time: a command from another address or another session is refused while the current
+  master has been heard within ``link_timeout_s``; after that it takes over. A session that has already
+  been replaced is never accepted again (a delayed packet from before a restart).
 * Only a command newer than the newest applied one is applied (late and duplicate packets are dropped).
 * Link watchdog: no command for ``link_timeout_s`` latches LINK_TIMEOUT and holds the robot. The state
   packets say so, and the console withholds the readings, so its loop holds as well.
-* After a latched hold the robot follows again only once the master sends HOLD (it has noticed), or a
-  reference within ``resume_distance_m`` of where the robot stopped; a farther one is refused
-  (JUMP_REFUSED) and the robot keeps holding, so a stale reference can never yank it away.
+* Jump guard, always: a reference farther than ``resume_distance_m`` from the last one applied (or, while
+  holding, from where the robot is) is refused (JUMP_REFUSED) and the robot holds, so neither a stale
+  reference nor a lying master can yank it away. After a latched hold the robot follows again once the
+  master sends HOLD (it has noticed) and then a reference near the robot.
+* The slave's own soft limits: each reference is cut to its workspace and its speed limit (the robot's
+  own by default, narrower if configured; LIMITED says it happened).
+* The slave's own force limit (with a slave-side sensor): above ``force_limit_N`` it latches FORCE_LIMIT
+  and holds, following only references that lift the probe, until the force is back below 80 % of the limit.
 * Until a master has spoken, the robot holds.
 """
 
@@ -30,18 +38,22 @@ import sys
 import threading
 import time
 import tomllib
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor
+from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor, Vec3
 from hardware.serial_tactile.config import in_range, integer, text
-from hardware.settings import ConfigError, Settings
+from hardware.settings import ConfigError, Settings, vec3
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback
 
 DEFAULT_PORT = 47600
+FORCE_RESUME_FRACTION = 0.8  # below this share of the force limit the latch lets go (no chattering at it)
+RETIRED_SESSIONS = 64
+STEP_TOLERANCE_M = 1e-6  # rounding in the master's reference: far below any step that matters  # replaced masters' sessions remembered, so their delayed packets stay refused
 
 
 def _network(key: str, value: Any) -> ipaddress.IPv4Network | ipaddress.IPv6Network:
@@ -62,6 +74,11 @@ class SlaveServerSettings(Settings):
     rate_hz: float = 1000.0
     max_packets_per_step: int = 64
     forward_tactile: bool = True
+    # the slave's own limits; unset: the robot's (its constraints)
+    workspace_min_m: Vec3 | None = None
+    workspace_max_m: Vec3 | None = None
+    max_speed_m_s: float | None = None
+    force_limit_N: float = 15.0  # above the console's 12 N ceiling (it acts first), below the TSI's 23 N full scale
 
     def __post_init__(self):
         self._set("bind_host", text("bind_host", self.bind_host))
@@ -84,6 +101,17 @@ class SlaveServerSettings(Settings):
         self._set("max_packets_per_step", integer("max_packets_per_step", self.max_packets_per_step, 1, 4096))
         if not isinstance(self.forward_tactile, bool):
             raise ConfigError("forward_tactile", f"must be true or false, got {self.forward_tactile!r}")
+        for key in ("workspace_min_m", "workspace_max_m"):
+            if getattr(self, key) is not None:
+                self._set(key, vec3(key, getattr(self, key)))
+        lo, hi = self.workspace_min_m, self.workspace_max_m
+        if lo is not None and hi is not None and not all(a < b for a, b in zip(lo, hi)):
+            raise ConfigError("workspace_max_m", f"must exceed workspace_min_m on every axis, got {lo} and {hi}")
+        if self.max_speed_m_s is not None:
+            self._set("max_speed_m_s", in_range("max_speed_m_s", self.max_speed_m_s, 1e-3, 0.5,
+                                                "a palpation robot near tissue"))
+        self._set("force_limit_N", in_range("force_limit_N", self.force_limit_N, 0.1, 30.0,
+                                            "the TSI's full scale is 23 N"))
 
     def allows(self, host: str) -> bool:
         try:
@@ -108,12 +136,22 @@ class SlaveServer:
         self._last_cmd_rx: float | None = None
         self._echo = (0, 0.0, 0.0)  # seq, t_send (master clock), t_recv (ours) of the newest command
         self._mode = P.Mode.HOLD
-        self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED while the robot holds on its own
+        self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED | FORCE_LIMIT: holding on its own
         self._held_at_start = False
         self._sent_sensor_seq: int | None = None
+        self._retired: deque[int] = deque(maxlen=RETIRED_SESSIONS)
+        self._applied: tuple[Vec3, float] | None = None  # the last reference sent to the robot, and when
+        self._limited = False
+        self._force_hold: Vec3 | None = None  # where the robot was when the force limit latched
+        c = robot.constraints
+        st = self.settings
+        self._lo = st.workspace_min_m if st.workspace_min_m is not None else c.workspace_min_m
+        self._hi = st.workspace_max_m if st.workspace_max_m is not None else c.workspace_max_m
+        self._vmax = st.max_speed_m_s if st.max_speed_m_s is not None else c.max_speed_m_s
         self.counters = dict.fromkeys(("received", "rejected_peers", "oversize", "malformed", "crc_errors",
                                        "invalid_values", "unexpected", "pings", "link_timeouts", "jumps_refused",
-                                       "master_changes", "sent", "send_errors", "socket_errors"), 0)
+                                       "master_changes", "takeovers_refused", "stale_sessions", "limited",
+                                       "force_limits", "sent", "send_errors", "socket_errors"), 0)
         self.last_error = ""
         self._intake = Intake(self.counters, self._set_error)
 
@@ -137,6 +175,8 @@ class SlaveServer:
         st = self._latched
         if st or self._mode == P.Mode.HOLD:
             st |= P.Status.HOLDING
+        if self._limited:
+            st |= P.Status.LIMITED
         if self.robot.connection != ConnectionState.CONNECTED:
             st |= P.Status.ROBOT_FAULT
         return st
@@ -189,6 +229,7 @@ class SlaveServer:
         if not self._held_at_start:
             self.robot.hold(now_s)  # nobody has commanded anything yet
             self._held_at_start = True
+        self._supervise_force(now_s)
         newest = self._drain(sock, now_s)
         if newest is not None:
             self._apply(newest, now_s)
@@ -208,9 +249,9 @@ class SlaveServer:
                 c["pings"] += 1
                 self._send_state(addr, now_s, P.Status.PING_REPLY, echo=(header.seq, header.t_send_s, now_s))
             elif header.type == P.PacketType.COMMAND:
+                if not self._admit(addr, header.session, now_s):
+                    continue
                 if self._commands.accept(header.session, header.seq):
-                    if self._master is not None and addr != self._master:
-                        c["master_changes"] += 1
                     self._master = addr
                     self._last_cmd_rx = now_s
                     self._echo = (header.seq, header.t_send_s, now_s)
@@ -219,27 +260,111 @@ class SlaveServer:
                 c["unexpected"] += 1
         return newest
 
+    def _admit(self, addr: tuple[str, int], session: int, now_s: float) -> bool:
+        """Whether a command from ``addr`` in ``session`` may command: the current master, or a new one once
+        the current one has been silent past the link timeout; never a session that was replaced."""
+        c = self.counters
+        if self._master is None or (addr == self._master and session == self._commands.session):
+            return session not in self._retired or self._count_stale(session)
+        if session in self._retired:
+            return self._count_stale(session)
+        if self._last_cmd_rx is not None and now_s - self._last_cmd_rx <= self.settings.link_timeout_s:
+            if not c["takeovers_refused"]:
+                self.last_error = (f"refused commands from {addr[0]}:{addr[1]}: the master at {self._master[0]}:"
+                                   f"{self._master[1]} is still talking")
+            c["takeovers_refused"] += 1
+            return False
+        c["master_changes"] += 1
+        if self._commands.session is not None:
+            self._retired.append(self._commands.session)
+        return True
+
+    def _count_stale(self, session: int) -> bool:
+        self.counters["stale_sessions"] += 1
+        self.last_error = f"refused a command from session {session:#x}, which another master session replaced"
+        return False
+
+    def _hold(self, now_s: float) -> None:
+        self._applied = None
+        self.robot.hold(now_s)
+
     def _apply(self, cmd: P.Command, now_s: float) -> None:
         robot = self.robot
         if cmd.mode == P.Mode.HOLD:
-            self._latched = P.Status.NONE  # the master knows the robot is holding
+            self._latched &= ~(P.Status.LINK_TIMEOUT | P.Status.JUMP_REFUSED)  # the master knows
             self._mode = P.Mode.HOLD
-            robot.hold(now_s)
+            self._hold(now_s)
             return
-        if self._latched:
-            here = robot.latest()
-            if here is None or math.dist(here.position_m, cmd.position_m) > self.settings.resume_distance_m:
-                if not self._latched & P.Status.JUMP_REFUSED:
-                    self.counters["jumps_refused"] += 1
-                    dist = "unknown" if here is None else f"{math.dist(here.position_m, cmd.position_m) * 1e3:.1f} mm"
-                    self.last_error = (f"refused a reference {dist} away from the robot after a hold "
-                                       f"(limit {self.settings.resume_distance_m * 1e3:.1f} mm)")
-                self._latched |= P.Status.JUMP_REFUSED
-                robot.hold(now_s)
-                return
-            self._latched = P.Status.NONE
+        here = robot.latest()
+        # the jump guard: from the last reference applied while tracking, from the robot while holding
+        anchor = self._applied[0] if self._applied is not None and not self._latched else (
+            None if here is None else here.position_m)
+        if anchor is None or math.dist(anchor, cmd.position_m) > self.settings.resume_distance_m:
+            if not self._latched & P.Status.JUMP_REFUSED:
+                self.counters["jumps_refused"] += 1
+                dist = "unknown" if anchor is None else f"{math.dist(anchor, cmd.position_m) * 1e3:.1f} mm"
+                self.last_error = (f"refused a reference {dist} away from the "
+                                   f"{'last one' if self._applied is not None else 'robot'} "
+                                   f"(limit {self.settings.resume_distance_m * 1e3:.1f} mm): holding")
+            self._latched |= P.Status.JUMP_REFUSED
+            self._hold(now_s)
+            return
+        self._latched &= ~(P.Status.LINK_TIMEOUT | P.Status.JUMP_REFUSED)  # near the robot: follow again
+        position, velocity = self._limit(cmd.position_m, cmd.velocity_m_s, anchor, now_s)
         self._mode = P.Mode.TRACK
-        robot.command(cmd.position_m, cmd.velocity_m_s, now_s)
+        self._applied = (position, now_s)
+        robot.command(position, velocity, now_s)
+
+    def _limit(self, position: Vec3, velocity: Vec3, anchor: Vec3, now_s: float) -> tuple[Vec3, Vec3]:
+        """The reference cut to the slave's own limits: its workspace, no faster than its speed limit from
+        the last reference applied, and while the force limit is latched no lower than where it latched."""
+        p = [min(max(position[i], self._lo[i]), self._hi[i]) for i in range(3)]
+        if self._force_hold is not None:
+            p = [self._force_hold[0], self._force_hold[1], max(p[2], self._force_hold[2])]
+        elapsed = now_s - self._applied[1] if self._applied is not None else 1.0 / self.settings.rate_hz
+        reach = self._vmax * max(elapsed, 1.0 / self.settings.rate_hz)
+        step = math.dist(p, anchor)
+        if step > reach + STEP_TOLERANCE_M:
+            p = [anchor[i] + (p[i] - anchor[i]) * reach / step for i in range(3)]
+        v = list(velocity)
+        speed = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+        if speed > self._vmax:
+            v = [vi * self._vmax / speed for vi in v]
+        if self._force_hold is not None:
+            v = [0.0, 0.0, max(v[2], 0.0)]
+        limited = tuple(p) != tuple(position) or tuple(v) != tuple(velocity)
+        if limited:
+            self.counters["limited"] += 1
+        self._limited = limited
+        return (p[0], p[1], p[2]), (v[0], v[1], v[2])
+
+    def _supervise_force(self, now_s: float) -> None:
+        """The slave's own force limit, on its own sensor's reading (none without a slave-side sensor)."""
+        force = self._force_N()
+        limit = self.settings.force_limit_N
+        if self._force_hold is None:
+            if not force > limit:
+                return
+            here = self.robot.latest()
+            if here is None:
+                return
+            self._force_hold = here.position_m
+            self._latched |= P.Status.FORCE_LIMIT
+            self.counters["force_limits"] += 1
+            self.last_error = (f"force {force:.1f} N above the slave's own {limit:g} N limit: holding, and following "
+                               f"only references that lift the probe")
+            self._hold(now_s)
+        elif force < FORCE_RESUME_FRACTION * limit:
+            self._force_hold = None
+            self._latched &= ~P.Status.FORCE_LIMIT
+
+    def _force_N(self) -> float:
+        if self.sensor is None:
+            return math.nan
+        frame = self.sensor.latest()
+        if frame is None:
+            return math.nan
+        return float(frame.pressure_pa.sum()) * self.sensor.constraints.element_area_m2
 
     def _watchdog(self, now_s: float) -> None:
         last = self._last_cmd_rx
@@ -250,7 +375,7 @@ class SlaveServer:
                 self._latched |= P.Status.LINK_TIMEOUT
                 self.counters["link_timeouts"] += 1
                 self.last_error = f"no command from the master for {(now_s - last) * 1e3:.0f} ms: holding"
-            self.robot.hold(now_s)
+            self._hold(now_s)
 
     def _send(self, data: bytes, addr: tuple[str, int]) -> None:
         try:
@@ -266,11 +391,7 @@ class SlaveServer:
         reading = self.robot.latest()
         if reading is None:
             return
-        force = math.nan
-        if self.sensor is not None:
-            frame = self.sensor.latest()
-            if frame is not None:
-                force = float(frame.pressure_pa.sum()) * self.sensor.constraints.element_area_m2
+        force = self._force_N()
         e = self._echo if echo is None else echo
         state = P.State(self.status | extra, reading.seq, reading.t_s, reading.position_m, reading.velocity_m_s,
                         force, e[0], e[1], e[2])
@@ -339,6 +460,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--link-timeout-s", type=float, default=0.02, help="hold when no command came for this long")
     p.add_argument("--resume-distance-m", type=float, default=0.002,
                    help="after a hold, follow only references this close to the robot")
+    p.add_argument("--force-limit-n", type=float, default=15.0,
+                   help="the slave's own force limit on its sensor, N: above it the robot moves only up (default 15)")
+    p.add_argument("--max-speed-m-s", type=float,
+                   help="the slave's own speed limit on the references, m/s (default: the robot's)")
+    p.add_argument("--workspace-min-m", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the slave's own workspace, lower corner in m (default: the robot's)")
+    p.add_argument("--workspace-max-m", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the slave's own workspace, upper corner in m (default: the robot's)")
     p.add_argument("--robot", choices=["sim"], default="sim", help="the robot behind the slave (default: simulated)")
     p.add_argument("--phantom", default="flat", help="simulated robot: phantom name or TOML file")
     p.add_argument("--config", type=Path, help="simulated robot: a TOML file whose [sim] table overrides the defaults")
@@ -392,7 +521,9 @@ def slave_main(argv: list[str] | None = None) -> int:
         settings = SlaveServerSettings(bind_host=args.bind, port=args.port, allow=tuple(args.allow),
                                        link_timeout_s=args.link_timeout_s,
                                        resume_distance_m=args.resume_distance_m,
-                                       forward_tactile=not args.no_forward_tactile)
+                                       forward_tactile=not args.no_forward_tactile,
+                                       force_limit_N=args.force_limit_n, max_speed_m_s=args.max_speed_m_s,
+                                       workspace_min_m=args.workspace_min_m, workspace_max_m=args.workspace_max_m)
         if args.duration_s is not None and not args.duration_s > 0:
             raise ConfigError("--duration-s", f"must be > 0, got {args.duration_s:g}")
         rig = build_sim_rig(args.phantom, settings=_sim_settings(args.config), seed=args.seed)

@@ -203,8 +203,13 @@ def test_the_slave_watchdog_holds_and_the_link_withholds_readings_until_the_mast
     # the master holds (as the console's loop does once its watchdog fires): the slave follows again
     wire.tick(T0 + 0.041)
     assert wire.link.connection == ConnectionState.CONNECTED and wire.link.latest().seq > published
-    wire.tick(T0 + 0.042, reference=(HOME[0] + 0.001, HOME[1], HOME[2]))
-    assert robot.position == (HOME[0] + 0.001, HOME[1], HOME[2])
+    target = (HOME[0] + 0.001, HOME[1], HOME[2])
+    wire.tick(T0 + 0.042, reference=target)
+    # followed again, no faster than the slave's own 0.1 m/s: 0.1 mm in this 1 ms step
+    assert robot.position[0] - HOME[0] == pytest.approx(1e-4, abs=2e-6) and server.status & P.Status.LIMITED
+    for k in range(43, 60):
+        wire.tick(T0 + k * MS, reference=target)
+    assert robot.position == target and not server.status & P.Status.LIMITED
 
 
 def test_a_nearby_reference_resumes_tracking_after_a_short_dropout(wire, robot):
@@ -213,7 +218,8 @@ def test_a_nearby_reference_resumes_tracking_after_a_short_dropout(wire, robot):
     for k in range(10, 40):
         wire.server.step(T0 + k * MS)
     near = (HOME[0] + 0.0005, HOME[1], HOME[2])  # 0.5 mm: within the 2 mm resume distance
-    wire.tick(T0 + 0.040, reference=near)
+    for k in range(40, 50):
+        wire.tick(T0 + k * MS, reference=near)
     assert robot.position == near and wire.server.stats["jumps_refused"] == 0
 
 
@@ -225,10 +231,10 @@ def test_late_and_duplicate_commands_never_reach_the_robot(server, robot):
             arrived(server.fileno())
             server.step(T0 + seq * MS)
 
-        for seq, z in [(0, 0.050), (1, 0.051), (1, 0.052), (4, 0.054), (3, 0.053), (5, 0.055)]:
+        for seq, z in [(0, 0.06000), (1, 0.06001), (1, 0.06002), (4, 0.06004), (3, 0.06003), (5, 0.06005)]:
             send(seq, z)
     tracked = [p[2] for kind, p in robot.orders if kind == "track"]
-    assert tracked == [0.050, 0.051, 0.054, 0.055]
+    assert tracked == [0.06000, 0.06001, 0.06004, 0.06005]
     st = server.stats
     assert (st["duplicates"], st["late"], st["lost"]) == (1, 1, 1)
 
@@ -391,3 +397,141 @@ def test_end_to_end_a_blackout_makes_both_sides_hold_and_the_operator_recovers()
 def test_a_remote_slave_needs_a_non_loopback_binding():
     with pytest.raises(DeviceError, match="another computer.*bind_host"):
         UdpSlaveLink(UdpLinkSettings(host="192.0.2.10")).open()
+
+
+class Master:
+    """A raw master socket: what a console, a lying one or a stale one can send."""
+
+    def __init__(self, server: SlaveServer, session: int):
+        self.server, self.session, self.seq = server, session, 0
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+
+    def send(self, now: float, position=None, velocity=(0.0, 0.0, 0.0)) -> None:
+        mode = P.Mode.HOLD if position is None else P.Mode.TRACK
+        cmd = P.Command(mode, position if position is not None else (0.0, 0.0, 0.0), velocity)
+        self.sock.sendto(P.pack_command(self.session, self.seq, now, cmd), self.server.address)
+        self.seq += 1
+        arrived(self.server.fileno())
+
+    def close(self):
+        self.sock.close()
+
+
+class PressingSensor:
+    """A slave-side tactile array over a flat layer at z = 50 mm, 2 N per mm of indentation."""
+
+    name = "pressing"
+    constraints = TactileConstraints()
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
+    def poll(self, now_s):
+        pass
+
+    def latest(self):
+        from hardware.interfaces import TactileFrame
+        force = 2000.0 * max(0.050 - self.robot.position[2], 0.0)
+        return TactileFrame(0, 0.0, np.full((4, 15), force / 60 / self.constraints.element_area_m2))
+
+
+def test_a_lying_master_cannot_take_the_robot_past_the_slaves_own_limits(robot):
+    """Issue 14, finding 4: while tracking, the slave followed any finite setpoint (at 0.25 m/s to z = 0,
+    reporting 23.3 N). Now its own speed, workspace and force limits hold whatever the master sends."""
+    server = SlaveServer(robot, SlaveServerSettings(port=0, force_limit_N=10.0), sensor=PressingSensor(robot))
+    server.open()
+    liar = Master(server, 0x11)
+    try:
+        z = [HOME[2]]
+        for k in range(100):  # a reference diving at 0.25 m/s, each step within the jump guard
+            now = T0 + k * MS
+            liar.send(now, (HOME[0], HOME[1], HOME[2] - 0.25 * k * MS), (0.0, 0.0, -0.25))
+            server.step(now)
+            z.append(robot.position[2])
+        assert -np.diff(z).max() <= 0.1 * MS + 1e-9  # the robot's own 0.1 m/s, not the master's 0.25
+        assert server.stats["limited"] >= 10
+        # the reference ran away from what the robot was allowed to follow: past 2 mm the slave held
+        assert server.stats["jumps_refused"] == 1 and robot.orders[-1][0] == "hold"
+        assert HOME[2] - robot.position[2] < 0.002
+        master = Master(server, 0x12)
+        for k in range(100, 1200):  # then, after the watchdog, a master that pushes on at 50 mm/s to z = 0
+            now = T0 + k * MS
+            master.send(now, (HOME[0], HOME[1], max(robot.position[2] - 0.05 * MS, 0.0)))
+            server.step(now)
+            z.append(robot.position[2])
+        # the force limit latched at 10 N (5 mm into the layer); deeper references were cut
+        assert server.status & P.Status.FORCE_LIMIT and server.stats["force_limits"] == 1
+        assert min(z) > 0.050 - 0.0051
+        assert "above the slave's own 10 N limit" in server.stats["last_error"]
+        liar.close()
+        liar = master
+        # references that lift the probe are followed; the latch lets go below 8 N
+        bottom = robot.position[2]
+        for k in range(200, 230):
+            now = T0 + k * MS
+            liar.send(now, (HOME[0], HOME[1], bottom + (k - 199) * 0.05e-3))
+            server.step(now)
+        assert robot.position[2] > bottom + 1e-3 and not server.status & P.Status.FORCE_LIMIT
+        # a reference outside the robot's workspace is cut to it
+        top = robot.constraints.workspace_max_m[2]
+        for k in range(230, 1000):
+            now = T0 + k * MS
+            liar.send(now, (HOME[0], HOME[1], min(robot.position[2] + 1e-3, 0.5)))
+            server.step(now)
+        assert robot.position[2] == pytest.approx(top) and server.stats["jumps_refused"] == 1
+    finally:
+        liar.close()
+        server.close(T0)
+
+
+def test_hold_keeps_the_jump_guard(server, robot):
+    # one HOLD packet used to switch the jump check off: the next reference, 30 mm away, was followed
+    master = Master(server, 0x22)
+    try:
+        master.send(T0, HOME)
+        server.step(T0)
+        master.send(T0 + MS)
+        server.step(T0 + MS)
+        master.send(T0 + 2 * MS, (HOME[0] + 0.03, HOME[1], HOME[2]))
+        server.step(T0 + 2 * MS)
+        assert robot.position == HOME and server.stats["jumps_refused"] == 1
+        assert server.status & P.Status.JUMP_REFUSED
+    finally:
+        master.close()
+
+
+def test_a_second_master_takes_over_only_after_the_first_falls_silent_and_never_comes_back(server, robot):
+    # two interleaved senders used to swap the master 654 times; a packet of an earlier session was accepted
+    first, second = Master(server, 0x33), Master(server, 0x44)
+    try:
+        for k in range(50):
+            now = T0 + k * MS
+            first.send(now, (HOME[0], HOME[1], HOME[2] - 1e-5 * k))
+            second.send(now, (HOME[0] + 1e-3, HOME[1], HOME[2]))
+            server.step(now)
+        st = server.stats
+        assert st["master_changes"] == 0 and st["takeovers_refused"] == 50
+        assert robot.position[0] == HOME[0]  # only the first master moved it
+        assert "is still talking" in st["last_error"]
+        for k in range(50, 80):  # the first falls silent: the watchdog holds, then the second may take over
+            second.send(T0 + k * MS)
+            server.step(T0 + k * MS)
+        assert server.stats["master_changes"] == 1 and server.stats["master"].endswith(
+            str(second.sock.getsockname()[1]))
+        first.send(T0 + 0.081, HOME)  # the first comes back with its old session: refused for good
+        server.step(T0 + 0.081)
+        for k in range(82, 200):
+            server.step(T0 + k * MS)
+        first.send(T0 + 0.2, HOME)
+        server.step(T0 + 0.2)
+        assert server.stats["stale_sessions"] == 2 and server.stats["master_changes"] == 1
+    finally:
+        first.close()
+        second.close()
