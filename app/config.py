@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from app.rigs import BACKENDS, RigSpec
 from control.config import ControlConfig
-from hardware.settings import ConfigError
+from hardware.settings import ConfigError, read_toml
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "config" / "default.toml"
 COMMAND_LINE = "command line"  # the source of load_config's overrides, as errors and session files name it
@@ -33,13 +32,6 @@ def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _read(path: Path) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(str(path), "no such configuration file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise ConfigError(str(path), f"not valid TOML: {err}") from None
 
 
 SECTIONS = ("control", "rig", "sim", "hardware")
@@ -82,10 +74,10 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> AppConfig:
     """The defaults, then the user's file (if any), then command-line overrides."""
-    data = _read(DEFAULT_CONFIG)
+    data = read_toml(DEFAULT_CONFIG)
     sources = [str(DEFAULT_CONFIG)]
     if path is not None:
-        data = _merge(data, _read(Path(path)))
+        data = _merge(data, read_toml(Path(path)))
         sources.append(str(path))
     if not overrides:
         return parse_config(data, tuple(sources))

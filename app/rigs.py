@@ -34,6 +34,8 @@ class RigSpec:
     hardware: dict[str, Any] = field(default_factory=dict)  # real rigs: the config's [hardware] table
 
     def __post_init__(self):
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**63:
+            raise ConfigError("rig.seed", f"must be a whole number from 0 to 2**63 - 1, got {self.seed!r}")
         if self.master not in SIM_MASTERS:
             raise ConfigError("rig.master", f"unknown master {self.master!r} (known: {', '.join(SIM_MASTERS)})")
 

@@ -42,15 +42,20 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hardware.settings import ConfigError, read_toml
+
 PHANTOM_DIR = Path(__file__).resolve().parents[2] / "resources" / "phantoms"
 MIN_SURFACE_HEIGHT_M = 1e-3  # a thinner layer is no phantom, and the mesh needs room
+MAX_LENGTH_M, MAX_WIDTH_M, MAX_THICKNESS_M = 0.5, 0.3, 0.1  # the bench's phantom tray, with room to spare
+MAX_COORDINATE_M = 1.0  # positions and sizes of features, m
+MAX_GRADIENT = 10.0  # a slope steeper than 84 degrees is a wall
+MAX_MODULUS_PA = 1e9
 FACE_SAMPLE_M = 0.5e-3
 
 
@@ -166,17 +171,19 @@ def load_phantom(name_or_path: str | Path) -> Phantom:
         known = ", ".join(sorted(p.stem for p in PHANTOM_DIR.glob("*.toml")))
         raise PhantomError(src, "file", f"no such phantom (shipped phantoms: {known})")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise PhantomError(src, "file", f"not valid TOML: {err}") from None
+        data = read_toml(path, "phantom file")
+    except ConfigError as err:
+        raise PhantomError(src, "file", err.problem) from None
     return parse_phantom(data, src)
 
 
 def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
     p = _Reader(src, data).table("phantom")
-    length = p.positive("length_m")
-    width = p.positive("width_m")
-    thickness = p.positive("thickness_m")
+    # stated maxima, checked before anything is allocated: a bench phantom, whose model's mesh and surface
+    # grid grow with its size (a 10 m phantom once asked for 12 GiB before failing)
+    length = p.bounded("length_m", MAX_LENGTH_M, "a bench phantom")
+    width = p.bounded("width_m", MAX_WIDTH_M, "a bench phantom")
+    thickness = p.bounded("thickness_m", MAX_THICKNESS_M, "a palpated layer")
     nu = p.number("poisson_ratio")
     if not 0.0 <= nu < 0.5:
         p.fail("poisson_ratio", f"must be in [0, 0.5), got {nu:g} (use 0.49-0.499 for nearly incompressible)")
@@ -187,7 +194,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
         length_m=length,
         width_m=width,
         thickness_m=thickness,
-        youngs_modulus_pa=p.positive("youngs_modulus_pa"),
+        youngs_modulus_pa=p.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue"),
         poisson_ratio=nu,
         surface=surface,
     )
@@ -218,15 +225,17 @@ def _footprint_grid(phantom: Phantom, step_m: float = 0.25e-3) -> tuple[np.ndarr
 
 def _feature(r: "_Reader") -> SurfaceFeature:
     kind = r.string("kind")
-    x_range = r.pair("x_range_m")
+    x_range = r.pair("x_range_m", bound=MAX_COORDINATE_M)
     if x_range[1] <= x_range[0]:
         r.fail("x_range_m", "upper bound must exceed lower bound")
     if kind == "half_cylinder":
         r.no_unknown({"kind", "x_range_m", "centre_y_m", "radius_m"})
-        return SurfaceFeature(kind, x_range, centre_y_m=r.number("centre_y_m"), radius_m=r.positive("radius_m"))
+        return SurfaceFeature(kind, x_range, centre_y_m=r.number("centre_y_m", bound=MAX_COORDINATE_M),
+                              radius_m=r.bounded("radius_m", MAX_COORDINATE_M, "a feature of a bench phantom"))
     if kind == "slope":
         r.no_unknown({"kind", "x_range_m", "gradient", "origin_m"})
-        return SurfaceFeature(kind, x_range, gradient=r.pair("gradient"), origin_m=r.pair("origin_m", (0.0, 0.0)))
+        return SurfaceFeature(kind, x_range, gradient=r.pair("gradient", bound=MAX_GRADIENT),
+                              origin_m=r.pair("origin_m", (0.0, 0.0), bound=MAX_COORDINATE_M))
     r.fail("kind", f"unknown surface feature {kind!r} (known: half_cylinder, slope)")
     raise AssertionError
 
@@ -237,7 +246,7 @@ def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
     if not (0 <= x <= phantom.length_m and 0 <= y <= phantom.width_m):
         r.fail("centre_xy_m",
                f"({x:g}, {y:g}) m lies outside the phantom's {phantom.length_m:g} x {phantom.width_m:g} m")
-    d = r.positive("diameter_m")
+    d = r.bounded("diameter_m", phantom.thickness_m, "it must fit in the layer")
     radius = d / 2
     if not (radius <= x <= phantom.length_m - radius and radius <= y <= phantom.width_m - radius):
         r.fail("centre_xy_m", f"a {d * 1e3:g} mm sphere at ({x * 1e3:g}, {y * 1e3:g}) mm pokes out of the "
@@ -246,7 +255,8 @@ def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
     if has_depth == has_height:
         r.fail("depth_m", "give exactly one of depth_m (below the local surface) or height_m (above the table)")
     surface = float(phantom.surface_height_m(x, y))
-    z = surface - r.positive("depth_m") - radius if has_depth else r.positive("height_m")
+    z = (surface - r.bounded("depth_m", phantom.thickness_m, "inside the layer") - radius if has_depth
+         else r.bounded("height_m", phantom.thickness_m, "inside the layer"))
     key = "depth_m" if has_depth else "height_m"
     if z - radius < 0:
         r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) goes through "
@@ -261,7 +271,7 @@ def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
     if clearance < 0:
         r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) breaks "
                     f"through the surface by {-clearance * 1e3:.2f} mm")
-    return Inclusion(x, y, z, d, r.positive("youngs_modulus_pa"))
+    return Inclusion(x, y, z, d, r.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue"))
 
 
 def _region(r: "_Reader", phantom: Phantom) -> tuple[float, float]:
@@ -299,13 +309,22 @@ class _Reader:
             self.fail(key, "missing" if value is None else f"must be a string, got {value!r}")
         return value
 
-    def number(self, key: str, default: float | None = None) -> float:
+    def number(self, key: str, default: float | None = None, bound: float = math.inf) -> float:
         value = self.data.get(key, default)
         if value is None:
             self.fail(key, "missing")
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             self.fail(key, f"must be a finite number, got {value!r}")
+        if not abs(value) <= bound:
+            self.fail(key, f"must be within +-{bound:g}, got {value:g}")
         return float(value)
+
+    def bounded(self, key: str, top: float, why: str) -> float:
+        """A number in (0, top]."""
+        v = self.positive(key)
+        if v > top:
+            self.fail(key, f"must be at most {top:g} ({why}), got {v:g}")
+        return v
 
     def positive(self, key: str) -> float:
         v = self.number(key)
@@ -313,7 +332,8 @@ class _Reader:
             self.fail(key, f"must be > 0, got {v:g}")
         return v
 
-    def pair(self, key: str, default: tuple[float, float] | None = None) -> tuple[float, float]:
+    def pair(self, key: str, default: tuple[float, float] | None = None,
+             bound: float = MAX_COORDINATE_M) -> tuple[float, float]:
         value = self.data.get(key, default)
         if value is None:
             self.fail(key, "missing")
@@ -321,6 +341,8 @@ class _Reader:
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                            for v in value)):
             self.fail(key, f"must be two finite numbers, got {value!r}")
+        if not all(abs(v) <= bound for v in value):
+            self.fail(key, f"must be two numbers within +-{bound:g}, got {value!r}")
         return (float(value[0]), float(value[1]))
 
     def no_unknown(self, known: set[str]) -> None:

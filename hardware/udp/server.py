@@ -37,7 +37,6 @@ import socket
 import sys
 import threading
 import time
-import tomllib
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +44,7 @@ from typing import Any
 
 from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor, Vec3
 from hardware.serial_tactile.config import in_range, integer, text
-from hardware.settings import ConfigError, Settings, vec3
+from hardware.settings import ConfigError, Settings, read_toml, vec3
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback
@@ -496,13 +495,7 @@ def _claim_realtime() -> tuple[object, str]:
 def _sim_settings(path: Path | None) -> dict:
     if path is None:
         return {}
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(str(path), "no such configuration file") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-        raise ConfigError(str(path), f"not valid TOML: {err}") from None
-    sim = data.get("sim", {})
+    sim = read_toml(path).get("sim", {})
     if not isinstance(sim, dict):
         raise ConfigError(f"{path}: sim", "must be a table")
     return sim

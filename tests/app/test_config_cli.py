@@ -51,6 +51,25 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     assert "no such phantom" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("make, said", [
+    (lambda d: d, "is a folder, not a configuration file"),
+    (lambda d: (d / "deep.toml", (d / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000))[0],
+     "nested too deeply"),
+    (lambda d: (d / "big.toml", (d / "big.toml").write_bytes(b"#" * (2 << 20)))[0], "larger than 1024 kB"),
+    (lambda d: (d / "latin.toml", (d / "latin.toml").write_bytes(b"# caf\xe9\n"))[0], "not UTF-8"),
+])
+def test_a_config_path_that_cannot_serve_is_one_line(tmp_path, capsys, make, said):
+    # issue 14, finding 8: a folder or a 100k-deep file gave tracebacks
+    assert main(["--config", str(make(tmp_path)), "simulate"]) == 2
+    err = capsys.readouterr().err
+    assert said in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_negative_seed_is_one_line(capsys):
+    assert main(["simulate", "--seed", "-3"]) == 2
+    assert "rig.seed: must be a whole number from 0" in capsys.readouterr().err
+
+
 def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done(capsys):
     assert main(["simulate"]) == 0
     out = capsys.readouterr().out

@@ -84,6 +84,15 @@ def test_the_content_hash_follows_the_content_only():
     (base(inclusions=[sphere(depth_m=0.005), sphere(depth_m=0.009)]), "phantom.inclusions[1].centre_xy_m",
      "overlaps inclusions[0]"),
     (base(regions=[{"centre_xy_m": [0.2, 0.0]}]), "phantom.regions[0].centre_xy_m", "outside"),
+    # issue 14, finding 8: sizes checked before anything is allocated (a 10 m phantom asked for 12 GiB)
+    (base(length_m=10.0), "phantom.length_m", "at most 0.5 (a bench phantom)"),
+    (base(thickness_m=2.0), "phantom.thickness_m", "at most 0.1"),
+    (base(youngs_modulus_pa=1e300), "phantom.youngs_modulus_pa", "at most 1e+09"),
+    (base(surface=[{"kind": "half_cylinder", "centre_y_m": 0.015, "radius_m": 1e200, "x_range_m": [0, 0.07]}]),
+     "phantom.surface[0].radius_m", "at most 1"),
+    (base(surface=[{"kind": "slope", "x_range_m": [0, 0.072], "gradient": [1e300, 0]}]),
+     "phantom.surface[0].gradient", "within +-10"),
+    (base(inclusions=[sphere(depth_m=0.005, diameter_m=0.5)]), "phantom.inclusions[0].diameter_m", "fit in the layer"),
 ])
 def test_a_bad_phantom_names_the_key_and_the_problem(data, key, words):
     with pytest.raises(PhantomError) as err:
@@ -108,3 +117,11 @@ def test_missing_and_malformed_files_are_reported(tmp_path):
     bad.write_text("[phantom\nname = 1", encoding="utf-8")
     with pytest.raises(PhantomError, match="not valid TOML"):
         load_phantom(bad)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("a = " + "[" * 100_000 + "]" * 100_000, encoding="utf-8")
+    with pytest.raises(PhantomError, match="nested too deeply"):
+        load_phantom(deep)
+    huge = tmp_path / "huge.toml"
+    huge.write_bytes(b"#" * (2 << 20))
+    with pytest.raises(PhantomError, match="larger than 1024 kB"):
+        load_phantom(huge)
