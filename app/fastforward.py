@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from app.runtime import make_loop, run_tick
+from control.loop import StepResult
 from control.config import ControlConfig
 from control.messages import Command
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
@@ -68,6 +69,7 @@ class FastForward:
         self.events: list = []
         self._commands: deque = deque()  # deque.append/popleft are atomic: send() may come from any thread
         self._closed = False
+        self.last_result: StepResult | None = None  # what the newest tick returned
         rig.open()
 
     # -- clock
@@ -116,7 +118,7 @@ class FastForward:
         for _ in range(n):
             now = start + self._k * period
             pending = [commands.popleft() for _ in range(len(commands))]
-            result = run_tick(loop, rig, now, pending)
+            result = self.last_result = run_tick(loop, rig, now, pending)
             tick_row["late_s"] = 0.0  # a virtual clock is never late
             tick_row["missed_ticks"] = 0
             self._ticks.append(tick_row)

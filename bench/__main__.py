@@ -15,6 +15,7 @@ import traceback
 from pathlib import Path
 
 BENCHMARKS = ["bench.loop_bench", "bench.gui_bench", "bench.rig_bench", "bench.hardware_bench", "bench.sessions_bench",
+              "bench.safety_bench",
               "bench.cli_bench"]
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "build" / "bench"
 

@@ -24,11 +24,12 @@ from control.messages import (AbortRegion, CancelJog, ClearFault, Command, Comma
                               FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
-from control.safety import RETRACT_FAULTS, SafetySupervisor
+from control.safety import IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS, SafetySupervisor
 from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
+OVERDUE_FRAME_PERIODS = 3.0
 AT_REST_M_S = 1e-3  # a robot slower than this has come to rest (its stop distance is then reported)
 STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step that matters
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
@@ -78,11 +79,15 @@ class ControlLoop:
         self._sensor_seq = -1
         self._force_N = 0.0
         self._max_pressure_pa = 0.0
+        self._min_pressure_pa = 0.0
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
+        # a frame older than this is overdue: normally one arrives every period, a latency after its sample
+        self._overdue_s = min(config.safety.sensor_timeout_s, OVERDUE_FRAME_PERIODS / sensor.frame_rate_hz)
+        self._frame_z = math.nan  # the TSI's height when the newest frame was sampled
         self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
         self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
@@ -191,7 +196,7 @@ class ControlLoop:
                 self._refuse(now_s, cmd, "the probe is still retracting", events)
             else:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
-                sm.start(now_s, self._x_s[Z])
+                sm.start(now_s, self._x_s[Z], touching=self._max_pressure_pa >= self.config.contact.onset_threshold_pa)
                 self._set_sz(now_s, False, cmd.source, events)
         elif sm.force_control:
             sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
@@ -203,10 +208,13 @@ class ControlLoop:
         if not self.safety.latch(kind, message):
             return
         events.append(FaultRaised(now_s, kind, message))
-        self.sm.fault(now_s, message, self.law.x_r[Z], retract=self.safety.retract)
-        self._hold_xy = (self.law.x_r[0], self.law.x_r[1])
+        # Every fault first stops the reference where the robot is: a retract that started from the law's
+        # moving state would carry the probe on into the tissue for as long as M/B takes to stop it
+        # (2.3 mm past the indentation ceiling with a light damping, in the fault campaign).
+        self.law.reset(self._x_s, ZERO3)
+        self.sm.fault(now_s, message, self._x_s[Z], retract=self.safety.retract)
+        self._hold_xy = (self._x_s[0], self._x_s[1])
         if not self.safety.retract:
-            self.law.reset(self._x_s, ZERO3)
             self._stopping_from = self._x_s
             self.stop_distance_m = math.nan
 
@@ -241,8 +249,12 @@ class ControlLoop:
             v_ref_m_s=self.law.v_r,
             force_N=self._force_N,
             max_pressure_pa=self._max_pressure_pa,
+            min_pressure_pa=self._min_pressure_pa,
+            full_scale_pa=self.sensor.full_scale_pa,
             saturated_elements=self._saturated,
-            indentation_m=self._indentation_m,
+            # between frames the robot's own motion since the newest one is added: a late frame must not
+            # hide travel into the tissue from the ceiling
+            indentation_m=self._indentation_m + max(self._frame_z - self._x_s[Z], 0.0),
             sensor_age_s=self._ages[0],
             master_age_s=self._ages[1] if self.has_master else None,
             slave_age_s=self._ages[2],
@@ -280,8 +292,10 @@ class ControlLoop:
         area = self.sensor.element_area_m2
         self._force_N = float(p.sum()) * area
         self._max_pressure_pa = float(p.max())
+        self._min_pressure_pa = float(p.min())
         self._saturated = int(frame.saturated.sum()) if frame.saturated is not None else 0
         pos = self.history.at(frame.t_s)
+        self._frame_z = pos[Z]
         sm = self.sm
         sm.on_frame(frame.t_s, p, self._force_N, pos)
         fr = self.frame
@@ -290,23 +304,29 @@ class ControlLoop:
         fr["t_s"] = frame.t_s
         fr["tsi_position_m"] = pos
         fr["pressure_pa"] = p
+        tracker = sm.tracker
+        if not sm.force_control:
+            # the ceiling holds under position control too: the operator can press the probe in by hand
+            implausible = self._min_pressure_pa < -IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
+            if (p < self.config.contact.onset_threshold_pa).all() and not implausible:
+                tracker.reset()  # clear of the tissue: the next contact is a new descent, tracked from here
+            tracker.update(p, pos[Z])
+        _, dL, stiffness, _, self._indentation_m = element_analysis(
+            p, tracker.onset_height_m, pos[Z], self.config.contact, area)
+        # Elements already pressed when tracking began have no onset, so no indentation; without this the
+        # ceiling sees NaN and the probe may be driven to the table. Each is in at least as far as the TSI
+        # went down since its reading began to rise (at once if it was pressing tissue; not the descent
+        # through air if its reading was a residual from the last area).
+        blind_onset = tracker.blind_onset_m
+        pressed_blind = tracker.blind & np.isfinite(blind_onset)
+        if pressed_blind.any():
+            travel = float(np.mean(blind_onset[pressed_blind])) - pos[Z]
+            if not self._indentation_m >= travel:
+                self._indentation_m = max(travel, 0.0)
         if sm.force_control:
-            _, dL, stiffness, _, self._indentation_m = element_analysis(
-                p, sm.tracker.onset_height_m, pos[Z], self.config.contact, area)
             fr["dL_m"] = dL
             fr["stiffness_pa"] = stiffness
-            # Elements already pressed when force control began have no onset, so no indentation; without
-            # this the ceiling sees NaN and the probe may be driven to the table. Each is in at least as far
-            # as the TSI went down since its reading began to rise (at once if it was pressing tissue; not
-            # the descent through air if its reading was a residual from the last area).
-            blind_onset = sm.tracker.blind_onset_m
-            pressed_blind = sm.tracker.blind & np.isfinite(blind_onset)
-            if pressed_blind.any():
-                travel = float(np.mean(blind_onset[pressed_blind])) - pos[Z]
-                if not self._indentation_m >= travel:
-                    self._indentation_m = max(travel, 0.0)
         else:
-            self._indentation_m = math.nan
             fr["dL_m"] = np.nan
             fr["stiffness_pa"] = np.nan
 
@@ -377,6 +397,7 @@ class ControlLoop:
 
     def _reference(self, now_s: float, dt: float, result: StepResult, events: list) -> None:
         sm, law = self.sm, self.law
+        z_before = law.x_r[Z]
         if sm.phase == Phase.HOLD and not self.safety.retract:
             # stopped: keep the reference on the robot so clearing the fault restarts without a jump
             law.reset(self._x_s, ZERO3)
@@ -402,6 +423,11 @@ class ControlLoop:
                 self._xd = (self._xd[0], self._xd[1], self._desired()[Z])  # this tick's row shows the handed-back X_d
         else:
             law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), (0.0, 0.0, -self._force_N), (0.0, 0.0, f_d_z))
+        if self._ages[0] > self._overdue_s and law.x_r[Z] < z_before:
+            # the next frame is late: what the probe presses on is unknown, so it goes no deeper until it
+            # comes (lateral and upward motion go on; the stale-sensor fault follows if it never does)
+            law.x_r[Z] = z_before
+            law.v_r[Z] = max(law.v_r[Z], 0.0)
         result.position_ref_m = (law.x_r[0], law.x_r[1], law.x_r[2])
         result.velocity_ref_m_s = (law.v_r[0], law.v_r[1], law.v_r[2])
         result.hold = False

@@ -31,6 +31,7 @@ class FaultKind(enum.IntEnum):
     SLAVE_STALE = 8
     ESTOP = 9
     CONTROLLER = 10  # the controller process itself (crash, stall) as seen from outside
+    SENSOR_IMPLAUSIBLE = 11  # the tactile array reads what no contact can give (far below zero)
 
 
 class Source(enum.IntEnum):

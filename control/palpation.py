@@ -82,14 +82,17 @@ class PalpationStateMachine:
     def set_ramp(self, ramp: RampSettings) -> None:
         self.ramp = ramp
 
-    def start(self, now_s: float, tsi_z_m: float) -> None:
-        """The operator switched S_z to force control above an area: begin the Fig. 4 ramp."""
+    def start(self, now_s: float, tsi_z_m: float, touching: bool = False) -> None:
+        """The operator switched S_z to force control above an area: begin the Fig. 4 ramp. ``touching``:
+        the probe already presses, and the contact tracked under position control carries on (a fresh
+        start would forget the onsets, and the indentation ceiling with them, of what it already presses)."""
         self.region += 1
         self.region_done = False
         self.level = 0
         self.force_desired_N = self.ramp.level_force_N(0)
         self.rmse_N = math.nan
-        self.tracker.reset()
+        if not touching:
+            self.tracker.reset()
         self._t_start = now_s
         self._t_level = now_s
         self._z_start = tsi_z_m

@@ -19,8 +19,11 @@ from control.messages import FaultKind
 
 RETRACT_FAULTS = frozenset({
     FaultKind.FORCE_CEILING, FaultKind.PRESSURE_CEILING, FaultKind.INDENTATION_CEILING,
-    FaultKind.SENSOR_STALE, FaultKind.MASTER_STALE,
+    FaultKind.SENSOR_STALE, FaultKind.MASTER_STALE, FaultKind.SENSOR_IMPLAUSIBLE,
 })
+# A tared element cannot read far below zero: the tare refuses loads beyond this share of full scale, and no
+# contact pulls on the array. A frame below it is damaged or its sensor broken: what it says of contact is void.
+IMPLAUSIBLE_NEGATIVE_FRACTION = 0.2
 
 # Before the first reading of a device arrives, allow this long after start-up.
 STARTUP_GRACE_S = 1.0
@@ -55,6 +58,8 @@ class SafetySupervisor:
         v_ref_m_s,
         force_N: float,
         max_pressure_pa: float,
+        min_pressure_pa: float,
+        full_scale_pa: float,
         saturated_elements: int,
         indentation_m: float,
         sensor_age_s: float,
@@ -78,6 +83,10 @@ class SafetySupervisor:
             return FaultKind.FORCE_CEILING, (
                 f"Force ceiling exceeded: the tactile sensor measured {force_N:.2f} N, above the "
                 f"{lim.force_ceiling_N:.2f} N limit. The probe was lifted off the tissue.")
+        if not min_pressure_pa >= -IMPLAUSIBLE_NEGATIVE_FRACTION * full_scale_pa:
+            return FaultKind.SENSOR_IMPLAUSIBLE, (
+                f"Implausible tactile data: an element read {min_pressure_pa / 1e3:.1f} kPa, far below zero; "
+                f"what the array says of contact cannot be trusted. The probe was lifted off the tissue.")
         if saturated_elements:  # the force is at least what is read, and could be any amount more
             return FaultKind.FORCE_CEILING, (
                 f"Force unknown: {saturated_elements} tactile element(s) saturated, so the force is at least "

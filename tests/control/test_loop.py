@@ -357,3 +357,53 @@ def test_a_residual_reading_in_air_does_not_count_the_descent_as_indentation():
     start_region(h)
     h.run(60, until=lambda h: phase(h) == Phase.DONE)
     assert not h.of(FaultRaised) and h.of(RegionDone)
+
+
+@pytest.mark.parametrize("damping", [80.0, 5.0])
+def test_the_indentation_ceiling_holds_under_position_control_and_the_probe_stops_at_the_fault(damping):
+    """Found by the fault campaign: pressed in by hand under position control, the probe passed the
+    indentation ceiling unsupervised (the indentation was tracked only during a ramp); and a retract that
+    began from the law's moving state carried the probe 2.3 mm on past the fault with light damping."""
+    config = ControlConfig.from_mapping({
+        "gains": {"damping_N_s_m": [damping] * 3, "stiffness_N_m": [100.0] * 3},
+        "safety": {"indentation_ceiling_m": 0.006, "velocity_limit_m_s": 0.15},
+        "master": {"jog_speed_m_s": 0.1}})
+    h = Harness(config=config, plant=LayerPlant(modulus_pa=15e3))  # soft: 6 mm is only 0.9 N
+    h.run(0.1)
+    h.send(Jog((0.0, 0.0, -0.030)))
+    deepest = [0.0]
+    h.run(3.0, until=lambda h: deepest.append(0.025 - h.plant.x[2]) or False)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.INDENTATION_CEILING
+    # frames every 10 ms, 5 ms late, at up to 100 mm/s: 1.5 mm of travel before the loop can know
+    assert max(deepest) < 0.006 + 1.5e-3 + 0.3e-3
+    assert h.plant.x[2] > 0.025  # and lifted clear afterwards
+
+
+def test_a_frame_far_below_zero_is_implausible_and_lifts_the_probe():
+    # found by the fault campaign: a -1 MPa frame looked like no contact and wiped the contact tracking
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    h.plant.extra_force_pa = -50e3
+    h.run(0.1, until=lambda h: h.loop.safety.faulted)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_IMPLAUSIBLE and "far below zero" in fault.message
+
+
+def test_no_deeper_while_a_frame_is_overdue():
+    # found by the fault campaign: with the sensor silent, the loop pushed on for the whole 60 ms timeout
+    config = ControlConfig.from_mapping({"master": {"jog_speed_m_s": 0.1}})
+    h = Harness(config=config)
+    h.run(0.1)
+    h.send(Jog((0.0, 0.0, -0.012)))  # down through the surface at up to 100 mm/s
+    h.run(0.5, until=lambda h: h.plant.x[2] < 0.024)
+    assert h.plant.x[2] < 0.024
+    h.plant.sensor_alive = False
+    z_silent, speed = h.plant.x[2], -h.plant.v[2]
+    assert speed > 0.05
+    h.run(0.04)
+    # the newest sample is 15 ms old here (10 ms frames, 5 ms late); 30 ms after it, no deeper: about
+    # 15 ms more of travel (before: the whole 40 ms)
+    assert z_silent - h.plant.x[2] < speed * 0.020
+    assert not h.loop.safety.faulted  # still within the stale-sensor timeout: it only stopped descending
