@@ -29,7 +29,7 @@ from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
-OVERDUE_FRAME_PERIODS = 3.0
+OVERDUE_FRAME_PERIODS = 3.0  # a frame this many periods old is late: jitter stays well inside it, a stall does not
 AT_REST_M_S = 1e-3  # a robot slower than this has come to rest (its stop distance is then reported)
 STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step that matters
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
