@@ -408,6 +408,9 @@ class ControlLoop:
             self._advance_jog(dt)
         x_d = self._xd = self._desired()
         f_d_z = -sm.force_desired_N if sm.force_control else 0.0
+        # Tissue only pushes: a negative or non-finite reading (a damaged frame, found by the fault campaign)
+        # must not pull the probe down through the law's compliance; the supervisor faults on it meanwhile.
+        f_e = (0.0, 0.0, -self._force_N if self._force_N > 0.0 else 0.0)
         if sm.phase in (Phase.RETRACT, Phase.HOLD):
             z, vz, finished = sm.retract_setpoint(now_s)
             if sm.phase == Phase.HOLD:
@@ -416,13 +419,13 @@ class ControlLoop:
             else:
                 x_d = (x_d[0], x_d[1], z)
                 v_d = (self._v_d[0], self._v_d[1], vz)
-            law.step(dt, x_d, v_d, ZERO3, (0.0, 0.0, -self._force_N), ZERO3)
+            law.step(dt, x_d, v_d, ZERO3, f_e, ZERO3)
             if sm.phase == Phase.RETRACT and finished and abs(law.x_r[Z] - z) < 2e-4:
                 sm.retract_finished(now_s)
                 self._clutch((Z,))
                 self._xd = (self._xd[0], self._xd[1], self._desired()[Z])  # this tick's row shows the handed-back X_d
         else:
-            law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), (0.0, 0.0, -self._force_N), (0.0, 0.0, f_d_z))
+            law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), f_e, (0.0, 0.0, f_d_z))
         if self._ages[0] > self._overdue_s and law.x_r[Z] < z_before:
             # the next frame is late: what the probe presses on is unknown, so it goes no deeper until it
             # comes (lateral and upward motion go on; the stale-sensor fault follows if it never does)

@@ -407,3 +407,17 @@ def test_no_deeper_while_a_frame_is_overdue():
     # 15 ms more of travel (before: the whole 40 ms)
     assert z_silent - h.plant.x[2] < speed * 0.020
     assert not h.loop.safety.faulted  # still within the stale-sensor timeout: it only stopped descending
+
+
+def test_a_damaged_negative_reading_never_pulls_the_probe_down():
+    # found by the fault campaign: during a retract, -1 MPa frames fed to the law as force pulled the
+    # probe down at the velocity limit
+    h = Harness()
+    start_region(h)
+    h.run(10, until=lambda h: h.loop.sm.level == 1)
+    z_fault = h.plant.x[2]
+    h.plant.extra_force_pa = -1e6
+    lowest = [z_fault]
+    h.run(0.5, until=lambda h: lowest.append(h.plant.x[2]) or False)
+    assert h.of(FaultRaised)[0].kind == FaultKind.SENSOR_IMPLAUSIBLE
+    assert min(lowest) > z_fault - 0.2e-3 and h.plant.x[2] > z_fault + 2e-3
