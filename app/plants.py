@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from hardware.interfaces import SlaveState, TactileFrame
+from hardware.interfaces import SlaveState, TactileConstraints, TactileFrame
 
-SHAPE = (4, 15)
-ELEMENT_AREA_M2 = 4e-6
+SHAPE = TactileConstraints().shape
+ELEMENT_AREA_M2 = TactileConstraints().element_area_m2
 
 
 class LayerPlant:

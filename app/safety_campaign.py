@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from app.fastforward import FastForward
-from app.plants import LayerPlant
+from app.plants import ELEMENT_AREA_M2, LayerPlant
 from control.config import ControlConfig, ImpedanceGains, RampSettings
 from control.loop import OVERDUE_FRAME_PERIODS, ControlLoop
 from control.messages import ClearFault, EStop, FaultRaised, Jog, Notice, SetGains, SetRamp, SetSz, Tare
@@ -116,9 +116,7 @@ class _Checker:
 def random_config(rng: np.random.Generator, result: RunResult) -> ControlConfig:
     """A configuration the validation accepts: gains, ramp and ceilings drawn wide, refused ones redrawn."""
     while True:
-        gains = {"mass_kg": [float(v) for v in np.exp(rng.uniform(math.log(0.02), math.log(5.0), 3))],
-                 "damping_N_s_m": [float(v) for v in np.exp(rng.uniform(math.log(2.0), math.log(3000.0), 3))],
-                 "stiffness_N_m": [float(v) for v in np.exp(rng.uniform(math.log(10.0), math.log(5000.0), 3))]}
+        gains = _draw_gains(rng)
         ceiling = float(rng.uniform(4.0, 20.0))
         f_max = float(rng.uniform(1.5, ceiling))
         table = {"gains": gains,
@@ -136,11 +134,17 @@ def random_config(rng: np.random.Generator, result: RunResult) -> ControlConfig:
             result.gains_refused += 1
 
 
+def _draw_gains(rng: np.random.Generator) -> dict:
+    """M, B and K per axis, log-uniform over ranges wider than any lab would use."""
+    def draw(lo: float, hi: float) -> list[float]:
+        return [float(v) for v in np.exp(rng.uniform(math.log(lo), math.log(hi), 3))]
+
+    return {"mass_kg": draw(0.02, 5.0), "damping_N_s_m": draw(2.0, 3000.0), "stiffness_N_m": draw(10.0, 5000.0)}
+
+
 def _random_gains(rng: np.random.Generator) -> ImpedanceGains | None:
     try:
-        return ImpedanceGains(mass_kg=tuple(np.exp(rng.uniform(math.log(0.02), math.log(5.0), 3))),
-                              damping_N_s_m=tuple(np.exp(rng.uniform(math.log(2.0), math.log(3000.0), 3))),
-                              stiffness_N_m=tuple(np.exp(rng.uniform(math.log(10.0), math.log(5000.0), 3))))
+        return ImpedanceGains.from_mapping(_draw_gains(rng))
     except ConfigError:
         return None
 
@@ -158,7 +162,7 @@ def plant_run(seed: int, seconds: float = 2.0) -> RunResult:
     plant.rng = np.random.default_rng(seed + 1)
     loop = ControlLoop(config, TactileConstraints(), has_master=True)
     check = _Checker(result, config)
-    k_layer = float(plant.modulus.sum()) * 4e-6 / surface
+    k_layer = float(plant.modulus.sum()) * ELEMENT_AREA_M2 / surface
     lag_s = OVERDUE_FRAME_PERIODS * plant.frame_period_s
     v_lim = config.safety.velocity_limit_m_s
     force_margin = FORCE_MARGIN_N + k_layer * v_lim * lag_s

@@ -38,29 +38,40 @@ class ContactTracker:
     def __init__(self, contact: ContactSettings, shape: tuple[int, int]):
         self.settings = contact
         self.shape = shape
+        self.onset_height_m = np.empty(shape)
+        self._z1 = np.empty(shape)
+        self._confirmed = np.empty(shape, dtype=bool)
+        self._blind = np.empty(shape, dtype=bool)  # in contact before tracking began
+        # a blind element: its reading when tracking began, and where it then rose by the onset threshold
+        # (at once if it was pressing tissue; later if that reading was a residual in air)
+        self._blind_base_pa = np.empty(shape)
+        self.blind_onset_m = np.empty(shape)
+        self._settled = np.empty(shape, dtype=bool)  # confirmed or blind: nothing more to find
+        self._prev_p = np.empty(shape)
         self.reset()
 
     def reset(self) -> None:
-        self.onset_height_m = np.full(self.shape, np.nan)
-        self._z1 = np.full(self.shape, np.nan)
-        self._confirmed = np.zeros(self.shape, dtype=bool)
-        self._blind = np.zeros(self.shape, dtype=bool)  # in contact before tracking began
-        # a blind element: its reading when tracking began, and where it then rose by the onset threshold
-        # (at once if it was pressing tissue; later if that reading was a residual in air)
-        self._blind_base_pa = np.zeros(self.shape)
-        self.blind_onset_m = np.full(self.shape, np.nan)
-        self._settled = np.zeros(self.shape, dtype=bool)  # confirmed or blind: nothing more to find
-        self._prev_p: np.ndarray | None = None
+        """Forget the descent, in place: under position control this runs on every frame clear of the tissue."""
+        self.onset_height_m.fill(np.nan)
+        self._z1.fill(np.nan)
+        self._confirmed.fill(False)
+        self._blind.fill(False)
+        self._blind_base_pa.fill(0.0)
+        self.blind_onset_m.fill(np.nan)
+        self._settled.fill(False)
+        self._started = False  # no frame since the reset: the next one is the baseline
         self._prev_z = np.nan
 
     def update(self, pressure_pa: np.ndarray, tsi_z_m: float) -> None:
         s = self.settings
         p_on, p_c = s.onset_threshold_pa, s.confirm_threshold_pa
-        if self._prev_p is None:
-            self._blind = pressure_pa >= p_on
-            self._blind_base_pa = np.where(self._blind, pressure_pa, 0.0)
-            self._settled = self._blind.copy()
-            self._prev_p, self._prev_z = pressure_pa.copy(), tsi_z_m
+        if not self._started:
+            np.greater_equal(pressure_pa, p_on, out=self._blind)
+            np.copyto(self._blind_base_pa, pressure_pa, where=self._blind)
+            self._settled[...] = self._blind
+            self._prev_p[...] = pressure_pa
+            self._prev_z = tsi_z_m
+            self._started = True
             return
         if not self._settled.all():
             self._track(pressure_pa, tsi_z_m, p_on, p_c)

@@ -263,10 +263,10 @@ class SlaveServer:
         """Whether a command from ``addr`` in ``session`` may command: the current master, or a new one once
         the current one has been silent past the link timeout; never a session that was replaced."""
         c = self.counters
-        if self._master is None or (addr == self._master and session == self._commands.session):
-            return session not in self._retired or self._count_stale(session)
         if session in self._retired:
             return self._count_stale(session)
+        if self._master is None or (addr == self._master and session == self._commands.session):
+            return True
         if self._last_cmd_rx is not None and now_s - self._last_cmd_rx <= self.settings.link_timeout_s:
             if not c["takeovers_refused"]:
                 self.last_error = (f"refused commands from {addr[0]}:{addr[1]}: the master at {self._master[0]}:"
