@@ -42,6 +42,9 @@ MESH_VERSION = 2  # bump when the block's mesh changes: cached compliances are k
 GRID_M = 1e-3  # the mesh's node spacing in the plane (MeshSettings' default)
 # The onsets' own scatter (0.1-0.3 mm) is smoothed out of the block's surface, but not a bump's step.
 SMOOTHING_M = 0.5e-3
+# The rebuilt block's surface compliance is dense: 8,000 nodes (about 120 x 65 mm of palpated extent) is
+# 0.5 GB, and memory and solve time grow with its square, so a larger extent is refused up front.
+MAX_BLOCK_NODES = 8000
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +104,10 @@ def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float) 
     hi = centres.reshape(-1, 2).max(axis=0) + pitch_m / 2
     nx = int(np.ceil((hi[0] - lo[0]) / GRID_M - 1e-6)) + 1
     ny = int(np.ceil((hi[1] - lo[1]) / GRID_M - 1e-6)) + 1
+    if nx * ny > MAX_BLOCK_NODES:
+        raise ValueError(f"the palpated areas span {(hi[0] - lo[0]) * 1e3:.0f} x {(hi[1] - lo[1]) * 1e3:.0f} mm, a "
+                         f"block of {nx * ny:,} surface nodes; the rebuilt physics models at most "
+                         f"{MAX_BLOCK_NODES:,} (about 120 x 65 mm): analyse with --physics none")
     gx = lo[0] + GRID_M * np.arange(nx)
     gy = lo[1] + GRID_M * np.arange(ny)
     total, count = np.zeros((nx, ny)), np.zeros((nx, ny))

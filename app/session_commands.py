@@ -79,6 +79,8 @@ def analyse(session: Session, args) -> SessionAnalysis:
         return SessionAnalysis.run(session, analysis_params(args), physics, reference, depth_model)
     except FlatFieldError as err:
         raise AnalysisInputError(f"--reference {args.reference}: {err}") from None
+    except StitchError as err:
+        raise AnalysisInputError(f"--cell-mm {args.cell_mm:g}: {err}") from None
 
 
 def _model_depth(t) -> str:

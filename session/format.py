@@ -118,6 +118,7 @@ class EventKind:
     NOTE = "note"  # text = the operator's note
     ROWS_LOST = "rows_lost"  # value = rows missing from the stream before this point, text = "ticks"
     RECORDER = "recorder"  # text = what the recorder did (stopped on a full disk, ...)
+    CONTROLLER_LOST = "controller_lost"  # the controller stopped on its own (killed, crashed); text = how
     CLOSED = "closed"  # the last row of a cleanly closed file; text = UTC time of closing
 
 

@@ -7,13 +7,21 @@ writes to the file: a session left open by a killed console is opened in HDF5's 
 :mod:`session.writer`), which reads it as it is.
 
 A file whose last writes never reached the disk (killed console, full disk) reads as zeros past the
-last good row; those rows are trimmed and the session carries a warning saying so.
+last good row; those rows are trimmed and the session carries a warning saying so. A file cut short (a copy
+that stopped, a full disk) is opened as if its missing tail were zeros: what lies wholly in the part that
+is there is read, and the warnings say what was lost.
+
+Nothing the file declares is trusted before it is checked against the file itself: a table's rows are
+read only as far as its stored chunks reach inside the file (a crafted header claiming 10^10 rows costs
+nothing), chunks and metadata attributes are bounded in size before HDF5 is asked to load them, and
+positions and the element pitch are checked for sense before anything is laid out on a grid.
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
+import io
 import json
 import math
 import os
@@ -32,6 +40,17 @@ from session.format import (ADDED_COLUMNS, FORMAT_NAME, FORMAT_VERSION, OVERVIEW
 _META_KEYS = ("config_json", "calibration_json", "rig_json", "phantom_json", "ground_truth_json")
 _TAIL_WINDOWS = 64  # how far back (in chunks) a damaged stream tail is looked for
 _READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
+
+# Our chunks are at most 0.4 MB (session.format.CHUNK_ROWS); a chunk this large did not come from the
+# console, and HDF5 would allocate it whole to read a single row of it.
+MAX_CHUNK_BYTES = 16 * 2**20
+# A stored chunk is never larger than its rows plus the filters' overhead (deflate's stored blocks add
+# 5 bytes per 64 KB, Fletcher-32 four bytes); a larger one is damage or a crafted size.
+_CHUNK_SLACK = 1.01
+_CHUNK_OVERHEAD_BYTES = 1024
+MAX_META_BYTES = 16 * 2**20  # a /meta attribute (JSON); ours are a few kB
+MAX_COORDINATE_M = 1.0  # a position further than this from the tissue frame's origin is not on any tissue
+PITCH_RANGE_M = (0.1e-3, 20e-3)  # tactile element pitches this reader makes sense of
 
 
 class SessionFileError(Exception):
@@ -78,9 +97,16 @@ class Session:
     Small tables (levels, events, metadata) are read at once; the streams are read on request.
     """
 
-    def __init__(self, path: Path, f: h5py.File, recovered: bool, note: str, damage: str = ""):
+    def __init__(self, path: Path, f: h5py.File, recovered: bool, note: str, damage: str = "",
+                 padded: _PaddedFile | None = None):
         self.path = path
         self._f = f
+        self._padded = padded
+        try:
+            self._file_bytes = path.stat().st_size
+        except OSError as err:
+            self._close_file()
+            raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
         self.recovered = recovered
         # why the file could not be opened normally (truncated, ...): what a read failure then means
         self._damage = damage or "the file is corrupt"
@@ -90,15 +116,17 @@ class Session:
         try:
             self._load()
         except SessionFileError:
-            f.close()
+            self._close_file()
             raise
         except _READ_ERRORS as err:
-            f.close()
+            self._close_file()
             raise SessionFileError(path, f"{self._damage}: HDF5 could not read it ({_first_line(err)})") from None
 
     # ---- loading and validation ------------------------------------------------------------------------
 
     def _fail(self, problem: str):
+        if self._padded is not None:  # cut short: that is the cause of whatever else is wrong
+            problem = f"{self._damage}; {problem}"
         raise SessionFileError(self.path, problem)
 
     def _load(self) -> None:
@@ -135,6 +163,10 @@ class Session:
         for key in _META_KEYS:
             if key not in meta.attrs:
                 self._fail(f"the file is damaged: /meta has no {key!r} attribute")
+            stored = meta.attrs.get_id(key).get_storage_size()
+            if stored > MAX_META_BYTES:
+                self._fail(f"the file is damaged or was not written by Palpation Console: /meta attribute {key!r} "
+                           f"is {stored / 2**20:.0f} MB (at most {MAX_META_BYTES // 2**20} MB expected)")
             try:
                 values[key] = json.loads(_as_str(meta.attrs[key]))
             except json.JSONDecodeError as err:
@@ -146,17 +178,19 @@ class Session:
             self._fail("the file is damaged: /meta attribute 'phantom_json' is neither null nor a JSON object")
         truth = values["ground_truth_json"]
         if not isinstance(truth, list) or not all(
-                isinstance(t, dict) and all(isinstance(t.get(k), (int, float)) for k in ("x_m", "y_m")) for t in truth):
+                isinstance(t, dict) and all(_is_coordinate(t.get(k)) for k in ("x_m", "y_m")) for t in truth):
             self._fail("the file is damaged: /meta attribute 'ground_truth_json' is not a list of tumours with "
-                       "x_m and y_m")
+                       f"x_m and y_m within {MAX_COORDINATE_M:g} m of the origin")
         self.config: dict[str, Any] = values["config_json"]
         self.calibration: dict[str, Any] = values["calibration_json"]
         self.rig: dict[str, Any] = values["rig_json"]
         self.phantom: dict[str, Any] | None = values["phantom_json"]
         self.ground_truth: list[dict[str, Any]] = truth
         pitch = self.calibration.get("pitch_m")
-        if not isinstance(pitch, (int, float)) or not pitch > 0:
-            self._fail(f"the file is damaged: the calibration has no valid pitch_m (got {pitch!r})")
+        lo, hi = PITCH_RANGE_M
+        if not isinstance(pitch, (int, float)) or not lo <= pitch <= hi:
+            self._fail(f"the file is damaged: the calibration's element pitch_m must be between {lo * 1e3:g} and "
+                       f"{hi * 1e3:g} mm (got {pitch!r})")
 
         self._ds: dict[str, h5py.Dataset] = {}
         for name, dtype in TABLES.items():
@@ -168,8 +202,9 @@ class Session:
             if problem or ds.ndim != 1:
                 self._fail(f"the file is damaged: /{name} does not hold the expected rows ({problem or 'not 1-D'})")
             self._ds[name] = ds
+        self._stored = {name: self._stored_rows(name) for name in TABLES}
 
-        self.levels = self._read_numbered("levels")
+        self.levels = self._placed_levels(self._read_numbered("levels"))
         self.events = self._read_numbered("events")
         self.n_ticks = self._valid_stream_length("stream/ticks")
         self.n_frames = self._valid_stream_length("stream/frames")
@@ -177,15 +212,71 @@ class Session:
         self.closed_cleanly = bool(len(self.events)) and self.events["kind"][-1] == EventKind.CLOSED.encode()
         for row in self.events[self.events["kind"] == EventKind.RECORDER.encode()]:
             self.warnings.append(_as_str(row["text"]))
+        for row in self.events[self.events["kind"] == EventKind.CONTROLLER_LOST.encode()]:
+            self.warnings.append(f"The controller stopped on its own at t = {float(row['t_s']):.1f} s (loop time): "
+                                 f"{_as_str(row['text'])}")
         lost = self.events[self.events["kind"] == EventKind.ROWS_LOST.encode()]["value"]
         self.rows_lost = int(np.nansum(lost)) if len(lost) else 0
         if self.rows_lost:
             self.warnings.append(f"{self.rows_lost} tick rows were lost before they reached the file "
                                  "(the display fell behind the controller)")
 
-    def _read_numbered(self, name: str) -> np.ndarray:
+    def _stored_rows(self, name: str) -> int:
+        """How many leading rows of /name lie wholly inside the file (not what its header declares)."""
         ds = self._ds[name]
-        rows = _conform(self._read_rows(name, 0, ds.shape[0]), TABLES[name])
+        declared = ds.shape[0]
+        row_bytes = ds.dtype.itemsize
+        if ds.chunks is None:
+            offset = ds.id.get_offset()
+            if offset is None:  # compact (inside its header, so bounded by it) or never written
+                n = declared if ds.id.get_storage_size() >= declared * row_bytes else 0
+            else:
+                n = min(declared, max(0, self._file_bytes - offset) // row_bytes)
+        else:
+            rows_per_chunk = ds.chunks[0]
+            chunk_bytes = rows_per_chunk * row_bytes
+            if chunk_bytes > MAX_CHUNK_BYTES:
+                self._fail(f"the file is damaged or was not written by Palpation Console: /{name} is stored in "
+                           f"chunks of {chunk_bytes / 2**20:,.0f} MB (at most {MAX_CHUNK_BYTES // 2**20} MB expected)")
+            largest = chunk_bytes * _CHUNK_SLACK + _CHUNK_OVERHEAD_BYTES
+            intact: list[int] = []
+            oversized: list[int] = []
+
+            def visit(chunk) -> None:
+                if chunk.size > largest:
+                    oversized.append(chunk.size)
+                elif chunk.byte_offset + chunk.size <= self._file_bytes:
+                    intact.append(chunk.chunk_offset[0] // rows_per_chunk)
+
+            try:
+                ds.id.chunk_iter(visit)
+            except _READ_ERRORS:
+                where = "lies in the part of the file that is missing" if self._padded else "is damaged"
+                self.warnings.append(f"/{name}: the index of its rows {where}, so none of them could be read")
+                return 0
+            if oversized:
+                self._fail(f"the file is damaged: a chunk of /{name} claims {max(oversized):,} bytes, more than its "
+                           f"{chunk_bytes:,} bytes of rows")
+            present = np.zeros(len(intact) + 1, bool)
+            index = np.asarray(intact, np.int64)
+            present[index[index < len(present)]] = True
+            n = min(declared, int(np.argmin(present)) * rows_per_chunk)
+        if n < declared and name != "stream/overview":  # the overview is recomputed from the ticks
+            self.warnings.append(f"/{name}: {declared - n:,} of its {declared:,} rows are not in the file (never "
+                                 "written, or in a part of the file that is missing) and were left out")
+        return n
+
+    def _placed_levels(self, levels: np.ndarray) -> np.ndarray:
+        """The level records whose recorded position is a place on the tissue (others cannot be mapped)."""
+        xy = levels["tsi_position_m"][:, :2]
+        placed = np.isfinite(xy).all(axis=1) & (np.abs(xy) <= MAX_COORDINATE_M).all(axis=1)
+        if not placed.all():
+            self.warnings.append(f"/levels: {int((~placed).sum())} level records with a position that is not a number "
+                                 f"or lies beyond {MAX_COORDINATE_M:g} m of the origin were left out")
+        return levels[placed]
+
+    def _read_numbered(self, name: str) -> np.ndarray:
+        rows = _conform(self._read_rows(name, 0, self._stored[name]), TABLES[name])
         good = rows["seq"] == np.arange(1, len(rows) + 1)
         if not good.all():
             keep = int(np.argmin(good))
@@ -211,7 +302,7 @@ class Session:
     def _valid_stream_length(self, name: str) -> int:
         """Rows up to the last one that reached the disk (later ones read as zeros or fail to read)."""
         ds = self._ds[name]
-        n = ds.shape[0]
+        n = self._stored[name]
         window = ds.chunks[0] if ds.chunks else 1024
         for _ in range(_TAIL_WINDOWS):
             if n == 0:
@@ -227,8 +318,9 @@ class Session:
                 n = start + int(np.flatnonzero(written)[-1]) + 1
                 break
             n = start
-        if n < ds.shape[0]:
-            self.warnings.append(f"/{name}: the last {ds.shape[0] - n} rows never reached the disk and were left out")
+        if n < self._stored[name]:
+            self.warnings.append(f"/{name}: the last {self._stored[name] - n} rows never reached the disk and were "
+                                 "left out")
         return n
 
     # ---- metadata helpers --------------------------------------------------------------------------------
@@ -300,7 +392,7 @@ class Session:
     def overview(self) -> np.ndarray:
         """OVERVIEW_DTYPE rows covering every valid tick row (buckets the writer never wrote are computed)."""
         if self._overview is None:
-            stored = _conform(self._read_rows("stream/overview", 0, self._ds["stream/overview"].shape[0]),
+            stored = _conform(self._read_rows("stream/overview", 0, self._stored["stream/overview"]),
                               OVERVIEW_DTYPE)
             expected = np.arange(len(stored)) * OVERVIEW_BUCKET_ROWS
             good = (stored["row_start"] == expected) & (stored["n_rows"] > 0)
@@ -354,8 +446,13 @@ class Session:
     # ---- lifetime ----------------------------------------------------------------------------------------
 
     def close(self) -> None:
+        self._close_file()
+
+    def _close_file(self) -> None:
         if self._f.id.valid:
             self._f.close()
+        if self._padded is not None:
+            self._padded.close()
 
     def __enter__(self) -> Session:
         return self
@@ -392,6 +489,9 @@ def open_session(path: str | Path) -> Session:
     except SessionFileError:
         raise
     except _READ_ERRORS as plain_err:
+        stored_eof = _stored_eof(plain_err)
+        if stored_eof is not None:
+            return _open_truncated(path, size, stored_eof, plain_err)
         # A session the console was killed while recording carries HDF5's "open for writing" mark;
         # SWMR-read mode opens it as it is, without clearing the mark (the reviewer never writes).
         try:
@@ -402,14 +502,78 @@ def open_session(path: str | Path) -> Session:
             raise SessionFileError(path, _explain_open_error(plain_err)
                                    + " (this installation's HDF5 cannot be told to give up on damaged data quickly, "
                                      "so the file is not opened in recovery mode)")
-        damage = ""
-        if "truncated file" in str(plain_err):
-            damage = _explain_open_error(plain_err)
-            note = f"{damage}; showing what could be read"
-        else:
-            note = ("The recording did not end cleanly (the console stopped while recording, or the file is "
-                    "still being written); showing everything that reached the disk.")
-        return Session(path, f, recovered=True, note=note[0].upper() + note[1:], damage=damage)
+        note = ("The recording did not end cleanly (the console stopped while recording, or the file is "
+                "still being written); showing everything that reached the disk.")
+        return Session(path, f, recovered=True, note=note)
+
+
+# HDF5 refuses a file shorter than the end its superblock records, and has no option to read it anyway.
+_TRUNCATED = re.compile(r"truncated file: eof = (\d+).*stored_eof = (\d+)")
+_MAX_FILE_BYTES = 2**50
+
+
+def _stored_eof(err: BaseException) -> int | None:
+    m = _TRUNCATED.search(str(err))
+    return int(m.group(2)) if m else None
+
+
+def _open_truncated(path: Path, size: int, stored_eof: int, err: BaseException) -> Session:
+    """Open a file cut short as though its missing tail were zeros: HDF5 then reads every object that lies
+    wholly in the part that is there, and fails (checksums) on the rest, which the session leaves out."""
+    damage = _explain_open_error(err)
+    if not size < stored_eof <= _MAX_FILE_BYTES:
+        raise SessionFileError(path, damage) from None
+    padded = _PaddedFile(path, stored_eof)
+    try:
+        # Not SWMR (only POSIX files can be): a file-object driver does not check the mark a killed writer
+        # leaves, and a reader that never writes has no use for it.
+        f = h5py.File(padded, "r")
+    except _READ_ERRORS:
+        padded.close()
+        raise SessionFileError(path, damage + " and too little of it is left to open") from None
+    lost = (stored_eof - size) / stored_eof
+    note = f"{damage}; {lost:.1%} of it is missing, showing what could be read from the rest"
+    return Session(path, f, recovered=True, note=note[0].upper() + note[1:], damage=damage, padded=padded)
+
+
+class _PaddedFile(io.RawIOBase):
+    """A read-only view of a file extended with zeros to ``length`` bytes, for h5py's file-object driver."""
+
+    def __init__(self, path: Path, length: int):
+        super().__init__()
+        self._file = open(path, "rb")  # noqa: SIM115 - closed by close(), with the session
+        self._real = os.fstat(self._file.fileno()).st_size
+        self._length = length
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._length}[whence]
+        self._pos = max(0, base + offset)
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def readinto(self, buffer) -> int:
+        view = memoryview(buffer).cast("B")
+        want = max(0, min(len(view), self._length - self._pos))
+        got = 0
+        if self._pos < self._real:
+            self._file.seek(self._pos)
+            got = self._file.readinto(view[:min(want, self._real - self._pos)]) or 0
+        view[got:want] = bytes(want - got)
+        self._pos += want
+        return want
+
+    def close(self) -> None:
+        self._file.close()
+        super().close()
 
 
 # A SWMR reader retries a metadata block whose checksum fails, sleeping 1 ns, 2 ns, 4 ns, ... between
@@ -461,6 +625,10 @@ def _looks_like_hdf5(path: Path, head: bytes) -> bool:
         return bool(h5py.is_hdf5(path))  # the signature may also sit at 512, 1024, ... bytes
     except OSError:
         return False
+
+
+def _is_coordinate(value: Any) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and abs(value) <= MAX_COORDINATE_M
 
 
 def _table(mapping: dict, key: str) -> dict:

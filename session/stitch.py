@@ -184,6 +184,11 @@ def element_offsets_m(rows: int, cols: int, pitch_m: float) -> np.ndarray:
     return np.stack([gx, gy], axis=-1)
 
 
+# Cells over all force levels: each level keeps half a dozen maps of float64, so 20 million cells is about
+# 1 GB. A session's palpated extent is only that large at a cell size nobody can see, or when it is damaged.
+MAX_STITCHED_CELLS = 20_000_000
+
+
 def _grid_for(centres: np.ndarray, pitch_m: float, cell_m: float) -> Grid:
     half = pitch_m / 2.0
     lo = centres.min(axis=0) - half
@@ -252,6 +257,12 @@ def stitch(levels: np.ndarray, pitch_m: float, element_area_m2: float, params: S
     tsi = levels["tsi_position_m"][:, :2]
     centres = (tsi[:, None, None, :] + offsets[None]).reshape(-1, 2)  # record-major, then row, then column
     grid = _grid_for(centres, pitch_m, params.cell_m)
+    groups = level_groups(levels)
+    if grid.nx * grid.ny * len(groups) > MAX_STITCHED_CELLS:
+        raise StitchError(f"the palpated areas span {grid.nx * grid.cell_m * 1e3:.0f} x "
+                          f"{grid.ny * grid.cell_m * 1e3:.0f} mm: {len(groups)} levels of {grid.nx * grid.ny:,} cells "
+                          f"of {_mm(grid.cell_m)} exceed the {MAX_STITCHED_CELLS:,} cells a stitch may use; choose "
+                          "larger cells")
     splat = _Splat(centres, pitch_m, grid)
     stiffness = recompute_stiffness(levels, element_area_m2, params, default_min_indentation_m)
     per_element = {
@@ -261,7 +272,7 @@ def stitch(levels: np.ndarray, pitch_m: float, element_area_m2: float, params: S
     }
     n_el = rows * cols
     result = StitchResult(grid, params, [], stiffness)
-    for index, (force, records) in enumerate(level_groups(levels)):
+    for index, (force, records) in enumerate(groups):
         select = (records[:, None] * n_el + np.arange(n_el)[None, :]).ravel()
         maps = {name: splat.mean(values, select).reshape(grid.shape) for name, values in per_element.items()}
         stitched_extra = {name: splat.mean(np.asarray(values, float).reshape(-1), select).reshape(grid.shape)

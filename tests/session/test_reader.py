@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 
 import h5py
@@ -12,7 +13,7 @@ import pytest
 from control.messages import LevelRecorded
 from session.format import FORMAT_VERSION, OVERVIEW_BUCKET_ROWS
 from session.reader import SessionFileError, open_session
-from session.stitch import stitch_session
+from session.stitch import StitchError, StitchParams, stitch_session
 from session.synthetic import level_record, tick_rows
 from session.writer import SessionRecorder
 
@@ -149,8 +150,103 @@ def test_truncated_files(recorded, tmp_path, fraction):
         with open_session(path) as s:  # whatever it shows, it says the file was cut short
             assert s.recovered and "truncated" in s.warnings[0]
             stitch_session(s)
+            s.overview()
+            s.frames()
     except SessionFileError as err:
         assert "truncated" in err.problem
+
+
+def test_a_truncated_file_gives_back_what_lies_in_the_part_that_is_there(recorded, tmp_path):
+    source = recorded[0]
+    with open_session(source) as whole:
+        levels, ticks, frames = whole.levels.copy(), whole.tick_rows(0, whole.n_ticks), whole.frames()
+    data = source.read_bytes()
+    path = tmp_path / "cut.h5"
+    for fraction, least_levels in ((0.9, 0), (0.999, len(levels) - 1)):
+        path.write_bytes(data[:int(len(data) * fraction)])
+        with open_session(path) as s:
+            assert s.recovered and f"{1 - fraction:.1%} of it is missing" in s.warnings[0]
+            # the streams were written first: every tick and most frames are there, and identical (NaN included)
+            assert s.n_ticks == len(ticks) and s.tick_rows(0, s.n_ticks).tobytes() == ticks.tobytes()
+            assert 0.7 * len(frames) < s.n_frames and s.frames().tobytes() == frames[:s.n_frames].tobytes()
+            assert least_levels <= len(s.levels) and s.levels.tobytes() == levels[:len(s.levels)].tobytes()
+            assert any("/levels" in w for w in s.warnings[1:]) == (len(s.levels) < len(levels))
+            assert len(stitch_session(s).levels) == len(np.unique(s.levels["force_desired_N"]))
+    assert path.read_bytes() == data[:int(len(data) * 0.999)]  # never written to
+
+
+def test_declared_sizes_are_checked_against_the_file(recorded, tmp_path):
+    path = tmp_path / "claims.h5"
+    shutil.copy(recorded[0], path)
+    with open_session(path) as s:
+        n_ticks = s.n_ticks
+    with h5py.File(path, "r+") as f:  # a header claiming 10^10 rows in a 2 MB file
+        f["stream/ticks"].resize((10**10,))
+        f["levels"].resize((10**9,))
+    with open_session(path) as s:
+        assert s.n_ticks == n_ticks and len(s.levels) == recorded[1].levels_written
+        assert any("9,999,9" in w and "not in the file" in w for w in s.warnings)
+        t0, t1 = s.time_span_s()
+        assert len(s.ticks_between(t0, t1, ["force_measured_N"])) == n_ticks
+
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:  # one row would need HDF5 to allocate a 3 GB chunk
+        dtype = f["stream/frames"].dtype
+        del f["stream/frames"]
+        f.create_dataset("stream/frames", shape=(10,), maxshape=(None,), dtype=dtype, chunks=(2**22,))
+    expect_problem(path, "not written by Palpation Console", "/stream/frames is stored in chunks of 3,072 MB")
+
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:  # a stored chunk bigger than its rows could ever be
+        ds = f["events"]
+        ds.id.write_direct_chunk((0,), bytes(ds.chunks[0] * ds.dtype.itemsize * 2))
+    expect_problem(path, "damaged", "a chunk of /events claims")
+
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        f["meta"].attrs["rig_json"] = np.bytes_(b"{" + b" " * (17 * 2**20) + b"}")
+    expect_problem(path, "/meta attribute 'rig_json' is 17 MB")
+
+
+def test_positions_and_pitch_that_make_no_sense(recorded, tmp_path):
+    path = tmp_path / "places.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        levels = f["levels"][()]
+        levels["tsi_position_m"][1, 0] = np.nan
+        levels["tsi_position_m"][2, 1] = -1000.0
+        f["levels"][...] = levels
+    with open_session(path) as s:
+        assert len(s.levels) == len(levels) - 2 and np.isfinite(s.levels["tsi_position_m"]).all()
+        assert any("2 level records with a position" in w for w in s.warnings)
+        stitch_session(s)
+
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        calibration = json.loads(f["meta"].attrs["calibration_json"])
+        calibration["pitch_m"] = 1e-300
+        f["meta"].attrs["calibration_json"] = np.bytes_(json.dumps(calibration).encode())
+    expect_problem(path, "damaged", "pitch_m must be between 0.1 and 20 mm (got 1e-300)")
+
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:
+        f["meta"].attrs["ground_truth_json"] = np.bytes_(b'[{"x_m": NaN, "y_m": 0.01}]')
+    expect_problem(path, "'ground_truth_json' is not a list of tumours")
+
+
+def test_areas_spread_over_the_whole_frame_are_refused_before_memory_is_spent(recorded, tmp_path):
+    path = tmp_path / "spread.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:  # 2 m apart, every level its own force: 4 million cells per level map
+        levels = f["levels"][()]
+        levels["tsi_position_m"][0, :2] = -0.99
+        levels["tsi_position_m"][-1, :2] = 0.99
+        levels["force_desired_N"] = np.arange(len(levels)) + 1.0
+        f["levels"][...] = levels
+    with open_session(path) as s:
+        with pytest.raises(StitchError, match="exceed the 20,000,000 cells a stitch may use; choose larger cells"):
+            stitch_session(s)
+        assert len(stitch_session(s, StitchParams(cell_m=5e-3)).levels) == len(levels)
 
 
 @pytest.mark.parametrize("fraction", [0.0003, 0.05, 0.3, 0.5, 0.8, 0.97])

@@ -383,10 +383,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
         depth_model, depth_problem = self._current_depth_model()
         problem = " ".join(p for p in (problem, depth_problem) if p)
         try:
-            self._analysis = SessionAnalysis.run(session, params, physics, self._reference, depth_model)
-        except FlatFieldError as err:
-            problem = " ".join(p for p in (problem, f"Reference palpation not used: {err}.") if p)
-            self._analysis = SessionAnalysis.run(session, params, physics, None, depth_model)
+            try:
+                self._analysis = SessionAnalysis.run(session, params, physics, self._reference, depth_model)
+            except FlatFieldError as err:
+                problem = " ".join(p for p in (problem, f"Reference palpation not used: {err}.") if p)
+                self._analysis = SessionAnalysis.run(session, params, physics, None, depth_model)
+        except StitchError as err:  # the cell size is too fine for this session's extent
+            self._summary.setText(f"<b>Not applied:</b> {err}")
+            return
         if problem:
             self._show_banner(problem, "warning")
         stitched = self._analysis.stitched
