@@ -66,8 +66,9 @@ class RowSink(Protocol):
     def add_rows(self, ticks: np.ndarray, frames: np.ndarray, events: list) -> None:
         """TICK_DTYPE and FRAME_DTYPE rows and control events since the previous call (any may be empty)."""
 
-    def driver_stopped(self) -> None:
-        """The driver stopped (on request or on its own); the rows it left have been added."""
+    def driver_stopped(self, failure: str | None) -> None:
+        """The driver stopped, on request (``failure`` None) or on its own (``failure`` says how); the rows
+        it left have been added."""
 
 
 class _Pump:
@@ -214,7 +215,7 @@ class _Worker(QObject):
         self._on_timer()  # hand the GUI what arrived since the last display tick
         if self._pump is not None:  # the last drain may have found it dead
             self._release_pump()
-            self._sinks_stopped()
+            self._sinks_stopped(None)
             self.stopped.emit()
 
     @Slot(object)
@@ -254,12 +255,12 @@ class _Worker(QObject):
         if failure is not None:
             self._timer.stop()
             self._release_pump()
-            self._sinks_stopped()
+            self._sinks_stopped(failure)
             self.crashed.emit(failure)
 
-    def _sinks_stopped(self) -> None:
+    def _sinks_stopped(self, failure: str | None) -> None:
         for sink in self.sinks:
-            sink.driver_stopped()
+            sink.driver_stopped(failure)
 
     def _release_pump(self) -> None:
         pump, self._pump = self._pump, None

@@ -141,7 +141,10 @@ class SessionRecording(QtCore.QObject):
         recorder.add_frames(frames)
         recorder.add_events(events)
 
-    def driver_stopped(self) -> None:
+    def driver_stopped(self, failure: str | None) -> None:
+        recorder = self._recorder
+        if failure is not None and recorder is not None:
+            recorder.add_controller_lost(failure)
         self.close()
 
 

@@ -167,7 +167,7 @@ class _RecorderFeed:
         self.recorder.add_frames(frames)
         self.recorder.add_events(events)
 
-    def driver_stopped(self) -> None:
+    def driver_stopped(self, failure) -> None:
         pass
 
 

@@ -283,6 +283,10 @@ class SessionRecorder:
         """An operator's note at loop time ``t_s``."""
         self._put(("note", (float(t_s), str(text))), 256, 1)
 
+    def add_controller_lost(self, how: str) -> None:
+        """The controller stopped on its own (``how``: its exit, as the bridge saw it), after the rows queued."""
+        self._put(("controller_lost", str(how)), 256, 1)
+
     # ---- control ---------------------------------------------------------------------------------------
 
     @property
@@ -385,6 +389,8 @@ class SessionRecorder:
         elif kind == "note":
             t_s, text = payload
             self._add_event(event_row(t_s, EventKind.NOTE, text=text))
+        elif kind == "controller_lost":
+            self._add_event(event_row(self._last_time(), EventKind.CONTROLLER_LOST, text=payload))
         if self._ticks.pending_rows >= self.block_rows:
             self._ticks.write()
         if self._frames.pending_rows >= max(1, self.block_rows // 8):

@@ -9,12 +9,15 @@ import pytest
 from PySide6.QtCore import QThread
 
 from app.bridge import ControllerBridge
+from app.config import AppConfig
 from app.controller import ControllerProcess, PacingOptions
+from app.recording import SessionRecording, session_info
 from app.rigs import RigSpec
 from app.ring import NAME_PREFIX
 from control.config import ControlConfig
 from control.messages import EStop, FaultKind, FaultRaised
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE, LiveSnapshot
+from session.reader import open_session
 
 PLAIN = PacingOptions(realtime=False, pin_cpu=False)
 
@@ -65,8 +68,8 @@ class Collector:
         if len(frames):
             self.frames.append(frames)
 
-    def driver_stopped(self):
-        self.sink_calls.append("stopped")
+    def driver_stopped(self, failure):
+        self.sink_calls.append("stopped" if failure is None else "failed")
 
     @property
     def events(self):
@@ -113,10 +116,12 @@ def test_fast_forward_bridge_streams_snapshots_takes_commands_and_shuts_down(qtb
     bridge.shutdown()
 
 
-def test_process_bridge_reports_a_crash_with_the_exit_reason(qtbot, bridges):
+def test_process_bridge_reports_a_crash_with_the_exit_reason(qtbot, bridges, tmp_path):
     process = ControllerProcess(ControlConfig(), RigSpec(), PLAIN)
     bridge = bridges(ControllerBridge(lambda: process))
     got = Collector(bridge)
+    recording = SessionRecording(bridge, session_info(AppConfig(control=ControlConfig(), rig=RigSpec())),
+                                 folder=tmp_path)
     with qtbot.waitSignal(bridge.started, timeout=20_000):
         bridge.start()
     qtbot.waitUntil(lambda: got.n_ticks > 200 and any(s.health is not None for s in got.snapshots),
@@ -125,7 +130,10 @@ def test_process_bridge_reports_a_crash_with_the_exit_reason(qtbot, bridges):
         os.kill(process.pid, signal.SIGKILL)
     assert "stopped unexpectedly" in crash.args[0] and "SIGKILL" in crash.args[0]
     assert not bridge.running
-    assert got.sink_calls == ["started", "stopped"]  # a dead controller ends the recording too
+    assert got.sink_calls == ["started", "failed"]  # a dead controller ends the recording too, saying so
+    with open_session(recording.last_status.path) as session:  # and the session says how it ended
+        lost = [e for e in session.event_dicts() if e["kind"] == "controller_lost"]
+        assert session.closed_cleanly and len(lost) == 1 and "SIGKILL" in lost[0]["text"]
 
 
 def test_process_bridge_start_failure_is_reported(qtbot, bridges):

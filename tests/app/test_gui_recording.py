@@ -227,3 +227,6 @@ def test_a_controller_crash_closes_the_file_cleanly(qtbot, tmp_path, bridge, rec
     assert logged(window, "CONTROLLER STOPPED") and logged(window, f"Session saved to {path}")
     with open_session(path) as session:
         assert session.closed_cleanly and session.n_ticks > 0
+        lost = [e for e in session.event_dicts() if e["kind"] == "controller_lost"]
+        assert len(lost) == 1 and "simulated loop failure" in lost[0]["text"]
+        assert any("controller stopped on its own" in w and "simulated loop failure" in w for w in session.warnings)
