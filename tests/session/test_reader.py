@@ -166,8 +166,9 @@ def test_a_truncated_file_gives_back_what_lies_in_the_part_that_is_there(recorde
         path.write_bytes(data[:int(len(data) * fraction)])
         with open_session(path) as s:
             assert s.recovered and f"{1 - fraction:.1%} of it is missing" in s.warnings[0]
-            # the streams were written first: every tick and most frames are there, and identical (NaN included)
-            assert s.n_ticks == len(ticks) and s.tick_rows(0, s.n_ticks).tobytes() == ticks.tobytes()
+            # the streams were written as they came: most rows are there (the last chunks, written at closing,
+            # may lie in the tail), and are the rows recorded (NaN included)
+            assert 0.7 * len(ticks) < s.n_ticks and s.tick_rows(0, s.n_ticks).tobytes() == ticks[:s.n_ticks].tobytes()
             assert 0.7 * len(frames) < s.n_frames and s.frames().tobytes() == frames[:s.n_frames].tobytes()
             assert least_levels <= len(s.levels) and s.levels.tobytes() == levels[:len(s.levels)].tobytes()
             assert any("/levels" in w for w in s.warnings[1:]) == (len(s.levels) < len(levels))
