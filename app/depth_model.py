@@ -235,11 +235,21 @@ class DepthModel:
 
     @classmethod
     def for_session(cls, session, path: Path = LIBRARY_PATH) -> DepthModel:
+        return cls._described(session, tuple(session.levels.dtype["pressure_pa"].shape), session.pitch_m, path)
+
+    @classmethod
+    def for_info(cls, info, path: Path = LIBRARY_PATH) -> DepthModel:
+        """For the session being recorded (a :class:`session.info.SessionInfo`): the live console's findings."""
+        calibration = info.calibration
+        return cls._described(info, (int(calibration["rows"]), int(calibration["cols"])),
+                              float(calibration["pitch_m"]), path)
+
+    @classmethod
+    def _described(cls, described, shape: tuple[int, int], pitch_m: float, path: Path) -> DepthModel:
         from app.physics import cover_for
 
-        shape = tuple(session.levels.dtype["pressure_pa"].shape)
-        return cls(load_library(path), shape, session.pitch_m,
-                   float(session.calibration.get("table_height_m", 0.0)), cover_for(session))
+        return cls(load_library(path), shape, pitch_m, float(described.calibration.get("table_height_m", 0.0)),
+                   cover_for(described, shape, pitch_m))
 
     # ---- the forward model ----
 

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from pathlib import Path
 
 from app.config import AppConfig
+from app.depth_model import LIBRARY_PATH, DepthModel, DepthModelError
 from app.recording import SessionRecording, session_info
 from session.info import sessions_dir
 
@@ -84,6 +86,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)
     wire_recording(window, recording)
+    wire_depth_model(window, info)
     window.setWindowTitle(f"Palpation Console — {rig.backend} rig, phantom {rig.phantom}")
     if autopilot is None:
         autopilot = screenshot is not None
@@ -110,6 +113,17 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
         window.save_settings()  # quitting does not close the window, so its closeEvent never saved them
         bridge.shutdown()  # drains the controller's last rows into the recording and closes its file
         recording.close()  # in case the driver never started
+
+
+def wire_depth_model(window, info, library: Path = LIBRARY_PATH) -> None:
+    """The model-based depth for the findings told at "region done", where the library of solves fits this
+    array; the messages say why not otherwise (the paper's rule is then the only depth)."""
+    from widgets.messages import Severity
+
+    try:
+        window.set_depth_model(DepthModel.for_info(info, library))
+    except DepthModelError as err:
+        window.messages().add(f"Model-based depth unavailable: {err}", Severity.WARNING)
 
 
 def _quit_on_signals(app) -> None:

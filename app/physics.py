@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from session.info import SessionInfo
 from session.reader import Session
 from session.stitch import element_offsets_m
 
@@ -493,7 +494,7 @@ def _at_force(tissue, x: float, y: float, z_guess: float, force_N: float) -> np.
     return tissue.element_forces_N(x, y, 0.5 * (lo + hi))
 
 
-def _cover_of(session: Session) -> float:
+def _cover_of(session: Session | SessionInfo) -> float:
     """The sensor cover's lateral spread the session records (its simulated array's setting), else none."""
     value = session.calibration.get("cover_spread_m")
     if value is None:
@@ -505,9 +506,11 @@ def _cover_of(session: Session) -> float:
     return float(value) if isinstance(value, (int, float)) else 0.0
 
 
-def cover_for(session: Session) -> Callable[[np.ndarray], np.ndarray] | None:
-    """The sensor cover's spread of element forces on ``session``'s array (None: it records no cover)."""
-    operators = _cover(_cover_of(session), tuple(session.levels.dtype["pressure_pa"].shape), session.pitch_m)
+def cover_for(described: Session | SessionInfo, shape: tuple[int, int], pitch_m: float
+              ) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The sensor cover's spread of element forces on a (rows, cols) array at ``pitch_m``, as a recorded
+    session or one being recorded describes it (None: it records no cover)."""
+    operators = _cover(_cover_of(described), shape, pitch_m)
     return None if operators is None else (lambda forces: operators[0] @ forces @ operators[1])
 
 

@@ -149,11 +149,13 @@ class Reference:
 
     @classmethod
     def from_levels(cls, levels: np.ndarray, share: np.ndarray, share_sigma: np.ndarray,
-                    description: str, physics: bool = True) -> Reference:
+                    description: str, physics: bool = True, quantity: str = "pressure_pa") -> Reference:
         """The reference a palpation of tumour-free tissue gives (its level records and their physics;
-        ``physics`` False: the share is one everywhere and the baseline is the face's whole pattern)."""
+        ``physics`` False: the share is one everywhere and the baseline is the face's whole pattern).
+        ``quantity``: the level field whose pattern it holds (the stiffness map's, ``stiffness_pa``, differs
+        from the pressure's where the surface is uneven)."""
         forces, baselines, scatters = [], [], []
-        measured = _measured(levels)
+        measured = _measured(levels, quantity)
         for force, records in level_groups(levels):
             base, scale = _session_baseline(measured[records], share[records], share_sigma[records], physics)
             rel = measured[records] / (scale[:, None, None] * base * share[records]) - 1.0
@@ -188,9 +190,11 @@ class Contrast:
             return self.contrast / self.sigma
 
 
-def _measured(levels: np.ndarray) -> np.ndarray:
-    """Each element's mean pressure where it was in contact (its Eq. 1 inputs exist), NaN elsewhere."""
-    return np.where(np.isfinite(levels["dL_m"]) & (levels["pressure_pa"] > 0), levels["pressure_pa"], np.nan)
+def _measured(levels: np.ndarray, quantity: str = "pressure_pa") -> np.ndarray:
+    """Each element's mean pressure (or other ``quantity``) where it was in contact (its Eq. 1 inputs exist),
+    NaN elsewhere."""
+    values = levels[quantity]
+    return np.where(np.isfinite(levels["dL_m"]) & (levels["pressure_pa"] > 0) & (values > 0), values, np.nan)
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray, axis: int = 0) -> np.ndarray:

@@ -6,19 +6,51 @@ With them come the contrast maps and the tumours found so far, by the same flat 
 the reviewer (:mod:`session.flatfield`, :mod:`session.detect`). Live there is no finite-element physics
 (it would be rebuilt for every new area); the face's pattern comes from a reference palpation when one is
 loaded, else from the other areas palpated at the same level, which needs ``MIN_VOUCHING`` + 1 areas
-before it says anything (:meth:`LiveMaps.flat_field_ready`)."""
+before it says anything (:meth:`LiveMaps.flat_field_ready`).
+
+The same pattern flat-fields the live frames (:meth:`LiveMaps.frame_contrast`): a frame is compared with
+the pattern of the recorded level nearest its force (the reference's, or the median over the areas
+palpated at that level), and its significant spots are found by the same matched filter and threshold as
+a level record's. A single frame is noisier than a level's settled mean; its uncertainty counts the
+frame-to-frame scatter the records measured, so a spot that shows in a frame is as unlikely in healthy
+tissue as one in a record. What stays is decided on the records, not the frames.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
+from scipy import ndimage
 
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
-from session.analysis import CONTRAST_MAPS
-from session.detect import SOURCES, DetectParams, Tumour, detect
-from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference, contrast
+from session.analysis import CONTRAST_MAPS, DepthModel
+from session.detect import SOURCES, DetectParams, Tumour, detect, evidence, threshold
+from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
-from session.stitch import StitchParams, StitchResult, stitch
+from session.stitch import StitchParams, StitchResult, level_groups, stitch
+
+# the level field whose pattern flat-fields each live map
+FRAME_QUANTITY = {"force": "pressure_pa", "stiffness": "stiffness_pa"}
+
+
+@dataclass(frozen=True)
+class FrameContrast:
+    """One live frame of a map, flat-fielded."""
+
+    contrast: np.ndarray  # (rows, cols) measured / expected - 1; NaN where the element is not in contact
+    z: np.ndarray  # (rows, cols) the matched-filter statistic (session.detect.evidence)
+    spots: tuple[tuple[int, int], ...]  # elements (row, col) where a significant spot peaks
+    level_N: float  # the recorded level whose pattern it was compared with
+
+
+@dataclass(frozen=True)
+class _FramePattern:
+    forces_N: np.ndarray  # (levels,)
+    baseline: np.ndarray  # (levels, rows, cols) each element's share of the map at that level, median 1
+    scatter: np.ndarray  # (levels, rows, cols) relative: healthy tissue's and a frame's scatter together
 
 
 class LiveMaps:
@@ -33,9 +65,12 @@ class LiveMaps:
         self._regions: set[int] = set()
         self._result: StitchResult | None = None
         self._tumours: list[Tumour] = []
+        self._stiffness: tuple[np.ndarray, Contrast] | None = None  # the levels and contrast they were found in
+        self._frame_patterns: dict[str, _FramePattern] = {}
         self._dirty = False
         self.reference: Reference | None = None
         self.detect_params = DetectParams()
+        self.depth_model: DepthModel | None = None  # gives findings_in its model-based depths
 
     def add(self, record: LevelRecord) -> None:
         self._rows.append(level_row(record))  # [1] is the region
@@ -54,15 +89,68 @@ class LiveMaps:
             levels = np.array(self._rows, dtype=LEVEL_DTYPE)
             extra = None
             self._tumours = []
+            self._stiffness = None
+            self._frame_patterns = {}
             if self.flat_field_ready():
                 contrasts = {s: contrast(levels, s, reference=self.reference, accuracy=self.detect_params.accuracy)
                              for s in SOURCES}
                 extra = {CONTRAST_MAPS[s]: c.contrast for s, c in contrasts.items()}
                 self._tumours = [t for s in SOURCES
                                  for t in detect(levels, contrasts[s], self._sensor.pitch_m, self.detect_params)]
+                self._stiffness = levels, contrasts["stiffness"]
+                self._frame_patterns = {s: self._frame_pattern(levels, s) for s in SOURCES}
             self._result = stitch(levels, self._sensor.pitch_m, self._sensor.element_area_m2, self._params,
                                   self._min_indentation_m, extra)
         return self._result
+
+    def frame_contrast(self, values: np.ndarray, map_name: str, force_N: float) -> FrameContrast | None:
+        """A live frame of the ``map_name`` map ("force": pressure in Pa, "stiffness": Eq. 1 in Pa; NaN where
+        an element is not in contact) pressed with ``force_N``, against the pattern of the nearest recorded
+        level; None until the flat field can be had. A frame with too little in contact to scale it has no
+        contrast (all NaN)."""
+        self.stitched()
+        pattern = self._frame_patterns.get(map_name)
+        if pattern is None:
+            return None
+        values = np.asarray(values, dtype=float)
+        touching = np.isfinite(values) & (values > 0)
+        if not math.isfinite(force_N) or touching.sum() < MIN_VOUCHING:
+            nothing = np.full(values.shape, np.nan)
+            return FrameContrast(nothing, nothing, (), math.nan)
+        k = int(np.argmin(np.abs(pattern.forces_N - force_N)))
+        base, scatter = pattern.baseline[k], pattern.scatter[k]
+        ratio = np.where(touching, values, np.nan) / base
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = ratio / np.nanmedian(ratio) - 1.0
+        params = self.detect_params
+        sigma = np.maximum(np.nan_to_num(scatter, nan=0.0), params.accuracy)
+        c = np.where(np.isfinite(c), c, np.nan)
+        z = evidence(c, np.where(np.isfinite(c), sigma, np.nan), self._sensor.pitch_m, params.kernel_widths_m)
+        limit = threshold(params.false_alarm_per_area, c.shape, self._sensor.pitch_m, params.kernel_widths_m)
+        finite = np.nan_to_num(z, nan=-np.inf)
+        peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+        return FrameContrast(c, z, tuple((int(i), int(j)) for i, j in zip(*np.nonzero(peaks))),
+                             float(pattern.forces_N[k]))
+
+    def _frame_pattern(self, levels: np.ndarray, map_name: str) -> _FramePattern:
+        """Each recorded level's pattern of the map (the reference's when one is loaded, else the median over
+        the areas at that level) and its scatter: healthy tissue's between areas, and a frame's own noise
+        (the records' frame-to-frame scatter, relative)."""
+        quantity = FRAME_QUANTITY[map_name]
+        groups = level_groups(levels)
+        forces = np.array([force for force, _ in groups])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frame_noise = np.stack([np.nanmedian(levels["pressure_std_pa"][records] / levels["pressure_pa"][records],
+                                                 axis=0) for _, records in groups])
+        if self.reference is not None:  # a reference without physics: the face's whole pattern, per level
+            pairs = [self.reference.at(force) for force in forces]
+            baseline, scatter = np.stack([b for b, _ in pairs]), np.stack([sc for _, sc in pairs])
+        else:
+            ones = np.ones(levels["pressure_pa"].shape)
+            own = Reference.from_levels(levels, ones, np.zeros_like(ones), "", physics=False, quantity=quantity)
+            baseline, scatter = own.baseline, own.scatter
+        scatter = np.sqrt(np.nan_to_num(scatter, nan=0.0) ** 2 + np.nan_to_num(frame_noise, nan=0.0) ** 2)
+        return _FramePattern(forces, baseline, scatter)
 
     def flat_field_ready(self) -> bool:
         """Whether the probe's pattern can be taken out yet: a reference is loaded, or enough areas were
@@ -75,9 +163,15 @@ class LiveMaps:
         return list(self._tumours)
 
     def findings_in(self, region: int) -> list[Tumour]:
-        """The tumours found so far that area ``region`` saw (one of their spots lies in its records)."""
+        """The tumours found so far that area ``region`` saw (one of their spots lies in its records), with
+        their model-based depth when a :attr:`depth_model` is set (as the reviewer's analysis does it: from
+        the stiffness contrast, which has the surface's relief taken out)."""
         self.stitched()
-        return [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
+        seen = [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
+        if self.depth_model is None or self._stiffness is None:
+            return seen
+        levels, stiffness = self._stiffness
+        return [t.with_depth_model(*self.depth_model.estimate(t, levels, stiffness)) for t in seen]
 
     def set_reference(self, reference: Reference | None) -> None:
         """Raises FlatFieldError for a reference made over physics (the live maps have none)."""

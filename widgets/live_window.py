@@ -46,6 +46,7 @@ from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop,
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import TactileConstraints
 from hardware.settings import ConfigError
+from session.export import depth_model_text
 from session.flatfield import FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.flowchart import FlowchartPanel
@@ -690,6 +691,11 @@ class LiveWindow(QtWidgets.QMainWindow):
         elif isinstance(event, (Notice, CommandApplied)):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
 
+    def set_depth_model(self, model) -> None:
+        """Give the findings told at "region done" a model-based depth (:class:`session.analysis.DepthModel`;
+        the composition root has the library of solves), or None for the paper's rule alone."""
+        self._tissue.set_depth_model(model)
+
     # ---- reference palpation -----------------------------------------------------------------------------
 
     def load_reference(self, path: str | Path) -> bool:
@@ -749,8 +755,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         else:
             text = f"Area {region + 1}: " + "; ".join(
                 f"{t.source} map: tumour at x {t.x_m * 1e3:.1f} mm, y {t.y_m * 1e3:.1f} mm, first at "
-                f"{t.first_level_N:g} N, depth {t.depth_m * 1e3:.1f} mm (paper's rule), z {t.score:.1f}"
-                for t in findings)
+                f"{t.first_level_N:g} N, depth {t.depth_m * 1e3:.1f} mm (paper's rule)"
+                + (f", {depth_model_text(t)} mm (model, 90 % interval)" if math.isfinite(t.depth_model_m) else "")
+                + f", z {t.score:.1f}" for t in findings)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
 
@@ -790,9 +797,22 @@ class LiveWindow(QtWidgets.QMainWindow):
         pressure = frame["pressure_pa"]
         self._pressure.set_data(pressure)
         self._stiffness.set_data(frame["stiffness_pa"])
+        if self._pressure.contrast_view() or self._stiffness.contrast_view():
+            self._show_frame_contrast(frame)
         metrics = contact_metrics(pressure, self._config.contact.confirm_threshold_pa, self._sensor)
         self._contact.show_metrics(metrics, frame["tsi_position_m"])
         self._pressure.set_marker_m(metrics.centre_m)
+
+    def _show_frame_contrast(self, frame: np.ndarray) -> None:
+        """Each map in its contrast view gets the frame flat-fielded, with its significant spots."""
+        in_contact = np.isfinite(frame["dL_m"])  # the elements Eq. 1 has, as in a level record
+        pressure = np.where(in_contact, frame["pressure_pa"], np.nan)
+        force_N = float(np.nansum(pressure)) * self._sensor.element_area_m2
+        for widget, name, values in ((self._pressure, "force", pressure), (self._stiffness, "stiffness",
+                                                                           frame["stiffness_pa"])):
+            if widget.contrast_view():
+                found = self._tissue.frame_contrast(values, name, force_N)
+                widget.set_contrast(None if found is None else found.contrast, () if found is None else found.spots)
 
     def _jog_unavailable(self) -> str | None:
         return self._state.jog_unavailable(self.autopilot is not None and self.autopilot.running)

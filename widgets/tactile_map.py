@@ -8,6 +8,11 @@ the instrument. Coordinates are element offsets from the TSI centre in mm (the c
 Two views: *cells* draws one square per element, which is exactly what was measured; *contour* upsamples
 with a bicubic (Keys, a = -0.5) kernel, clips to the measured range so the kernel's overshoot cannot invent
 a peak, and can overlay iso-lines at round values (about five across the colour range).
+
+A *contrast* view shows, instead of the reading, how far each element lies from what homogeneous tissue
+would read there (measured / expected - 1, in %; the probe's own edge pattern divided out) on a range
+symmetric about healthy tissue, with the spots that pass the detection threshold circled. The contrast is
+computed elsewhere (:meth:`session.live.LiveMaps.frame_contrast`) and handed to :meth:`set_contrast`.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from scipy import ndimage
 
 from control.telemetry import COLS, ROWS
-from widgets.colormaps import CONTOUR_COLORMAP
+from widgets.colormaps import CONTOUR_COLORMAP, contrast_range
 from widgets.colour_image import ColourImageItem
 from widgets.plot_style import follow_palette
 
@@ -29,6 +34,8 @@ UPSAMPLE = 8  # contour pixels per element along each axis
 MARKER_ARM_MM = 1.6
 _KPA_PER_PA = 1e-3
 _SPIN_LIMIT_KPA = 1e4  # ten times the stiffness of a hard tumour; the spin boxes stay narrow
+_PCT = 100.0
+NO_CONTRAST_TEXT = "contrast from the 4th area on\n(or with a reference palpation)"
 
 
 class ViewMode(enum.Enum):
@@ -142,9 +149,9 @@ class TactileMapWidget(QtWidgets.QWidget):
     """One tactile array as a colour map with a kPa colour bar; ``set_data`` is cheap enough for 60 Hz.
 
     Child objectNames: ``title``, ``maxLabel``, ``cellsButton``, ``contourButton``, ``isoLines``,
-    ``lockRange``, ``levelMin``, ``levelMax``, ``levelError``, ``plot``; graphics items in the plot's scene:
-    ``mapImage`` (a :class:`~widgets.colour_image.ColourImageItem`), ``cellGrid``, ``isoCurves``, ``noDataText``,
-    ``colorBar``; the marker is :meth:`marker_m`.
+    ``contrastView``, ``lockRange``, ``levelMin``, ``levelMax``, ``levelError``, ``plot``; graphics items in
+    the plot's scene: ``mapImage`` (a :class:`~widgets.colour_image.ColourImageItem`), ``cellGrid``,
+    ``isoCurves``, ``noDataText``, ``contrastSpots``, ``colorBar``; the marker is :meth:`marker_m`.
     """
 
     def __init__(self, title: str, *, pitch_m: float = 2e-3, auto_floor_pa: float = 10e3,
@@ -162,6 +169,10 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._max_text = ""
         self._marker_at: tuple[int, int] | None = None
         self._no_data_text = no_data_text
+        self._contrast_on = False
+        self._contrast_pct: np.ndarray | None = None  # None: no flat field yet
+        self._contrast_spots: tuple[tuple[int, int], ...] = ()
+        self._spots_drawn: tuple[tuple[int, int], ...] = ()
 
         pitch_mm = pitch_m * 1e3
         width_mm, height_mm = COLS * pitch_mm, ROWS * pitch_mm
@@ -207,6 +218,11 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._iso.setToolTip("Lines of equal value at round steps of the colour range (contour view)")
         self._iso.toggled.connect(self._render)
 
+        self._contrast_box = QtWidgets.QCheckBox("Contrast", objectName="contrastView")
+        self._contrast_box.setToolTip("Each element over what homogeneous tissue would read there, in % (the "
+                                      "probe's own pattern divided out); significant spots are circled")
+        self._contrast_box.toggled.connect(self.set_contrast_view)
+
         self._lock = QtWidgets.QCheckBox("Lock", objectName="lockRange")
         self._lock.setToolTip("Keep the colour range fixed instead of following the data")
         self._lock.toggled.connect(self._lock_toggled)
@@ -225,6 +241,7 @@ class TactileMapWidget(QtWidgets.QWidget):
         bar.addWidget(self._cells)
         bar.addWidget(self._contour)
         bar.addWidget(self._iso)
+        bar.addWidget(self._contrast_box)
         bar.addSpacing(12)
         bar.addWidget(self._lock)
         bar.addWidget(self._min_spin)
@@ -292,6 +309,12 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._no_data_label.setZValue(10)
         self._no_data_label.setObjectName("noDataText")
         view.addItem(self._no_data_label, ignoreBounds=True)
+
+        self._spot_item = pg.ScatterPlotItem(symbol="o", size=22, pen=pg.mkPen((255, 255, 255), width=2.5),
+                                             brush=None, pxMode=True)
+        self._spot_item.setZValue(13)
+        self._spot_item.setObjectName("contrastSpots")
+        view.addItem(self._spot_item, ignoreBounds=True)
 
         # A cross with a dark outline under a light core reads on every colour of the scale. Plain path
         # items: moving one costs a fraction of what a ScatterPlotItem costs to paint.
@@ -375,6 +398,44 @@ class TactileMapWidget(QtWidgets.QWidget):
         for marker in self._markers:
             marker.setPos(y_mm, x_mm)  # y runs across the screen, x up it
             marker.show()
+
+    def set_contrast(self, contrast: np.ndarray | None, spots: tuple[tuple[int, int], ...] = ()) -> None:
+        """The frame's contrast (measured / expected - 1, (4, 15)) and the elements (row, col) where a
+        significant spot peaks, shown in the contrast view; None while there is no flat field."""
+        if contrast is None:
+            self._contrast_pct, self._contrast_spots = None, ()
+        else:
+            contrast = np.asarray(contrast, dtype=np.float64)
+            if contrast.shape != (ROWS, COLS):
+                raise ValueError(f"{self._name} map: expected a ({ROWS}, {COLS}) contrast, got shape {contrast.shape}")
+            pct = (contrast * _PCT).astype(np.float32)
+            pct[~np.isfinite(pct)] = np.nan
+            self._contrast_pct, self._contrast_spots = pct, tuple(spots)
+        if self._contrast_on:
+            self._render()
+
+    def contrast_view(self) -> bool:
+        return self._contrast_on
+
+    def set_contrast_view(self, on: bool) -> None:
+        """Show the contrast (True) or the reading itself."""
+        on = bool(on)
+        if on == self._contrast_on:
+            return
+        self._contrast_on = on
+        self._contrast_box.setChecked(on)
+        # a contrast's range is always symmetric about healthy tissue: nothing to lock
+        self._lock.setEnabled(not on)
+        self._min_spin.setEnabled(self._locked and not on)
+        self._max_spin.setEnabled(self._locked and not on)
+        self._bar.getAxis("left").setLabel("% over healthy" if on else "kPa")
+        if not on:
+            self._bar.setLevels(self._levels_kpa, update_items=False)
+        self._render()
+
+    def contrast_spots(self) -> tuple[tuple[int, int], ...]:
+        """The elements circled in the contrast view (none outside it)."""
+        return self._contrast_spots if self._contrast_on and self._contrast_pct is not None else ()
 
     def marker_m(self) -> tuple[float, float] | None:
         """The marked point (x, y) in m, or None."""
@@ -487,26 +548,47 @@ class TactileMapWidget(QtWidgets.QWidget):
             self._set_spins(*levels_kpa)
 
     def _render(self) -> None:
-        data = self._data_kpa
+        contrast = self._contrast_on
+        if contrast:
+            data = self._contrast_pct if self._contrast_pct is not None else np.full((ROWS, COLS), np.nan, np.float32)
+        else:
+            data = self._data_kpa
         valid = np.isfinite(data)
         any_valid = bool(valid.any())
-        if not self._locked:
-            self._levels_kpa_follow()
-        image = data if self._mode == ViewMode.CELLS else self._upsample(data, valid, any_valid)
-        self._image.set_data(image, self._levels_kpa, self._rect)
-
-        if any_valid:
-            text = f"max {float(data[valid].max()):.1f} kPa"
+        if contrast:
+            levels = tuple(v * _PCT for v in contrast_range(data / _PCT))
+            self._bar.setLevels(levels, update_items=False)
         else:
+            if not self._locked:
+                self._levels_kpa_follow()
+            levels = self._levels_kpa
+        image = data if self._mode == ViewMode.CELLS else self._upsample(data, valid, any_valid)
+        self._image.set_data(image, levels, self._rect)
+
+        if not any_valid:
             text = "max —"
+        elif contrast:
+            text = f"max {float(data[valid].max()):+.0f} %"
+        else:
+            text = f"max {float(data[valid].max()):.1f} kPa"
         if text != self._max_text:
             self._max_text = text
             self._max_label.setText(text)
+        why = NO_CONTRAST_TEXT if contrast and self._contrast_pct is None else self._no_data_text
+        if why != self._no_data_label.textItem.toPlainText():
+            self._no_data_label.setText(why)
         self._no_data_label.setVisible(not any_valid)
+        spots = self.contrast_spots()
+        if spots != self._spots_drawn:  # at display rate: redraw only what changed
+            self._spots_drawn = spots
+            pitch_mm = self._rect.height() / ROWS
+            self._spot_item.setData([self._rect.left() + (j + 0.5) * pitch_mm for _, j in spots],
+                                    [self._rect.top() + (i + 0.5) * pitch_mm for i, _ in spots])
+            self._spot_item.setVisible(bool(spots))
 
         show_iso = self._mode == ViewMode.CONTOUR and self._iso.isChecked() and any_valid
         if show_iso:
-            lo, hi = self._levels_kpa
+            lo, hi = levels
             step = nice_step(hi - lo)
             levels = np.arange(math.floor(lo / step) + 1, math.ceil(hi / step)) * step
             pts = iso_segments(image, self._fine_y_mm, self._fine_x_mm, levels[(levels > lo) & (levels < hi)])

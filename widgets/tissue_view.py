@@ -165,6 +165,14 @@ class WholeTissueView(QtWidgets.QWidget):
         """The levels recorded so far as a reference palpation (raises FlatFieldError before the first)."""
         return self._maps.reference_from_levels(description)
 
+    def frame_contrast(self, values, map_name: str, force_N: float):
+        """A live frame flat-fielded (:meth:`session.live.LiveMaps.frame_contrast`), or None."""
+        return self._maps.frame_contrast(values, map_name, force_N)
+
+    def set_depth_model(self, model) -> None:
+        """What gives the findings their model-based depth (:class:`session.analysis.DepthModel`), or None."""
+        self._maps.depth_model = model
+
     def findings_in(self, region: int) -> list | None:
         """The tumours found so far that area ``region`` saw; None while the flat field cannot be had."""
         self.refresh()

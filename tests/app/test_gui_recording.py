@@ -15,7 +15,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from app.bridge import ControllerBridge
 from app.config import AppConfig
-from app.gui import wire_recording
+from app.gui import wire_depth_model, wire_recording
 from app.recording import SessionRecording, session_info
 from app.rigs import RigSpec, plan_for_rig
 from control.config import ControlConfig, MasterMapping, RampSettings
@@ -230,3 +230,14 @@ def test_a_controller_crash_closes_the_file_cleanly(qtbot, tmp_path, bridge, rec
         lost = [e for e in session.event_dicts() if e["kind"] == "controller_lost"]
         assert len(lost) == 1 and "simulated loop failure" in lost[0]["text"]
         assert any("controller stopped on its own" in w and "simulated loop failure" in w for w in session.warnings)
+
+
+def test_the_console_gets_the_model_based_depth_or_says_why_not(qtbot, tmp_path, bridge, recent, info):
+    window = LiveWindow(bridge, sessions_folder=tmp_path, recent=recent)
+    qtbot.addWidget(window)
+    wire_depth_model(window, info)
+    assert not any("Model-based depth" in line for line in window.messages().lines())
+    wire_depth_model(window, info, tmp_path / "missing.npz")
+    assert window.messages().lines()[-1].endswith(
+        f"Model-based depth unavailable: depth model library {tmp_path / 'missing.npz'}: cannot be read "
+        f"([Errno 2] No such file or directory: '{tmp_path / 'missing.npz'}')")

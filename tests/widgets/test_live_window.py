@@ -6,6 +6,8 @@ down what each figure shows for a given tick, event or frame.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from PySide6 import QtCore, QtWidgets
@@ -491,11 +493,20 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert "findings from the 4th area on" in label(window, "regionFindings").text()
     for region, x in ((1, 0.020), (2, 0.028)):
         push(controller, make_tick(t_s=1.0 + region), events=area(region, x))
+    asked = []
+
+    class DepthModel:  # what the composition root gives (app.depth_model); it sees what the reviewer's would
+        def estimate(self, tumour, levels, contrast):
+            asked.append((tumour.source, len(levels), contrast.map))
+            return 3.1e-3, 2.25e-3, 4.4e-3
+
+    window.set_depth_model(DepthModel())
     push(controller, make_tick(t_s=4.0), events=area(3, 0.036, tumour=True))
     text = label(window, "regionFindings").text()
     found = re.match(r"Area 4: stiffness map: tumour at x ([\d.]+) mm, y ([\d.]+) mm, first at 1 N, depth [\d.]+ mm "
-                     r"\(paper's rule\), z [\d.]+", text)
+                     r"\(paper's rule\), 3\.1 \[2\.2, 4\.4\] mm \(model, 90 % interval\), z [\d.]+", text)
     assert found and math.hypot(float(found[1]) - 36.0, float(found[2]) - 15.0) < 1.0
+    assert asked and all(records == 12 and map_name == "stiffness" for _, records, map_name in asked)
     assert any(line.endswith(text) for line in window.messages().lines())
     tissue = window.findChild(WholeTissueView)
     tissue.set_quantity("stiffness_contrast")
@@ -541,3 +552,49 @@ def test_a_reference_palpation_is_saved_from_the_console_and_gives_findings_from
     path.write_text(json.dumps(data))
     assert not window.load_reference(path)
     assert "made over the finite-element physics" in window.messages().lines()[-1]
+
+
+def test_the_live_maps_show_the_frame_flat_fielded_with_its_significant_spot_circled(window, controller):
+    from control.messages import RegionDone
+    from session.synthetic import level_record
+    from widgets.tactile_map import NO_CONTRAST_TEXT
+
+    face = np.array([2.2, 1.0, 1.0, 2.2])[:, None]  # the rigid face's edge rows read high on healthy tissue
+
+    def record(region, k, force, x, tumour=False):
+        r = level_record(region, k, force, (x, 0.015), noise=0.02, seed=7 * region + k, t_s=10.0 * region + k,
+                         tumours_xy_m=((x, 0.015),) if tumour else (), tumour_factor=1.6)
+        return dataclasses.replace(r, pressure_pa=r.pressure_pa * face, stiffness_pa=r.stiffness_pa * face)
+
+    def frame_of(r):
+        frame = empty_frame()
+        frame["sensor_seq"] = 100 + r.level  # each a new frame
+        frame["tsi_position_m"] = r.tsi_position_m
+        frame["pressure_pa"], frame["stiffness_pa"], frame["dL_m"] = r.pressure_pa, r.stiffness_pa, r.dL_m
+        return frame
+
+    pressure = window.findChild(TactileMapWidget, "pressureMap")
+    stiffness = window.findChild(TactileMapWidget, "stiffnessMap")
+    pressure.findChild(QtWidgets.QCheckBox, "contrastView").setChecked(True)
+    stiffness.set_contrast_view(True)
+    push(controller, make_tick(t_s=0.5), frame=frame_of(record(9, 0, 2.0, 0.060)))
+    assert pressure.findChild(QtWidgets.QCheckBox, "contrastView").isChecked() and pressure.contrast_view()
+    assert not pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
+    plot = pressure.findChild(QtWidgets.QGraphicsView, "plot")
+    text_item = next(i for i in plot.scene().items() if isinstance(i, QtCore.QObject) and i.objectName() == "noDataText")
+    assert text_item.isVisible() and text_item.textItem.toPlainText() == NO_CONTRAST_TEXT
+    for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
+        events = [LevelRecorded(10.0 * region + k, record(region, k, f, x)) for k, f in enumerate((1.0, 2.0, 3.0))]
+        push(controller, make_tick(t_s=1.0 + region), events=events + [RegionDone(10.0 * region + 3, region, 3)])
+
+    push(controller, make_tick(t_s=6.0), frame=frame_of(record(9, 1, 2.0, 0.044)))  # healthy tissue
+    assert not text_item.isVisible() and pressure.contrast_spots() == ()
+    assert float(label(pressure, "maxLabel").text().split()[1].rstrip("%")) < 10  # no edge rows left
+    push(controller, make_tick(t_s=7.0), frame=frame_of(record(9, 2, 3.0, 0.052, tumour=True)))
+    for widget in (pressure, stiffness):
+        assert len(widget.contrast_spots()) == 1
+        (i, j), = widget.contrast_spots()
+        assert abs(i - 1.5) <= 1 and abs(j - 7) <= 1  # under the face's centre, where the tumour is
+    pressure.set_contrast_view(False)
+    assert pressure.contrast_spots() == () and label(pressure, "maxLabel").text().endswith("kPa")
+    assert pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
