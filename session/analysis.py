@@ -74,14 +74,14 @@ class SessionAnalysis:
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)
-        if session.ground_truth:
+        if _truth_known(session):
             analysis.matches, analysis.false_positives = match_ground_truth(tumours, session.ground_truth, levels,
                                                                             session.pitch_m)
         return analysis
 
     @property
     def has_ground_truth(self) -> bool:
-        return bool(self.session.ground_truth)
+        return _truth_known(self.session)
 
     def found_count(self) -> dict[str, int]:
         """True tumours found, per map."""
@@ -94,3 +94,9 @@ class SessionAnalysis:
     def truth_of(self, detection: int) -> TruthMatch | None:
         """The true tumour a detection (index into :attr:`tumours`) was matched to, if any."""
         return next((m for m in self.matches if m.found and m.detection == detection), None)
+
+
+def _truth_known(session: Session) -> bool:
+    """Whether the session knows where every tumour is: a simulated phantom's list is its whole truth, so a
+    phantom without tumours makes every detection a false positive (a real session's list is empty)."""
+    return bool(session.ground_truth) or (session.simulated and session.phantom is not None)

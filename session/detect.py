@@ -253,7 +253,28 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
                               score=lead.score, contrast=max(s.contrast for s in strongest),
                               levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
                               spots=tuple(s for cluster in run for s in cluster)))
-    return sorted(tumours, key=lambda t: (t.x_m, t.y_m))
+    return sorted(_merged(tumours, params.merge_radius_m, levels, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
+
+
+def _merged(tumours: list[Tumour], radius_m: float, levels: np.ndarray, groups, pitch_m: float) -> list[Tumour]:
+    """One tumour for tracks whose fitted centres lie within ``radius_m``: spots of two areas on either side of
+    a tumour can start two tracks (each centroid pulled towards its own face), which the blob fit, seeing both
+    areas, then places on the same tumour. The stronger keeps its place and score; the levels are the union,
+    so the first level (and the paper's depth with it) is the earlier one's."""
+    out: list[Tumour] = []
+    for t in sorted(tumours, key=lambda t: -t.score):
+        near = next((k for k, kept in enumerate(out) if math.hypot(t.x_m - kept.x_m, t.y_m - kept.y_m) <= radius_m),
+                    None)
+        if near is None:
+            out.append(t)
+            continue
+        kept = out[near]
+        first_N = min(kept.first_level_N, t.first_level_N)
+        first = next(records for force, records in groups if force == first_N)
+        out[near] = replace(kept, first_level_N=first_N, depth_m=_depth_at(levels, first, kept.x_m, kept.y_m, pitch_m),
+                            levels_N=tuple(sorted(set(kept.levels_N) | set(t.levels_N))),
+                            contrast=max(kept.contrast, t.contrast), spots=kept.spots + t.spots)
+    return out
 
 
 def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, x_m: float, y_m: float,

@@ -4,7 +4,9 @@ the paper's depth rule."""
 from __future__ import annotations
 
 import math
+import shutil
 
+import h5py
 import numpy as np
 import pytest
 
@@ -114,6 +116,22 @@ def test_ground_truth_is_matched_within_2_mm_and_the_rest_are_false_positives():
     assert false_positives == {"stiffness": 1, "force": 0}
 
 
+def test_on_a_simulated_phantom_without_tumours_every_detection_is_a_false_positive(recorded, reference_recorded,
+                                                                                   tmp_path):
+    with open_session(reference_recorded) as ref:
+        share = np.ones(ref.levels["pressure_pa"].shape)
+        reference = Reference.from_levels(ref.levels, share, np.zeros(share.shape), "tumour-free", physics=False)
+    path = tmp_path / "no-tumours-listed.h5"
+    shutil.copy(recorded[0], path)
+    with h5py.File(path, "r+") as f:  # the phantom's list says: no tumour here
+        f["meta"].attrs["ground_truth_json"] = np.bytes_(b"[]")
+    with open_session(path) as s:
+        assert s.simulated and s.ground_truth == []
+        analysis = SessionAnalysis.run(s, reference=reference)
+    assert analysis.has_ground_truth and analysis.matches == []
+    assert analysis.false_positives == {"stiffness": 2, "force": 2} and len(analysis.tumours) == 4
+
+
 def test_the_recorded_session_shows_both_palpated_tumours_in_both_maps(recorded, reference_recorded):
     with open_session(reference_recorded) as ref:
         share = np.ones(ref.levels["pressure_pa"].shape)
@@ -132,3 +150,21 @@ def test_the_recorded_session_shows_both_palpated_tumours_in_both_maps(recorded,
         assert not by[(source, 2)].found and not by[(source, 2)].palpated  # x = 60 mm was never palpated
     stiffness = [t for t in analysis.tumours if t.source == "stiffness"]
     assert all(np.isfinite(t.depth_m) and t.levels_N == (0.5, 1.0, 1.5) for t in stiffness)
+
+
+def test_two_tracks_the_blob_fit_puts_on_one_tumour_are_one_tumour_first_seen_at_the_earlier_level():
+    from session.detect import _merged
+    from session.stitch import level_groups
+
+    levels = strip_session([1.0, 1.6, 1.6, 1.6])
+    groups = level_groups(levels)
+    early = Tumour(0.0201, 0.015, math.nan, 2.0, "stiffness", 6.0, 0.3, (2.0, 3.0, 4.0))
+    strong = Tumour(0.0199, 0.0152, math.nan, 3.0, "stiffness", 9.0, 0.5, (3.0, 4.0))
+    apart = Tumour(0.0300, 0.015, math.nan, 4.0, "stiffness", 5.0, 0.2, (4.0,))
+    merged = _merged([early, strong, apart], DetectParams().merge_radius_m, levels, groups, PITCH)
+    assert len(merged) == 2 and merged[1] == apart
+    one = merged[0]
+    assert (one.x_m, one.y_m, one.score, one.contrast) == (strong.x_m, strong.y_m, 9.0, 0.5)
+    assert one.first_level_N == 2.0 and one.levels_N == (2.0, 3.0, 4.0)
+    over_it_at_2N = [i for i in range(len(levels)) if levels["region"][i] == 1 and levels["level"][i] == 1][0]
+    assert one.depth_m == levels["indentation_m"][over_it_at_2N]
