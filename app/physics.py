@@ -41,6 +41,9 @@ Progress = Callable[[float, str], None]
 NU = 0.49  # nearly incompressible soft tissue and silicone (docs/phantoms.md)
 MESH_VERSION = 2  # bump when the block's mesh changes: cached compliances are keyed by it
 GRID_M = 1e-3  # the mesh's node spacing in the plane (MeshSettings' default)
+# How far the tissue may go on beyond the palpated extent: areas laid to cover it end within about half an
+# element's pitch of its end, and the mesh places an end on its node lines (GRID_M)
+EXTENT_SLACK_M = 1e-3
 # The onsets' own scatter (0.1-0.3 mm) is smoothed out of the block's surface, but not a bump's step.
 SMOOTHING_M = 0.5e-3
 # The rebuilt block's surface compliance is dense: 8,000 nodes (about 120 x 65 mm of palpated extent) is
@@ -207,8 +210,12 @@ class BlockResponse(HomogeneousTissue):
     def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
         shape = levels["pressure_pa"].shape
         if not measured_surface:
-            flat = np.stack([self._share(row, None) for row in levels]) if len(levels) else np.full(shape, np.nan)
-            return Pattern(flat, np.where(np.isfinite(flat), 0.0, np.nan))
+            flat = np.full(shape, np.nan)
+            sigma = np.full(shape, np.nan)
+            for k, row in enumerate(levels):
+                flat[k] = self._share(row, None)
+                sigma[k] = np.sqrt(self._extent_variance(row, None, flat[k]))
+            return Pattern(flat, np.where(np.isfinite(flat), sigma, np.nan))
         # An onset is where an element first touched: the highest point under it, or where a neighbour's load
         # leaking through the sensor's cover first reached the threshold. Where the surface falls away within
         # an element (a bump's flank, the edge of a gap) the truth lies between that and the lowest of its
@@ -237,8 +244,34 @@ class BlockResponse(HomogeneousTissue):
                 with np.errstate(invalid="ignore", divide="ignore"):
                     variance = variance + np.nan_to_num((self._share(row, raised) - base) / base) ** 2
             share[k] = base
-            sigma[k] = np.sqrt(variance)
+            sigma[k] = np.sqrt(variance + self._extent_variance(row, mid, base))
         return Pattern(share, np.where(np.isfinite(share), sigma, np.nan))
+
+    def _extent_variance(self, row, heights: np.ndarray | None, base: np.ndarray) -> np.ndarray:
+        """The share's relative variance from not knowing where the tissue ends. The block ends where the
+        palpated areas end; the tissue may go on beyond that by up to ``EXTENT_SLACK_M``, and an element
+        over a free end is loaded very differently from one a millimetre inside it (a face edge flush with
+        the end rides on a free edge; one a little short of it presses a punch's edge into the tissue). Where
+        the face reaches an end of the block, the change of every element's share if the tissue went on by
+        that much (the face that far inside the block) is counted as that element's uncertainty."""
+        variance = np.zeros(base.shape)
+        rows, cols = self.shape
+        reach = ((self.block.length_m, rows * self.pitch_m), (self.block.width_m, cols * self.pitch_m))
+        lo = self._face_lo(row)
+        for axis, (extent, span) in enumerate(reach):
+            near_end = lo[axis] * GRID_M
+            far_end = extent - near_end - span
+            for gap, inward in ((near_end, 1.0), (far_end, -1.0)):
+                other = far_end if inward > 0 else near_end
+                if gap > EXTENT_SLACK_M / 2 or other < EXTENT_SLACK_M:  # not at this end, or no room to move
+                    continue
+                moved = row.copy()
+                moved["tsi_position_m"][axis] += inward * EXTENT_SLACK_M
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    change = self._share(moved, heights) / base
+                    change = change / np.nanmedian(change)  # the flat field fits each record's scale itself
+                variance = variance + np.nan_to_num(change - 1.0) ** 2
+        return variance
 
     def _share(self, row, heights: np.ndarray | None) -> np.ndarray:
         """The normalised element forces of one record: the face on ``heights`` (undeformed surface height
