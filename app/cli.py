@@ -108,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f"the tactile array: {SENSOR_FLAG}; udp (default) is forwarded by the slave; "
                       "other [hardware.sensor] keys of the config (calibration, baud, ...) are kept")
     run.add_argument("--screenshot", metavar="PNG", help="save the window to PNG after --screenshot-after-s, then quit")
-    run.add_argument("--screenshot-after-s", type=float, default=10.0)
+    run.add_argument("--screenshot-after-s", type=float, default=10.0, metavar="SECONDS",
+                     help="how long after the window opens --screenshot is taken (default 10)")
     run.set_defaults(func=cmd_run)
 
     sim = sub.add_parser("simulate", help="palpate a phantom headlessly and print every recorded level")

@@ -50,6 +50,8 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
 
 def analysis_params(args) -> AnalysisParams:
     """Raises StitchError / DetectError naming the bad option."""
+    if args.l0 == L0Source.FIXED.value and args.l0_mm is None:
+        raise StitchError("--l0 fixed needs --l0-mm, the tissue thickness in mm")
     stitch = StitchParams(cell_m=args.cell_mm * 1e-3, l0_source=args.l0,
                           l0_fixed_m=None if args.l0_mm is None else args.l0_mm * 1e-3)
     detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy)
@@ -108,11 +110,11 @@ def stitch_parser() -> argparse.ArgumentParser:
         description="Stitch a recorded session into whole-tissue maps per force level, find the tumours and "
                     "their depth, and export the results.")
     parser.add_argument("file", type=Path, help="a session file (.h5)")
-    parser.add_argument("-o", "--output", type=Path, help="PNG with the force and stiffness maps at every level")
+    parser.add_argument("-o", "--output", type=Path, help="PNG (.png) with the force and stiffness maps at every level")
     parser.add_argument("--csv", type=Path, help="the maps as CSV (one row per cell and level)")
     parser.add_argument("--json", type=Path, help="the maps as JSON")
     parser.add_argument("--tumours", type=Path, help="the tumours found, as JSON")
-    parser.add_argument("--report", type=Path, help="one-page report: PDF for a .pdf name, else PNG")
+    parser.add_argument("--report", type=Path, help="one-page report, PDF (.pdf) or PNG (.png)")
     parser.add_argument("--save-reference", type=Path, metavar="FILE",
                         help="this session palpated tumour-free tissue: save its per-element baseline as a "
                              "reference palpation (JSON) for --reference")
@@ -154,6 +156,10 @@ def stitch_main(argv: list[str] | None = None) -> int:
     except (StitchError, DetectError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_INPUT
+    problem = _output_problem(args)
+    if problem:  # before the analysis, not after it
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_OUTPUT
     try:
         session = open_session(args.file)
     except SessionFileError as err:
@@ -191,6 +197,26 @@ def stitch_main(argv: list[str] | None = None) -> int:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_OUTPUT
     return EXIT_OK
+
+
+# the outputs whose kind the name's suffix decides
+_SUFFIXES = {"output": (".png",), "report": (".pdf", ".png")}
+
+
+def _output_problem(args) -> str:
+    """Why an output cannot be written where it is asked (a folder that does not exist, a kind the command
+    does not write), or ''."""
+    for dest, option in (("output", "-o"), ("csv", "--csv"), ("json", "--json"), ("tumours", "--tumours"),
+                         ("report", "--report"), ("save_reference", "--save-reference")):
+        path = getattr(args, dest)
+        if path is None:
+            continue
+        if not path.parent.is_dir():
+            return f"{option} {path}: the folder {path.parent} does not exist"
+        allowed = _SUFFIXES.get(dest)
+        if allowed and path.suffix.lower() not in allowed:
+            return f"{option} {path}: name it {' or '.join(allowed)} (the suffix decides what is written)"
+    return ""
 
 
 def save_reference(path: Path, analysis: SessionAnalysis) -> None:

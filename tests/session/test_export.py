@@ -77,6 +77,8 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert stitch_main([str(recorded[0]), "--cell-mm", "0"]) == 2
     assert "cell size must be between 0.1 and 20 mm" in capsys.readouterr().err
     assert stitch_main([str(recorded[0]), "--l0", "fixed"]) == 2
+    assert capsys.readouterr().err == "error: --l0 fixed needs --l0-mm, the tissue thickness in mm\n"
+    assert stitch_main([str(recorded[0]), "--l0", "fixed", "--l0-mm", "-3"]) == 2
     assert "needs a tissue thickness" in capsys.readouterr().err
     assert stitch_main([str(recorded[0]), "--l0", "guess"]) == 2  # argparse's own message
     assert "invalid choice: 'guess'" in capsys.readouterr().err
@@ -89,11 +91,23 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert "not a Palpation Console reference palpation" in capsys.readouterr().err
 
 
-def test_an_unwritable_output_is_reported(recorded, tmp_path, capsys, qapp):
+def test_an_output_that_cannot_be_written_is_refused_before_the_analysis(recorded, tmp_path, capsys, monkeypatch):
+    import app.session_commands as commands
+
+    monkeypatch.setattr(commands, "analyse", lambda *_: pytest.fail("analysed before the outputs were checked"))
     missing = tmp_path / "no" / "such" / "folder"
-    assert stitch_main([str(recorded[0]), "--tumours", str(missing / "t.json")]) == 1
-    assert f"cannot write {missing / 't.json'}" in capsys.readouterr().err
-    assert stitch_main([str(recorded[0]), "-o", str(missing / "maps.png")]) == 1
+    for option, name in (("--tumours", "t.json"), ("-o", "maps.png"), ("--report", "r.pdf"), ("--csv", "m.csv"),
+                         ("--save-reference", "ref.json")):
+        assert stitch_main([str(recorded[0]), option, str(missing / name)]) == 1
+        assert capsys.readouterr().err == f"error: {option} {missing / name}: the folder {missing} does not exist\n"
+    assert stitch_main([str(recorded[0]), "--report", str(tmp_path / "r.docx")]) == 1
+    assert capsys.readouterr().err == f"error: --report {tmp_path / 'r.docx'}: name it .pdf or .png (the suffix " \
+                                      "decides what is written)\n"
+    assert stitch_main([str(recorded[0]), "-o", str(tmp_path / "maps.jpg")]) == 1
+    assert "name it .png" in capsys.readouterr().err
+
+
+def test_an_output_that_fails_while_written_is_reported(recorded, tmp_path, capsys, qapp):
+    (tmp_path / "taken.png").mkdir()  # a folder where the picture should go
+    assert stitch_main([str(recorded[0]), "--physics", "none", "-o", str(tmp_path / "taken.png")]) == 1
     assert "Qt could not save the image" in capsys.readouterr().err
-    assert stitch_main([str(recorded[0]), "--report", str(missing / "r.pdf")]) == 1
-    assert "does not exist" in capsys.readouterr().err
