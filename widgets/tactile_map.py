@@ -245,7 +245,8 @@ class TactileMapWidget(QtWidgets.QWidget):
         bar.addSpacing(12)
         bar.addWidget(self._lock)
         bar.addWidget(self._min_spin)
-        bar.addWidget(QtWidgets.QLabel("to"))
+        self._to_label = QtWidgets.QLabel("to")
+        bar.addWidget(self._to_label)
         bar.addWidget(self._max_spin)
         bar.addWidget(self._level_error)
         self._bar_layout = bar
@@ -424,10 +425,10 @@ class TactileMapWidget(QtWidgets.QWidget):
             return
         self._contrast_on = on
         self._contrast_box.setChecked(on)
-        # a contrast's range is always symmetric about healthy tissue: nothing to lock
+        # a contrast's range is always symmetric about healthy tissue: nothing to lock or type in
         self._lock.setEnabled(not on)
-        self._min_spin.setEnabled(self._locked and not on)
-        self._max_spin.setEnabled(self._locked and not on)
+        for widget in (self._min_spin, self._to_label, self._max_spin):
+            widget.setVisible(not on)
         self._bar.getAxis("left").setLabel("% over healthy" if on else "kPa")
         if not on:
             self._bar.setLevels(self._levels_kpa, update_items=False)

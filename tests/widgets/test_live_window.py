@@ -580,6 +580,7 @@ def test_the_live_maps_show_the_frame_flat_fielded_with_its_significant_spot_cir
     push(controller, make_tick(t_s=0.5), frame=frame_of(record(9, 0, 2.0, 0.060)))
     assert pressure.findChild(QtWidgets.QCheckBox, "contrastView").isChecked() and pressure.contrast_view()
     assert not pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
+    assert pressure.findChild(QtWidgets.QDoubleSpinBox, "levelMax").isHidden()  # no kPa beside a % map
     plot = pressure.findChild(QtWidgets.QGraphicsView, "plot")
     text_item = next(i for i in plot.scene().items() if isinstance(i, QtCore.QObject) and i.objectName() == "noDataText")
     assert text_item.isVisible() and text_item.textItem.toPlainText() == NO_CONTRAST_TEXT
@@ -598,3 +599,4 @@ def test_the_live_maps_show_the_frame_flat_fielded_with_its_significant_spot_cir
     pressure.set_contrast_view(False)
     assert pressure.contrast_spots() == () and label(pressure, "maxLabel").text().endswith("kPa")
     assert pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
+    assert not pressure.findChild(QtWidgets.QDoubleSpinBox, "levelMax").isHidden()
