@@ -246,42 +246,49 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
         run = [track[k] for k in range(first, top + 1)]
         strongest = max(run, key=lambda cluster: cluster[0].score)
         lead = strongest[0]
-        x, y = _blob_centre(levels, contrast, groups[lead.level_index][1], lead.x_m, lead.y_m, pitch_m,
+        x, y = _blob_centre(levels, contrast, groups[lead.level_index][1], [(lead.x_m, lead.y_m)], pitch_m,
                             params.fit_radius_m)
         depth = _depth_at(levels, groups[first][1], x, y, pitch_m)
         tumours.append(Tumour(x_m=x, y_m=y, depth_m=depth, first_level_N=groups[first][0], source=contrast.map,
                               score=lead.score, contrast=max(s.contrast for s in strongest),
                               levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
                               spots=tuple(s for cluster in run for s in cluster)))
-    return sorted(_merged(tumours, params.merge_radius_m, levels, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
+    return sorted(_merged(tumours, params, levels, contrast, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
 
 
-def _merged(tumours: list[Tumour], radius_m: float, levels: np.ndarray, groups, pitch_m: float) -> list[Tumour]:
-    """One tumour for tracks whose fitted centres lie within ``radius_m``: spots of two areas on either side of
-    a tumour can start two tracks (each centroid pulled towards its own face), which the blob fit, seeing both
-    areas, then places on the same tumour. The stronger keeps its place and score; the levels are the union,
-    so the first level (and the paper's depth with it) is the earlier one's."""
+def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, contrast: Contrast, groups,
+            pitch_m: float) -> list[Tumour]:
+    """One tumour for tracks whose fitted centres lie within the merge radius: spots of two areas on either
+    side of a tumour can start two tracks (each centroid pulled towards its own face), which the blob fit
+    then places near the same tumour, each from the elements around its own place. The merged tumour is
+    fitted again, at the stronger one's level, from both places over the elements around either, and put
+    where the better fit puts it; it keeps the stronger one's score, and the levels are the union, so the
+    first level (and the paper's depth with it) is the earlier one's."""
     out: list[Tumour] = []
+    radius = params.merge_radius_m
     for t in sorted(tumours, key=lambda t: -t.score):
-        near = next((k for k, kept in enumerate(out) if math.hypot(t.x_m - kept.x_m, t.y_m - kept.y_m) <= radius_m),
-                    None)
+        near = next((k for k, kept in enumerate(out) if math.hypot(t.x_m - kept.x_m, t.y_m - kept.y_m) <= radius), None)
         if near is None:
             out.append(t)
             continue
         kept = out[near]
+        lead = max(kept.spots, key=lambda spot: spot.score)
+        x, y = _blob_centre(levels, contrast, groups[lead.level_index][1], [(kept.x_m, kept.y_m), (t.x_m, t.y_m)],
+                            pitch_m, params.fit_radius_m)
         first_N = min(kept.first_level_N, t.first_level_N)
         first = next(records for force, records in groups if force == first_N)
-        out[near] = replace(kept, first_level_N=first_N, depth_m=_depth_at(levels, first, kept.x_m, kept.y_m, pitch_m),
+        out[near] = replace(kept, x_m=x, y_m=y, first_level_N=first_N, depth_m=_depth_at(levels, first, x, y, pitch_m),
                             levels_N=tuple(sorted(set(kept.levels_N) | set(t.levels_N))),
                             contrast=max(kept.contrast, t.contrast), spots=kept.spots + t.spots)
     return out
 
 
-def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, x_m: float, y_m: float,
+def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, starts: list[tuple[float, float]],
                  pitch_m: float, radius_m: float) -> tuple[float, float]:
-    """Where a Gaussian blob fitted to the contrast within ``radius_m`` of (x, y), over every element of every
-    record at that level, peaks (weighted least squares; the first position again if the fit fails or
-    leaves the fitted region)."""
+    """Where a Gaussian blob fitted to the contrast within ``radius_m`` of the starting points, over every
+    element of every record at that level, peaks (weighted least squares). From several starts (two tracks
+    of one tumour), every fit sees the same elements and the one that explains them best is kept; the first
+    start again if every fit fails or leaves its fitted region."""
     from scipy.optimize import least_squares
 
     rows, cols = levels.dtype["pressure_pa"].shape
@@ -291,28 +298,33 @@ def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, x_
         ex = levels["tsi_position_m"][r, 0] + offsets[..., 0]
         ey = levels["tsi_position_m"][r, 1] + offsets[..., 1]
         c, s = contrast.contrast[r], contrast.sigma[r]
-        use = (np.hypot(ex - x_m, ey - y_m) <= radius_m) & np.isfinite(c) & np.isfinite(s) & (s > 0)
+        near = np.zeros(ex.shape, bool)
+        for x_m, y_m in starts:
+            near |= np.hypot(ex - x_m, ey - y_m) <= radius_m
+        use = near & np.isfinite(c) & np.isfinite(s) & (s > 0)
         xs.append(ex[use]), ys.append(ey[use]), cs.append(c[use]), ws.append(1.0 / s[use])
     x, y, c, w = (np.concatenate(v) for v in (xs, ys, cs, ws))
     if len(c) < 5 or not (c > 0).any():
-        return x_m, y_m
+        return starts[0]
 
     def residual(p):
         height, cx, cy, log_width = p
         width = math.exp(log_width)
         return w * (height * np.exp(-0.5 * ((x - cx) ** 2 + (y - cy) ** 2) / width ** 2) - c)
 
-    start = (float(c.max()), x_m, y_m, math.log(pitch_m))
-    lower = (0.0, x_m - radius_m, y_m - radius_m, math.log(0.5 * pitch_m))
-    upper = (np.inf, x_m + radius_m, y_m + radius_m, math.log(4 * radius_m))
-    try:
-        fit = least_squares(residual, start, bounds=(lower, upper), max_nfev=200)
-    except (ValueError, np.linalg.LinAlgError):
-        return x_m, y_m
-    cx, cy = float(fit.x[1]), float(fit.x[2])
-    if not fit.success or math.hypot(cx - x_m, cy - y_m) >= radius_m * 0.999:
-        return x_m, y_m
-    return cx, cy
+    best, best_cost = starts[0], math.inf
+    for x_m, y_m in starts:
+        start = (float(c.max()), x_m, y_m, math.log(pitch_m))
+        lower = (0.0, x_m - radius_m, y_m - radius_m, math.log(0.5 * pitch_m))
+        upper = (np.inf, x_m + radius_m, y_m + radius_m, math.log(4 * radius_m))
+        try:
+            fit = least_squares(residual, start, bounds=(lower, upper), max_nfev=200)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        cx, cy = float(fit.x[1]), float(fit.x[2])
+        if fit.success and math.hypot(cx - x_m, cy - y_m) < radius_m * 0.999 and fit.cost < best_cost:
+            best, best_cost = (cx, cy), float(fit.cost)
+    return best
 
 
 def _highest_level_at(levels: np.ndarray, groups, x_m: float, y_m: float, pitch_m: float) -> int | None:

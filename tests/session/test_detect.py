@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import shutil
+from dataclasses import replace
 
 import h5py
 import numpy as np
@@ -158,13 +159,20 @@ def test_two_tracks_the_blob_fit_puts_on_one_tumour_are_one_tumour_first_seen_at
 
     levels = strip_session([1.0, 1.6, 1.6, 1.6])
     groups = level_groups(levels)
-    early = Tumour(0.0201, 0.015, math.nan, 2.0, "stiffness", 6.0, 0.3, (2.0, 3.0, 4.0))
-    strong = Tumour(0.0199, 0.0152, math.nan, 3.0, "stiffness", 9.0, 0.5, (3.0, 4.0))
+    found = found_in(levels)
+    assert len(found) == 1
+    lead = max(found[0].spots, key=lambda spot: spot.score)
+    # the same tumour seen as two tracks, each placed a little off it, the stronger from 3 N on
+    early = replace(found[0], x_m=TUMOUR[0] - 2.5e-3, first_level_N=2.0, score=6.0, contrast=0.3,
+                    levels_N=(2.0, 3.0, 4.0), spots=(replace(lead, score=6.0),))
+    strong = replace(found[0], x_m=TUMOUR[0] + 1.2e-3, first_level_N=3.0, score=9.0, contrast=0.5,
+                     levels_N=(3.0, 4.0), spots=(replace(lead, score=9.0),))
     apart = Tumour(0.0300, 0.015, math.nan, 4.0, "stiffness", 5.0, 0.2, (4.0,))
-    merged = _merged([early, strong, apart], DetectParams().merge_radius_m, levels, groups, PITCH)
+    merged = _merged([early, strong, apart], DetectParams(), levels, contrast(levels, "stiffness"), groups, PITCH)
     assert len(merged) == 2 and merged[1] == apart
     one = merged[0]
-    assert (one.x_m, one.y_m, one.score, one.contrast) == (strong.x_m, strong.y_m, 9.0, 0.5)
+    assert math.hypot(one.x_m - TUMOUR[0], one.y_m - TUMOUR[1]) < 1e-3  # fitted again: on the tumour
+    assert (one.score, one.contrast) == (9.0, 0.5)
     assert one.first_level_N == 2.0 and one.levels_N == (2.0, 3.0, 4.0)
     over_it_at_2N = [i for i in range(len(levels)) if levels["region"][i] == 1 and levels["level"][i] == 1][0]
     assert one.depth_m == levels["indentation_m"][over_it_at_2N]
