@@ -14,6 +14,7 @@ from PySide6 import QtCore
 from app.config import AppConfig
 from app.fastforward import FastForward, FastForwardTimeout
 from app.rigs import RigSpec, build_rig
+from control.messages import ClearFault, FaultCleared, FaultRaised
 from hardware.rig import Rig
 from hardware.settings import ConfigError
 from session.info import SessionInfo, calibration_of, new_session_path, sessions_dir, software_version
@@ -148,6 +149,9 @@ class SessionRecording(QtCore.QObject):
         self.close()
 
 
+OPERATOR_CLEARS_S = 2.0  # a scripted operator's time to read a fault and clear it
+
+
 def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = None, max_time_s: float = 900.0,
                       chunk_s: float = 0.1, **recorder_options) -> RecorderStatus:
     """Palpate every area of the configured phantom and record it to ``path``; returns the recorder's status.
@@ -155,6 +159,11 @@ def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = 
     ``rig``: a simulated rig built for ``config`` (to choose its tissue model, say); built from the config
     when not given. Raises ConfigError if the rig has no scripted operator, FastForwardTimeout if the operator
     has not finished after ``max_time_s`` of simulated time (the file is still closed cleanly).
+
+    A fault (a ceiling reached on a bump's crest, say) ends the area it happened in, as at the console; the
+    operator reads it and clears it ``OPERATOR_CLEARS_S`` later (again as often, while the loop still refuses,
+    the probe not yet lifted clear), and goes on with the next area, so one fault does not leave the rest of
+    the tissue unpalpated.
     """
     if chunk_s <= 0:
         raise ValueError(f"chunk_s must be > 0, got {chunk_s!r}")
@@ -165,11 +174,20 @@ def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = 
     recorder = SessionRecorder(path, session_info(config, rig), **recorder_options)
     try:
         with FastForward(config.control, rig) as ff:
+            clear_at = None
             while not operator.finished:
                 if ff.now_s > max_time_s:
                     raise FastForwardTimeout(f"the scripted operator had not finished after {max_time_s:g} s of "
                                              f"simulated time ({len(operator.outcomes)} areas done)")
+                if clear_at is not None and ff.now_s >= clear_at:
+                    ff.send(ClearFault())
+                    clear_at = ff.now_s + OPERATOR_CLEARS_S
                 ff.run_for(chunk_s)
+                for event in ff.events:
+                    if isinstance(event, FaultRaised):
+                        clear_at = event.t_s + OPERATOR_CLEARS_S
+                    elif isinstance(event, FaultCleared):
+                        clear_at = None
                 recorder.add_ticks(ff.ticks)
                 recorder.add_frames(ff.frames)
                 recorder.add_events(ff.events)

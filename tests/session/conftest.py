@@ -24,13 +24,19 @@ REGIONS_XY_M = ((0.012, 0.015), (0.018, 0.015), (0.036, 0.015))
 RAMP = {"force_min_N": 0.5, "force_max_N": 1.5, "force_step_N": 0.5}
 
 
-def _record(folder, name: str, with_tumours: bool):
+def _phantom_file(folder, name: str, with_tumours: bool):
+    """The paper's flat phantom with only the three areas of :data:`REGIONS_XY_M`, as a file in ``folder``."""
     phantom = tomllib.loads((PHANTOM_DIR / "flat.toml").read_text(encoding="utf-8"))
     phantom["phantom"]["regions"] = [{"centre_xy_m": list(xy)} for xy in REGIONS_XY_M]
     if not with_tumours:
         phantom["phantom"].pop("inclusions", None)
     phantom_path = folder / f"{name}.toml"
     phantom_path.write_text(tomli_w.dumps(phantom), encoding="utf-8")
+    return phantom_path
+
+
+def _record(folder, name: str, with_tumours: bool):
+    phantom_path = _phantom_file(folder, name, with_tumours)
     config = load_config(None, {"control": {"ramp": RAMP}, "rig": {"phantom": str(phantom_path)}})
     three_areas = load_phantom(phantom_path)
     rig = build_sim_rig(three_areas, tissue=WinklerTissue(three_areas, TactileConstraints()))
