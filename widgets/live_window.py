@@ -104,7 +104,10 @@ QLabel#loopHealth[degraded="true"] { color: #ffc37a; font-weight: bold; }
 
 def _fmt(value: float, unit: str, decimals: int = 2, scale: float = 1.0) -> str:
     v = float(value)
-    return f"{v * scale:.{decimals}f} {unit}" if math.isfinite(v) else "—"
+    if not math.isfinite(v):
+        return "—"
+    # adding 0.0 turns the -0.0 a small negative reading rounds to into 0.0: a sign no digit carries is noise
+    return f"{round(v * scale, decimals) + 0.0:.{decimals}f} {unit}"
 
 
 def dark_palette() -> QtGui.QPalette:

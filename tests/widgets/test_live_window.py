@@ -140,6 +140,12 @@ def test_readouts_follow_the_snapshot(window, controller):
     assert label(window, "forceDesired").text() == "3.00 N"
     assert label(window, "forceMeasured").text() == "2.97 N"
     assert label(window, "indentation").text() == "2.4 mm"
+    push(controller, make_tick(force_measured_N=-0.003))  # sensor noise in air
+    assert label(window, "forceMeasured").text() == "0.00 N"
+    push(controller, make_tick(force_measured_N=-0.02))
+    assert label(window, "forceMeasured").text() == "-0.02 N"
+    push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, force_desired_N=3.0,
+                               force_measured_N=2.968, rmse_N=0.042, indentation_m=2.4e-3))
     ladder = window.findChild(LevelLadder, "levelLadder")
     assert ladder.recorded() == 2 and ladder.current() == 2  # levels 1 and 2 recorded, 3 settling
 
