@@ -276,3 +276,12 @@ def test_the_whole_tissue_page_fits_a_laptop_screen(qtbot, window, recorded, ref
     assert hint.width() <= 1280 and hint.height() <= 800, hint
     for name in ("stitchedMap", "contrastMap"):  # however long the title, a map can narrow
         assert window.findChild(QtWidgets.QWidget, name).minimumSizeHint().width() <= 400
+
+
+def test_quit_closes_the_reviewer(qtbot, window):
+    window.show()
+    qtbot.waitExposed(window)
+    quit_action = window.findChild(QtGui.QAction, "quitAction")
+    assert quit_action.shortcut() == QtGui.QKeySequence(QtGui.QKeySequence.StandardKey.Quit)
+    quit_action.trigger()
+    assert not window.isVisible()

@@ -260,6 +260,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._export_report_action = menu.addAction("Export &report (PDF)…", self._export_report_dialog)
         menu.addSeparator()
         menu.addAction("&Close session", QtGui.QKeySequence.StandardKey.Close, self.close_session)
+        # the reviewer's window is the whole application under `review`, one of the console's windows in it
+        quit_action = menu.addAction("&Quit", QtGui.QKeySequence.StandardKey.Quit, self.close)
+        quit_action.setObjectName("quitAction")
         self._set_exports_enabled(False)
 
     def _set_exports_enabled(self, on: bool) -> None:
