@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -66,11 +67,27 @@ def _config(args):
     return load_config(args.config, config_overrides(args))
 
 
+def display_problem(environ=os.environ) -> str:
+    """Why Qt could not open the console's window here, or '' (told before the tissue model is built, not
+    after, by Qt's abort)."""
+    if environ.get("QT_QPA_PLATFORM"):  # a platform was chosen (offscreen, vnc, ...): Qt says if it fails
+        return ""
+    if sys.platform.startswith("linux") and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
+        return ("no display to open the console on (neither DISPLAY nor WAYLAND_DISPLAY is set): run it under a "
+                "virtual one (xvfb-run -a palpation-console run), or set QT_QPA_PLATFORM=offscreen for a "
+                "headless check")
+    return ""
+
+
 def cmd_run(args) -> int:
     from app.gui import run_gui
     from app.rigs import prepare_rig
     from hardware.sim.mechanics.progress import TextProgressBar
 
+    problem = display_problem()
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     config = _config(args)
     prepare_rig(config.rig, TextProgressBar())  # first use of a phantom: precompute its tissue model here
     return run_gui(config, screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)

@@ -107,3 +107,23 @@ def test_every_delegated_subcommand_reaches_its_own_parser(capsys):
             code = stop.code
         assert code == 0, name
         assert f"usage: palpation-console {name}" in capsys.readouterr().out
+
+
+def test_run_without_a_display_says_what_to_do_before_building_anything(monkeypatch, capsys):
+    import sys
+
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.setattr("app.rigs.prepare_rig", lambda *_: pytest.fail("the tissue model was built first"))
+    assert main(["run"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no display to open the console on") and "xvfb-run" in err
+    assert "QT_QPA_PLATFORM=offscreen" in err and err.count("\n") == 1
+    monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")  # a platform chosen: Qt is left to it
+    from app.cli import display_problem
+
+    assert display_problem() == ""
+    monkeypatch.delenv("QT_QPA_PLATFORM")
+    monkeypatch.setenv("DISPLAY", ":99")
+    assert display_problem() == ""
