@@ -148,6 +148,13 @@ def threshold(false_alarm: float, shape: tuple[int, int], pitch_m: float, widths
     return float(np.quantile(largest, 1.0 - false_alarm))
 
 
+def significant_peaks(z: np.ndarray, limit: float) -> np.ndarray:
+    """Where the statistic passes ``limit`` at a local maximum over its 8 neighbours (two tumours under one
+    face stay two): a boolean mask of the face."""
+    finite = np.nan_to_num(z, nan=-np.inf)
+    return (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+
+
 def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams) -> list[Spot]:
     """The significant spots of every level record."""
     shape = levels.dtype["pressure_pa"].shape
@@ -162,8 +169,7 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
     for r in range(len(levels)):
         c, s = contrast.contrast[r], contrast.sigma[r]
         z = evidence(c, s, pitch_m, params.kernel_widths_m)
-        finite = np.nan_to_num(z, nan=-np.inf)
-        peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+        peaks = significant_peaks(z, limit)
         tsi = levels["tsi_position_m"][r]
         near = np.hypot(offsets[..., 0][None, None] - offsets[..., 0][..., None, None],
                         offsets[..., 1][None, None] - offsets[..., 1][..., None, None])

@@ -22,12 +22,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS, DepthModel
-from session.detect import SOURCES, DetectParams, Tumour, detect, evidence, threshold
+from session.detect import SOURCES, DetectParams, Tumour, detect, evidence, significant_peaks, threshold
 from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, level_groups, stitch
@@ -125,10 +124,9 @@ class LiveMaps:
         params = self.detect_params
         sigma = np.maximum(np.nan_to_num(scatter, nan=0.0), params.accuracy)
         c = np.where(np.isfinite(c), c, np.nan)
-        z = evidence(c, np.where(np.isfinite(c), sigma, np.nan), self._sensor.pitch_m, params.kernel_widths_m)
+        z = evidence(c, sigma, self._sensor.pitch_m, params.kernel_widths_m)  # elements without contrast are left out
         limit = threshold(params.false_alarm_per_area, c.shape, self._sensor.pitch_m, params.kernel_widths_m)
-        finite = np.nan_to_num(z, nan=-np.inf)
-        peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+        peaks = significant_peaks(z, limit)
         return FrameContrast(c, z, tuple((int(i), int(j)) for i, j in zip(*np.nonzero(peaks))),
                              float(pattern.forces_N[k]))
 
