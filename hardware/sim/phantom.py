@@ -10,6 +10,12 @@ Schema (all lengths in m, moduli in Pa)::
     thickness_m = 0.025       # base surface height above the table
     youngs_modulus_pa = 20e3
     poisson_ratio = 0.49
+    sides = "free"            # optional: "free" (default) or "mould" (lateral faces on frictionless walls)
+
+    [phantom.material]        # optional: the law at finite strain; small strain is set by the modulus
+    law = "neo_hookean"       # default; or "yeoh", W = C1 (I1-3) + C2 (I1-3)^2 + C3 (I1-3)^3, C1 = mu/2,
+    # c2_over_c1 = -0.05      # with the ratios C2/C1 and C3/C1 (yeoh only, default 0)
+    # c3_over_c1 = 0.01
 
     [[phantom.surface]]       # optional features added to the base height
     kind = "half_cylinder"    # axis along x, centred at y = centre_y_m; adds sqrt(r^2 - (y-c)^2)
@@ -59,6 +65,11 @@ MAX_MODULUS_PA = 1e9
 FACE_SAMPLE_M = 0.5e-3
 
 
+SIDES = ("free", "mould")
+LAWS = ("neo_hookean", "yeoh")
+MAX_YEOH_RATIO = 100.0
+
+
 class PhantomError(ValueError):
     def __init__(self, source: str, key: str, problem: str):
         super().__init__(f"{source}: {key}: {problem}")
@@ -98,6 +109,15 @@ class Inclusion:
 
 
 @dataclass(frozen=True)
+class Hyperelastic:
+    """The strain energy at finite strain, relative to the small-strain shear modulus mu (C1 = mu / 2)."""
+
+    law: str = "neo_hookean"
+    c2_over_c1: float = 0.0
+    c3_over_c1: float = 0.0
+
+
+@dataclass(frozen=True)
 class Phantom:
     name: str
     description: str
@@ -109,6 +129,8 @@ class Phantom:
     surface: tuple[SurfaceFeature, ...] = ()
     inclusions: tuple[Inclusion, ...] = ()
     regions: tuple[tuple[float, float], ...] = ()
+    sides: str = "free"  # "mould": the lateral faces slide on frictionless walls (a phantom in its casting tray)
+    material: Hyperelastic = Hyperelastic()
     source: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def surface_height_m(self, x, y) -> np.ndarray:
@@ -197,6 +219,8 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
         youngs_modulus_pa=p.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue"),
         poisson_ratio=nu,
         surface=surface,
+        sides=p.choice("sides", SIDES, default="free"),
+        material=_material(p.optional_table("material")),
     )
     lowest = float(base.surface_height_m(*_footprint_grid(base)).min())
     if lowest < MIN_SURFACE_HEIGHT_M:
@@ -213,7 +237,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
     inclusions = tuple(inclusions)
     regions = tuple(_region(r, base) for r in p.list_of_tables("regions"))
     p.no_unknown({"name", "description", "length_m", "width_m", "thickness_m", "youngs_modulus_pa",
-                  "poisson_ratio", "surface", "inclusions", "regions"})
+                  "poisson_ratio", "surface", "inclusions", "regions", "sides", "material"})
     return Phantom(**{**base.__dict__, "inclusions": inclusions, "regions": regions, "source": data})
 
 
@@ -221,6 +245,24 @@ def _footprint_grid(phantom: Phantom, step_m: float = 0.25e-3) -> tuple[np.ndarr
     x = np.linspace(0.0, phantom.length_m, max(2, int(round(phantom.length_m / step_m)) + 1))
     y = np.linspace(0.0, phantom.width_m, max(2, int(round(phantom.width_m / step_m)) + 1))
     return np.meshgrid(x, y, indexing="ij")
+
+
+def _material(r: "_Reader | None") -> Hyperelastic:
+    if r is None:
+        return Hyperelastic()
+    law = r.choice("law", LAWS, default="neo_hookean")
+    if law == "neo_hookean":
+        r.no_unknown({"law"})
+        return Hyperelastic()
+    r.no_unknown({"law", "c2_over_c1", "c3_over_c1"})
+    c2 = r.number("c2_over_c1", default=0.0, bound=MAX_YEOH_RATIO)
+    c3 = r.number("c3_over_c1", default=0.0, bound=MAX_YEOH_RATIO)
+    # dW/dI1 = C1 (1 + 2 c2 x + 3 c3 x^2) must stay positive for every x = I1 - 3 >= 0, or the material
+    # would offer no resistance to some finite deformation
+    if c3 < 0 or (c2 < 0 and (c3 == 0 or c2 * c2 >= 3.0 * c3)):
+        r.fail("c2_over_c1", f"with c3_over_c1 = {c3:g}, the energy stops rising with I1 at some strain "
+                             f"(need c3_over_c1 >= 0 and c2_over_c1^2 < 3 c3_over_c1 when c2_over_c1 < 0)")
+    return Hyperelastic("yeoh", c2, c3)
 
 
 def _feature(r: "_Reader") -> SurfaceFeature:
@@ -296,6 +338,15 @@ class _Reader:
         if not isinstance(value, dict):
             self.fail(key, "missing table" if value is None else "must be a table")
         return _Reader(self.src, value, f"{self.prefix}{key}.")
+
+    def optional_table(self, key: str) -> "_Reader | None":
+        return self.table(key) if key in self.data else None
+
+    def choice(self, key: str, options: tuple[str, ...], default: str) -> str:
+        value = self.string(key, default)
+        if value not in options:
+            self.fail(key, f"must be one of {', '.join(options)}, got {value!r}")
+        return value
 
     def list_of_tables(self, key: str) -> list["_Reader"]:
         value = self.data.get(key, [])

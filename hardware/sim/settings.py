@@ -131,7 +131,7 @@ class SimSettings(Settings):
     substep_s: float = 1e-3  # the world's time grid (the robot sub-steps within it when its limits act)
     max_catchup_s: float = 0.1  # longest host stall integrated step by step; the rest is skipped
     tissue: str = "continuum"  # continuum (finite elements, hardware/sim/mechanics) | winkler (spring baseline)
-    finite_strain: bool = True  # continuum: stiffen element forces as the block does at finite strain
+    finite_strain: bool = True  # continuum: the reduced finite-strain model (hardware/sim/mechanics/model.py)
 
     _nested: ClassVar[dict[str, type[Settings]]] = {
         "sensor": SensorSimSettings,

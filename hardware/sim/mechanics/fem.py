@@ -330,6 +330,20 @@ def table_dofs(grid: HexGrid) -> np.ndarray:
     return fixed
 
 
+def wall_dofs(grid: HexGrid) -> np.ndarray:
+    """Boolean mask of the dofs fixed by frictionless walls at the block's four lateral faces (a phantom
+    left in its casting tray): no displacement through a wall, free sliding along it."""
+    fixed = np.zeros(3 * int(np.prod(grid.node_shape)), dtype=bool)
+    nx1, ny1, nz1 = grid.node_shape
+    j, k = np.meshgrid(np.arange(ny1), np.arange(nz1), indexing="ij")
+    for i in (0, nx1 - 1):
+        fixed[3 * grid.node_index(i, j, k).ravel()] = True
+    i, k = np.meshgrid(np.arange(nx1), np.arange(nz1), indexing="ij")
+    for j in (0, ny1 - 1):
+        fixed[3 * grid.node_index(i, j, k).ravel() + 1] = True
+    return fixed
+
+
 def condensed_surface_stiffness(grid: HexGrid, material: MaterialFn, mask: np.ndarray | None = None,
                                 progress: Progress | None = None, fixed: np.ndarray | None = None,
                                 leaf_dofs: int = 900) -> tuple[np.ndarray, np.ndarray]:

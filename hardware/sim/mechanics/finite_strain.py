@@ -1,22 +1,25 @@
-"""What small strain costs: the punch on a homogeneous block, solved again at finite strain.
+"""The face pressed into a block at finite strain: what the rig's reduced model is built on and checked against.
 
 A 10 mm indentation of a 25 mm layer is a 40 % compression under the face: far outside small strain.
-This module solves the same problem as the linear model for a homogeneous block with the TSI at its
-centre, but geometrically and materially nonlinear:
+:func:`punch` solves the problem of the linear model, a level face pressed into the middle of a block on
+the table, geometrically and materially nonlinear:
 
-* material: compressible neo-Hookean, ``W = mu/2 (J^-2/3 I1 - 3) + kappa/2 (J_bar - 1)^2``, whose
-  small-strain limit is the linear model's (same mu and kappa);
+* material: compressible neo-Hookean, ``W = mu/2 (J^-2/3 I1 - 3) + kappa/2 (J_bar - 1)^2``, or Yeoh (the
+  isochoric part ``C1 (I1b - 3) + C2 (I1b - 3)^2 + C3 (I1b - 3)^3``), whose small-strain limit is the
+  linear model's (same mu and kappa); moduli per Gauss point, so inclusions are meshed as in the linear
+  model;
 * elements: the same trilinear hexahedra, total Lagrangian, with the volumetric energy evaluated on
   the element's mean dilatation ``J_bar`` (the finite-strain form of the Q1/P0 element of Simo, Taylor
   & Pister 1985), so it does not lock either;
-* contact: the nodes under the face follow it down and slide freely (frictionless); the face is level
-  and the surface flat, so they stay in contact as long as they push on it, which is checked;
-* solution: Newton's method on load steps, with element tangents from complex-step differentiation of
-  the element forces (exact to rounding, no hand-derived geometric stiffness to get wrong).
+* contact: the nodes under the face follow it down and slide freely (frictionless), material drawn in
+  under the face's edge joins the contact and a node that pulls on the face leaves it;
+* sides free, or on frictionless walls (a phantom in its mould);
+* solution: Newton's method on load steps (halved when one does not converge), with element tangents
+  from complex-step differentiation of the element forces (exact to rounding, no hand-derived geometric
+  stiffness to get wrong).
 
-A quarter of the block is meshed (symmetry planes through the face's centre). The result is the
-ratio of the nonlinear to the linear force at each indentation, ``stiffening(d)``; the tissue model can
-apply it per element (see :class:`~hardware.sim.mechanics.model.MeshSettings`).
+A quarter of the block is meshed (symmetry planes through the face's centre). The result is every
+sensor element's force, linear and nonlinear, at each indentation (:class:`PunchSolution`).
 """
 
 from __future__ import annotations
@@ -28,8 +31,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from hardware.sim.mechanics.fem import _REF, HexGrid, element_dofs, graded_levels, table_dofs
+from hardware.sim.mechanics.fem import _REF, HexGrid, MaterialFn, element_dofs, graded_levels, table_dofs
+from hardware.sim.mechanics.contact import tributary_weights
 from hardware.sim.mechanics.progress import Progress
+from hardware.sim.phantom import Hyperelastic
 from hardware.sim.mechanics.validation import graded_line
 
 
@@ -49,13 +54,17 @@ def _cofactor(f):
     return c, det
 
 
-class NeoHookeanBlock:
-    """Element forces and tangents of a hexahedral grid at finite strain (see the module docstring)."""
+class HyperelasticBlock:
+    """Element forces and tangents of a hexahedral grid at finite strain (see the module docstring).
 
-    def __init__(self, grid: HexGrid, young_pa: float, nu: float):
+    ``material`` gives (E, nu) at points, as for the linear model: the shear modulus is taken per Gauss
+    point and the bulk modulus per element as ``volume / integral(1 / kappa)``, the linear element's own
+    mean, so that at rest the two elements agree whatever the inclusions. ``law`` scales the isochoric
+    stress by ``2 dW/dI1 / mu = 1 + 2 c2 x + 3 c3 x^2`` with ``x = J^-2/3 I1 - 3`` (Yeoh; 1 for neo-Hookean)."""
+
+    def __init__(self, grid: HexGrid, material: MaterialFn, law: Hyperelastic = Hyperelastic()):
         self.grid = grid
-        self.mu = young_pa / (2.0 * (1.0 + nu))
-        self.kappa = young_pa / (3.0 * (1.0 - 2.0 * nu))
+        self.c2, self.c3 = (law.c2_over_c1, law.c3_over_c1) if law.law == "yeoh" else (0.0, 0.0)
         coords = grid.node_coords().reshape(-1, 3)
         self.conn = grid.element_nodes()
         self.edofs = element_dofs(grid)
@@ -71,6 +80,9 @@ class NeoHookeanBlock:
         self.w0 = np.linalg.det(jac)  # Gauss weights are 1
         self.g0 = np.einsum("qaj,eqji->eqai", dn, np.linalg.inv(jac))  # dN_a/dX_i
         self.v0 = self.w0.sum(axis=1)
+        young, nu = (np.broadcast_to(v, self.w0.shape) for v in material(np.einsum("qa,eai->eqi", fac.prod(axis=2) / 8.0, xe)))
+        self.mu = young / (2.0 * (1.0 + nu))  # (nel, 8)
+        self.kappa = self.v0 / np.einsum("eq,eq->e", self.w0, 3.0 * (1.0 - 2.0 * nu) / young)  # (nel,)
         self.n_dofs = 3 * coords.shape[0]
 
     def element_forces(self, ue: np.ndarray) -> np.ndarray:
@@ -80,7 +92,9 @@ class NeoHookeanBlock:
         i1 = np.einsum("...ij,...ij->...", f, f)
         j23 = det ** (-2.0 / 3.0)
         # mu J^-2/3 (F - I1/3 F^-T), with F^-T = cof / J
-        p_iso = self.mu * j23[..., None, None] * (f - (i1 / (3.0 * det))[..., None, None] * cof)
+        x = j23 * i1 - 3.0
+        scale = self.mu * j23 * (1.0 + x * (2.0 * self.c2 + 3.0 * self.c3 * x))
+        p_iso = scale[..., None, None] * (f - (i1 / (3.0 * det))[..., None, None] * cof)
         j_bar = np.einsum("...eq,eq->...e", det, self.w0) / self.v0
         p = p_iso + (self.kappa * (j_bar - 1.0))[..., None, None, None] * cof  # kappa (J_bar - 1) J F^-T
         return np.einsum("...eqij,eqaj,eq->...eai", p, self.g0, self.w0)
@@ -119,20 +133,22 @@ class _NoConvergence(RuntimeError):
     pass
 
 
-def _contact_step(block, u, depth, active, fixed, top, top_x, initially_under, half_face, spacing_m):
+def _contact_step(block, u, depth, active, fixed, top, top_xy, initially_under, half_face, spacing_m):
     """Newton iterations with the contact set updated in the deformed configuration.
 
-    A top node is held on the face while it is under the face (its current x within the face) and
-    pushes on it; material drawn in under the face's edge joins the contact, and a node pulled away
-    from the face leaves it.
+    A top node is held on the face while it is under the face (its current x and y within the face's
+    half sizes ``half_face``) and pushes on it; material drawn in under the face's edge joins the
+    contact, and a node pulled away from the face leaves it.
     """
     zdof = 3 * top + 2
     for _ in range(60):
         f, kt = block.forces_and_tangent(u)
         reaction = -f[zdof]
-        current_x = top_x + u[3 * top]
+        current = np.abs(top_xy + np.stack([u[3 * top], u[3 * top + 1]], axis=1))
+        inside = np.all(current <= half_face, axis=1)
+        near = np.all(current <= half_face + 0.25 * spacing_m, axis=1)
         height = u[zdof] + depth  # > 0: above the face
-        grown = (active | ((current_x <= half_face) & (height > 0))) & (current_x <= half_face + 0.25 * spacing_m)
+        grown = (active | (inside & (height > 0))) & near
         released = grown & (reaction < 0) & (np.abs(height) < 1e-12) & ~initially_under
         new_active = grown & ~released
         cdofs = zdof[new_active]
@@ -161,26 +177,71 @@ def _contact_step(block, u, depth, active, fixed, top, top_x, initially_under, h
     raise _NoConvergence
 
 
-def punch_on_block(length_m: float, width_m: float, thickness_m: float, young_pa: float, nu: float,
-                   face_x_m: float = 8e-3, max_indentation_m: float = 12e-3, step_m: float = 0.5e-3,
-                   spacing_m: float = 1e-3, layers: int = 8, progress: Progress | None = None) -> StiffeningCurve:
-    """Force against indentation of a level face (``face_x_m`` along x, the block's whole width along y)
-    pressed into the centre of a homogeneous block bonded to the table, linear and at finite strain."""
-    half_l, half_w, half_face = length_m / 2.0, width_m / 2.0, face_x_m / 2.0
-    x = graded_line(half_face + 2e-3, spacing_m, half_l, growth=1.25)
-    y = np.linspace(0.0, half_w, max(2, int(round(half_w / (1.5 * spacing_m)))) + 1)
+SIDES = ("free", "mould")
+
+
+def homogeneous(young_pa: float, nu: float) -> MaterialFn:
+    def material(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(points.shape[:-1], young_pa), np.full(points.shape[:-1], nu)
+
+    return material
+
+
+@dataclass(frozen=True)
+class PunchSolution:
+    """A level face pressed into the centre of a block, at small and at finite strain, per sensor element."""
+
+    indentation_m: np.ndarray  # (n,) from 0, up to the last depth the finite-strain solution reached
+    linear_N_per_m: np.ndarray  # (rows, cols) element forces of the small-strain model per metre of indentation
+    nonlinear_N: np.ndarray  # (n, rows, cols) element forces at finite strain
+    all_compressive: bool  # every node under the face pushed on it at every step
+
+    def linear_N(self) -> np.ndarray:
+        return self.indentation_m[:, None, None] * self.linear_N_per_m[None]
+
+    def curve(self) -> StiffeningCurve:
+        return StiffeningCurve(self.indentation_m, self.linear_N().sum(axis=(1, 2)),
+                               self.nonlinear_N.sum(axis=(1, 2)), self.all_compressive)
+
+
+def punch(length_m: float, width_m: float, thickness_m: float, material: MaterialFn,
+          face_m: tuple[float, float] = (8e-3, 30e-3), pitch_m: float = 2e-3, max_indentation_m: float = 12e-3,
+          step_m: float = 0.5e-3, spacing_m: float = 1e-3, y_spacing_m: float | None = None, layers: int = 8,
+          sides: str = "free", law: Hyperelastic = Hyperelastic(),
+          progress: Progress | None = None) -> PunchSolution:
+    """A level face of ``face_m`` (along x, y) pressed into the centre of a block bonded to the table,
+    linear and at finite strain; element forces of a ``pitch_m`` array covering the face.
+
+    ``material`` gives (E, nu) at points in coordinates centred on the face (x, y from its centre, z up
+    from the table); it must be symmetric about x = 0 and y = 0, for only a quarter is meshed. ``sides``:
+    "free", or "mould" (the block's lateral faces slide on frictionless walls). A load step that does not
+    converge is halved, down to a sixteenth; the solution ends where even that fails (the elements at the
+    face's sharp edge, a strain singularity, have sheared past what hexahedra can follow).
+    """
+    if sides not in SIDES:
+        raise ValueError(f"sides must be one of {SIDES}, got {sides!r}")
+    half_l, half_w = length_m / 2.0, width_m / 2.0
+    half_face = np.array(face_m) / 2.0
+    x = graded_line(half_face[0] + 2e-3, spacing_m, half_l, growth=1.25)
+    dy = y_spacing_m or 1.5 * spacing_m
+    y = np.linspace(0.0, half_w, max(2, int(round(half_w / dy))) + 1)
     levels = graded_levels(layers, min(1.5 * spacing_m / thickness_m, 1.0 / layers))
     grid = HexGrid(x, y, levels, np.full((len(x), len(y)), thickness_m))
-    block = NeoHookeanBlock(grid, young_pa, nu)
+    block = HyperelasticBlock(grid, material, law)
     nx1, ny1, nz1 = grid.node_shape
     i, j, k = np.meshgrid(np.arange(nx1), np.arange(ny1), np.arange(nz1), indexing="ij")
     nodes = grid.node_index(i, j, k)
     fixed = table_dofs(grid)
     fixed[3 * nodes[0].ravel()] = True  # symmetry plane through the face's centre, x = 0
     fixed[3 * nodes[:, 0].ravel() + 1] = True  # the phantom's mid-line, y = 0
+    if sides == "mould":
+        fixed[3 * nodes[-1].ravel()] = True  # the end walls
+        fixed[3 * nodes[:, -1].ravel() + 1] = True  # the side walls
     top = nodes[:, :, -1].ravel()  # top nodes, x-major
-    top_x = np.repeat(x, ny1)
-    initially_under = top_x <= half_face + 1e-12
+    top_xy = np.stack([np.repeat(x, ny1), np.tile(y, nx1)], axis=1)
+    initially_under = np.all(top_xy <= half_face + 1e-12, axis=1)
+    # A face as wide as the block keeps its sides under it as they bulge, as the linear model does.
+    reach = np.where(half_face >= (half_l, half_w), np.inf, half_face)
     under = 3 * top[initially_under] + 2
     u = np.zeros(block.n_dofs)
     _, k0 = block.forces_and_tangent(u)
@@ -192,26 +253,58 @@ def punch_on_block(length_m: float, width_m: float, thickness_m: float, young_pa
     unit[under] = -1.0
     u_lin = unit.copy()
     u_lin[lin_free] = spla.spsolve(k0[lin_free][:, lin_free].tocsc(), -(k0 @ unit)[lin_free])
-    linear_per_m = -4.0 * float((k0 @ u_lin)[under].sum())  # quarter model: 4x the reaction
-    depths = np.arange(0.0, max_indentation_m + 1e-12, step_m)
-    forces = [0.0]
+    linear_reaction = np.zeros(len(top))
+    linear_reaction[initially_under] = -(k0 @ u_lin)[under]
+    shape = (int(round(face_m[0] / pitch_m)), int(round(face_m[1] / pitch_m)))
+    to_elements = _element_map(top_xy, (half_l, half_w), half_face, pitch_m, shape)
+    depths, forces = [0.0], [np.zeros(to_elements.shape[0])]
     compressive = True
     active = initially_under.copy()
-    for n, depth in enumerate(depths[1:], start=1):
+    depth, step = 0.0, step_m
+    while depth < max_indentation_m - 1e-12:
+        trial = min(depth + step, max_indentation_m)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"), warnings.catch_warnings():
-            # A singular tangent or an inverted trial element means the mesh has reached its limit.
+            # A singular tangent or an inverted trial element means the step went too far.
             warnings.simplefilter("error", spla.MatrixRankWarning)
             try:
-                u, f, active = _contact_step(block, u, depth, active, fixed, top, top_x, initially_under,
-                                             half_face, spacing_m)
+                u_new, f, active_new = _contact_step(block, u, trial, active, fixed, top, top_xy, initially_under,
+                                                     reach, spacing_m)
             except (spla.MatrixRankWarning, _NoConvergence):
-                # The elements at the face's sharp edge have sheared past what the mesh can follow
-                # (the edge is a strain singularity); the curve ends at the last converged depth.
-                depths = depths[:n]
-                break
-        reaction = -f[3 * top[active] + 2]
-        compressive &= bool(reaction.min() > 0)
-        forces.append(4.0 * float(reaction.sum()))
+                if step < step_m / 16:
+                    break
+                step /= 2
+                continue
+        u, active, depth = u_new, active_new, trial
+        reaction = np.where(active, -f[3 * top + 2], 0.0)
+        compressive &= bool(reaction[active].min() > 0)
+        depths.append(depth)
+        forces.append(to_elements @ reaction)
         if progress:
-            progress(n / (len(depths) - 1), "solving the punch at finite strain")
-    return StiffeningCurve(depths, linear_per_m * depths, np.array(forces), compressive)
+            progress(depth / max_indentation_m, "solving the punch at finite strain")
+    return PunchSolution(np.array(depths), (to_elements @ linear_reaction).reshape(shape),
+                         np.array(forces).reshape((-1,) + shape), compressive)
+
+
+def _element_map(top_xy, half_block, half_face, pitch_m, shape) -> np.ndarray:
+    """(elements, top nodes of the quarter): the force each element of the whole face gets from each node.
+
+    Each quarter node stands for itself and its mirror images; a node on a symmetry plane carries only
+    the half of its force that lies in the quarter, so it counts twice (four times on both planes).
+    Material drawn in under the face's edge is counted at the edge."""
+    xy = np.minimum(top_xy, half_face)
+    on_plane = xy == 0
+    xs, ys, owner = [], [], []
+    for sx in (1.0, -1.0):
+        for sy in (1.0, -1.0):
+            keep = ((sx > 0) | ~on_plane[:, 0]) & ((sy > 0) | ~on_plane[:, 1])
+            xs.append(sx * xy[keep, 0])
+            ys.append(sy * xy[keep, 1])
+            owner.append(np.flatnonzero(keep))
+    owner = np.concatenate(owner)
+    factor = np.where(on_plane, 2.0, 1.0).prod(axis=1)
+    (hl, hw), (fx, fy) = half_block, np.asarray(shape) * pitch_m / 2.0
+    weights = tributary_weights(np.concatenate(xs), np.concatenate(ys), (-hl, hl, -hw, hw), (-fx, -fy), pitch_m,
+                                shape)
+    mapped = np.zeros((shape[0] * shape[1], len(top_xy)))
+    np.add.at(mapped.T, owner, (weights * factor[owner]).T)
+    return mapped

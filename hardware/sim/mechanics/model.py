@@ -21,18 +21,31 @@ lattice poses the answer is the full linear-elastic contact solution; between th
 the nearest tabulated y offset (the TSI covers the phantom's whole width, so palpation never needs
 more); along x every position on or beside the phantom is tabulated.
 
-Finite strain (``MeshSettings(finite_strain=True)``, off by default): the linear model is exact only
-for small strains, and 10 mm into 25 mm is not. :mod:`.finite_strain` solves the punch on the
-phantom's homogeneous base block at finite strain (neo-Hookean) once per phantom; the ratio of its
-force to the linear force, fitted as ``1 + a s + b s^2`` in the nominal strain ``s = d / L0``, then
-scales each element's force by its own strain (its indentation since its contact onset over its
-onset height). It is a correction, not a nonlinear model: it stiffens the response as the block
-does, but it does not move the contact pattern.
+Finite strain (``MeshSettings(finite_strain=True)``, off by default here, on in the simulated rig): the
+linear model is exact only for small strains, and 10 mm into 25 mm is not. It is a reduced nonlinear
+model, two factors on each element's linear force, both functions of the element's own nominal strain
+``s`` (its indentation since its contact onset over its onset height):
+
+* the **homogeneous** factor ``1 + a s + b s^2``, per element: :mod:`.finite_strain` solves the face
+  pressed into the phantom's homogeneous base block at finite strain (its hyperelastic law and side
+  condition) once per phantom, and fits each element's nonlinear/linear force. The face's own pattern
+  changes with it: its edge rows stiffen faster than its inner rows, the elements at the phantom's free
+  sides slower;
+* the **inclusion** factor: as the layer compresses, the tissue over a stiff inclusion thins, so the
+  inclusion shows more the harder the face presses. A second set of linear tables has every inclusion
+  where a layer compressed by ``COMPRESSED_STRAIN`` carries it (:func:`compressed_material`); an
+  element's force ratio between the two sets at the same pose and height, ``r``, gives the factor
+  ``1 + (r - 1) s / COMPRESSED_STRAIN``, interpolated linearly in the strain.
+
+Against a full nonlinear solve of the flat phantom with one tumour under the face (``bench.rig_bench``,
+docs/phantoms.md) it follows each element's force within a few per cent where the uniform correction it
+replaces was off by up to a third, and it captures most, not all, of the tumour's growing contrast.
 """
 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import hashlib
 import json
 import logging
@@ -46,14 +59,14 @@ import numpy as np
 from hardware.interfaces import TactileConstraints
 from hardware.sim.mechanics import cache as cache_mod
 from hardware.sim.mechanics.contact import contact_path, tributary_weights
-from hardware.sim.mechanics.fem import HexGrid, condensed_surface_stiffness, graded_levels
+from hardware.sim.mechanics.fem import HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs, wall_dofs
 from hardware.sim.mechanics.progress import Progress, stage
 from hardware.sim.phantom import Phantom
 
 log = logging.getLogger(__name__)
 
 # Bump whenever a change alters the tables computed for the same phantom and settings.
-MODEL_VERSION = 1
+MODEL_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -64,7 +77,7 @@ class MeshSettings:
     layers: int = 11  # element layers from the table to the surface
     top_layer_m: float = 0.5e-3  # thickness of the top layer where the surface is at the base thickness
     drift_y_m: float = 1e-3  # y offsets of the TSI from the phantom's mid-line that are tabulated
-    finite_strain: bool = False  # scale element forces by the finite-strain stiffening (see below)
+    finite_strain: bool = False  # the reduced finite-strain model on top of the linear tables (see above)
 
     def validate(self, sensor: TactileConstraints) -> None:
         ratio = sensor.pitch_m / self.spacing_m
@@ -114,15 +127,15 @@ def phantom_material(phantom: Phantom):
 
 
 def cache_key(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints, what: str = "tables") -> str:
-    """Key of the contact tables (``what="tables"``) or of the finite-strain stiffening (``"stiffening"``,
-    which depends on the phantom only)."""
+    """Key of the contact tables (``what="tables"``, or ``"tables-compressed"`` with the inclusions moved),
+    or of the finite-strain stiffening (``"stiffening"``, which depends on the phantom only)."""
     mesh = asdict(settings)
     mesh.pop("finite_strain")  # applied on top of the tables, not part of them
     blob = json.dumps({
         "what": what,
         "phantom": phantom.content_hash(),
         "model_version": MODEL_VERSION,
-        "mesh": mesh if what == "tables" else None,
+        "mesh": mesh if what.startswith("tables") else None,
         "sensor": [sensor.rows, sensor.cols, sensor.pitch_m],
     }, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:24]
@@ -151,14 +164,17 @@ def _lattice(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraint
 
 
 def precompute(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints,
-               progress: Progress | None = None) -> dict[str, np.ndarray]:
-    """Every table the per-tick model needs, as plain arrays (what the cache stores)."""
+               progress: Progress | None = None, material: MaterialFn | None = None) -> dict[str, np.ndarray]:
+    """Every table the per-tick model needs, as plain arrays (what the cache stores); ``material``
+    defaults to the phantom's own."""
     settings.validate(sensor)
     started = time.perf_counter()
     if progress:
         progress(0.0, "meshing the phantom")
     grid = phantom_grid(phantom, settings)
-    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(phantom), progress=stage(progress, 0.0, 0.8))
+    fixed = table_dofs(grid) | wall_dofs(grid) if phantom.sides == "mould" else None
+    ij, stiffness = condensed_surface_stiffness(grid, material or phantom_material(phantom), fixed=fixed,
+                                                progress=stage(progress, 0.0, 0.8))
     if progress:
         progress(0.8, "inverting the surface stiffness")
     compliance = _spd_inverse(stiffness)
@@ -213,26 +229,65 @@ def _onsets(t: np.ndarray, f0: np.ndarray, df: np.ndarray, n_el: int) -> np.ndar
     return out
 
 
-def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress | None) -> np.ndarray:
-    """[a, b, s_max]: nonlinear/linear force = 1 + a s + b s^2 fitted up to the strain s_max solved."""
-    from hardware.sim.mechanics.finite_strain import punch_on_block
+FIT_STRAIN = 0.2
 
-    # A 2 mm mesh: the force ratio differs from a 1 mm mesh's by 0.3 %, and it gets further (the face's
-    # sharp edge stops the solution where its elements shear too far).
-    curve = punch_on_block(phantom.length_m, phantom.width_m, phantom.thickness_m, phantom.youngs_modulus_pa,
-                           phantom.poisson_ratio, face_x_m=sensor.size_m[0],
-                           max_indentation_m=0.4 * phantom.thickness_m, step_m=0.04 * phantom.thickness_m,
-                           spacing_m=2e-3, layers=6, progress=progress)
-    s = curve.indentation_m[1:] / phantom.thickness_m
-    excess = curve.ratio()[1:] - 1.0
-    if len(s) < 2:
-        raise RuntimeError("the finite-strain solution did not get past its first step")
-    (a, b), *_ = np.linalg.lstsq(np.stack([s, s * s], axis=1), excess, rcond=None)
-    return np.array([a, b, s.max()])
+
+def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress | None) -> dict[str, np.ndarray]:
+    """Nonlinear/linear force of each element, ``1 + a s + b s^2`` in the nominal strain s, fitted up to
+    ``FIT_STRAIN`` and extrapolated beyond, for the face pressed into the middle of the phantom's
+    homogeneous base block; and the same fit for the total force."""
+    from hardware.sim.mechanics.finite_strain import homogeneous, punch
+
+    # A 2 mm mesh: per element it agrees with a 1 mm mesh within 1.5 % up to 20 % strain. Further on the
+    # two part (the elements at the face's sharp edge, a strain singularity, shear past what hexahedra
+    # follow: the 1 mm mesh stops converging at 22 %), so the fit ends there.
+    solution = punch(phantom.length_m, phantom.width_m, phantom.thickness_m,
+                     homogeneous(phantom.youngs_modulus_pa, phantom.poisson_ratio), face_m=sensor.size_m,
+                     pitch_m=sensor.pitch_m, max_indentation_m=FIT_STRAIN * phantom.thickness_m,
+                     step_m=0.04 * phantom.thickness_m, spacing_m=2e-3, y_spacing_m=sensor.pitch_m, layers=6,
+                     sides=phantom.sides, law=phantom.material, progress=progress)
+    if len(solution.indentation_m) < 3:
+        raise RuntimeError("the finite-strain solution did not get past its second step")
+    s = solution.indentation_m[1:] / phantom.thickness_m
+    basis = np.stack([s, s * s], axis=1)
+    linear = solution.linear_N()[1:].reshape(len(s), -1)
+    nonlinear = solution.nonlinear_N[1:].reshape(len(s), -1)
+    loaded = linear[-1] > 0
+    excess = np.divide(nonlinear, linear, out=np.ones_like(linear), where=linear > 0) - 1.0
+    per_element, *_ = np.linalg.lstsq(basis, excess[:, loaded], rcond=None)
+    coeffs = np.zeros((2, linear.shape[1]))  # elements off the phantom carry nothing to scale
+    coeffs[:, loaded] = per_element
+    total, *_ = np.linalg.lstsq(basis, nonlinear.sum(axis=1) / linear.sum(axis=1) - 1.0, rcond=None)
+    return {"element_ab": coeffs, "total_ab": total}
+
+
+# The strain at which the inclusions are tabulated where the compressed layer has carried them (see
+# ``compressed_material``); the change of each element's force between rest and it is interpolated
+# linearly in the element's strain, and held beyond it.
+COMPRESSED_STRAIN = 0.3
+
+
+def compressed_material(phantom: Phantom, strain: float) -> MaterialFn:
+    """The phantom's material with each inclusion where the layer compressed by ``strain`` carries it.
+
+    Under the face the tissue shortens by about the same strain everywhere in a column while a stiff
+    inclusion keeps its size: its centre, at height z, sinks to z (1 - s) in a layer now L (1 - s)
+    thick, so the tissue over it thins from h to h (1 - s) - R s. The linear model with the inclusion
+    that much nearer the surface is what the tissue over it feels once compressed (the thinning is what
+    makes a deep tumour show as the probe presses harder); the inclusion is never moved out of the
+    surface.
+    """
+    moved = []
+    for inc in phantom.inclusions:
+        depth = phantom.inclusion_depth_m(inc)
+        new_depth = max(depth * (1.0 - strain) - inc.radius_m * strain, 0.0)
+        moved.append(dataclasses.replace(inc, z_m=inc.z_m + depth - new_depth))
+    return phantom_material(dataclasses.replace(phantom, inclusions=tuple(moved)))
 
 
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
-    if np.asarray(arrays["stiffening"]).shape != (3,):
+    if (np.asarray(arrays["element_ab"]).ndim != 2 or len(arrays["element_ab"]) != 2
+            or np.asarray(arrays["total_ab"]).shape != (2,)):
         raise ValueError("inconsistent cache entry")
 
 
@@ -269,36 +324,86 @@ def _spd_inverse(a: np.ndarray) -> np.ndarray:
     return np.tril(inv) + np.tril(inv, -1).T
 
 
+class _Tables:
+    """One set of contact tables: the linear element forces of the face at any pose and height."""
+
+    def __init__(self, tables: dict[str, np.ndarray], n_el: int):
+        x0, y0, step, nx, ny = (float(v) for v in tables["lattice"])
+        self.x0, self.y0, self.step = x0, y0, step
+        self.nx, self.ny = int(nx), int(ny)
+        offsets = np.asarray(tables["offsets"], dtype=np.int64)
+        t = np.asarray(tables["t"], dtype=float)
+        f0 = np.asarray(tables["f0"], dtype=float)
+        df = np.asarray(tables["df"], dtype=float)
+        if (len(offsets) != self.nx * self.ny + 1 or offsets[0] != 0 or np.any(np.diff(offsets) < 0)
+                or offsets[-1] != len(t) or f0.shape != (len(t), n_el) or df.shape != (len(t), n_el)):
+            raise ValueError("inconsistent tissue tables")
+        self.offsets = offsets.tolist()
+        self.t = [t[a:b].tolist() for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+        self.f0, self.df = f0, df
+        self.onset = np.asarray(tables["onset_z"], dtype=float)
+        if self.onset.shape != (self.nx * self.ny, n_el):
+            raise ValueError("inconsistent tissue tables")
+
+    def blend(self, x_m: float, y_m: float) -> list[tuple[int, float]]:
+        """The lattice poses around (x, y) and their bilinear weights."""
+        fx = (x_m - self.x0) / self.step
+        fy = min(max((y_m - self.y0) / self.step, 0.0), self.ny - 1.0)
+        ix = math.floor(fx)
+        iy = min(int(fy), self.ny - 2) if self.ny > 1 else 0
+        wx = fx - ix
+        wy = fy - iy if self.ny > 1 else 0.0
+        out = []
+        for px, w_x in ((ix, 1.0 - wx), (ix + 1, wx)):
+            if w_x <= 0.0 or px < 0 or px >= self.nx:
+                continue
+            for py, w_y in ((iy, 1.0 - wy), (iy + 1, wy)):
+                if w_y > 0.0:
+                    out.append((px * self.ny + py, w_x * w_y))
+        return out
+
+    def forces(self, blend: list[tuple[int, float]], z_m: float) -> tuple[np.ndarray | None, list[int]]:
+        """Element forces (flat; None where the face touches nothing) and the poses that touch."""
+        t = -z_m
+        rows, weights, steps, poses = [], [], [], []
+        for pose, weight in blend:
+            tb = self.t[pose]
+            k = bisect.bisect_right(tb, t) - 1
+            if k >= 0:
+                rows.append(self.offsets[pose] + k)
+                weights.append(weight)
+                steps.append(t - tb[k])
+                poses.append(pose)
+        if not rows:
+            return None, poses
+        w = np.array(weights)
+        return np.maximum(w @ self.f0[rows] + (w * np.array(steps)) @ self.df[rows], 0.0), poses
+
+
 class ContinuumTissue:
-    """Linear-elastic continuum phantom on a rigid table under a rigid, level TSI face.
+    """Continuum phantom on a rigid table under a rigid, level TSI face.
 
     Implements :class:`hardware.sim.tissue.TissueModel`. Build it with :meth:`load`.
     """
 
     def __init__(self, phantom: Phantom, sensor: TactileConstraints, tables: dict[str, np.ndarray],
-                 stiffening: np.ndarray | None = None):
+                 stiffening: dict[str, np.ndarray] | None = None,
+                 compressed: dict[str, np.ndarray] | None = None):
         self.phantom = phantom
         self.sensor = sensor
-        x0, y0, step, nx, ny = (float(v) for v in tables["lattice"])
-        self._x0, self._y0, self._step = x0, y0, step
-        self._nx, self._ny = int(nx), int(ny)
-        offsets = np.asarray(tables["offsets"], dtype=np.int64)
-        t = np.asarray(tables["t"], dtype=float)
         n_el = sensor.rows * sensor.cols
-        f0 = np.asarray(tables["f0"], dtype=float)
-        df = np.asarray(tables["df"], dtype=float)
-        if (len(offsets) != self._nx * self._ny + 1 or offsets[0] != 0 or np.any(np.diff(offsets) < 0)
-                or offsets[-1] != len(t) or f0.shape != (len(t), n_el) or df.shape != (len(t), n_el)):
+        self._tables = _Tables(tables, n_el)
+        self._compressed = None if compressed is None else _Tables(compressed, n_el)
+        if compressed is not None and not np.array_equal(tables["lattice"], compressed["lattice"]):
             raise ValueError("inconsistent tissue tables")
-        self._offsets = offsets.tolist()
-        self._t = [t[a:b].tolist() for a, b in zip(self._offsets[:-1], self._offsets[1:])]
-        self._f0, self._df = f0, df
-        self._onset = np.asarray(tables["onset_z"], dtype=float)
-        if self._onset.shape != (self._nx * self._ny, n_el):
-            raise ValueError("inconsistent tissue tables")
-        # (a, b) of the finite-strain factor 1 + a s + b s^2, or None for the purely linear model
-        self.stiffening = None if stiffening is None else (float(stiffening[0]), float(stiffening[1]))
-        self.precompute_s = float(tables["precompute_s"])
+        if stiffening is not None and np.asarray(stiffening["element_ab"]).shape != (2, n_el):
+            raise ValueError("inconsistent cache entry")
+        # (a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports), or None for the
+        # purely linear model; each element has its own (a, b) in _element_ab
+        self.stiffening = None if stiffening is None else tuple(float(v) for v in stiffening["total_ab"])
+        self._element_ab = None if stiffening is None else np.asarray(stiffening["element_ab"], dtype=float)
+        self.precompute_s = float(tables["precompute_s"]) + (0.0 if compressed is None
+                                                             else float(compressed["precompute_s"]))
         self.mesh_shape = tuple(int(v) for v in tables["mesh_shape"])
         self._shape = sensor.shape
 
@@ -314,52 +419,55 @@ class ContinuumTissue:
         sensor = sensor or TactileConstraints()
         settings.validate(sensor)
         folder = Path(cache_dir) if cache_dir is not None else cache_mod.default_cache_dir()
-        first = stage(progress, 0.0, 0.8 if settings.finite_strain else 1.0)
+        moved = settings.finite_strain and bool(phantom.inclusions)
+        ends = [0.0, 0.8 if settings.finite_strain else 1.0]
+        if moved:
+            ends.insert(1, 0.45)
+        n_el = sensor.rows * sensor.cols
+
+        def check(arrays):
+            _Tables(arrays, n_el)
+
         tables = _cached(folder, cache_key(phantom, settings, sensor),
-                         lambda: precompute(phantom, settings, sensor, first), lambda t: cls(phantom, sensor, t))
-        stiffening = None
+                         lambda: precompute(phantom, settings, sensor, stage(progress, ends[0], ends[1])), check)
+        stiffening = compressed = None
+        if moved:
+            compressed = _cached(
+                folder, cache_key(phantom, settings, sensor, f"tables-compressed-{COMPRESSED_STRAIN:g}"),
+                lambda: precompute(phantom, settings, sensor, stage(progress, ends[1], ends[2]),
+                                   compressed_material(phantom, COMPRESSED_STRAIN)), check)
         if settings.finite_strain:
-            second = stage(progress, 0.8, 1.0)
             stiffening = _cached(folder, cache_key(phantom, settings, sensor, "stiffening"),
-                                 lambda: {"stiffening": _stiffening(phantom, sensor, second)},
-                                 _check_stiffening)["stiffening"]
+                                 lambda: _stiffening(phantom, sensor, stage(progress, ends[-1], 1.0)),
+                                 _check_stiffening)
         if progress:
             progress(1.0, f"tissue model of {phantom.name!r} ready")
-        return cls(phantom, sensor, tables, stiffening)
+        return cls(phantom, sensor, tables, stiffening, compressed)
 
     def element_forces_N(self, x_m: float, y_m: float, z_m: float) -> np.ndarray:
         """Normal force on each TSI element, (rows, cols), for the face centred at (x, y) at height z."""
-        fx = (x_m - self._x0) / self._step
-        fy = min(max((y_m - self._y0) / self._step, 0.0), self._ny - 1.0)
-        ix = math.floor(fx)
-        iy = min(int(fy), self._ny - 2) if self._ny > 1 else 0
-        wx = fx - ix
-        wy = fy - iy if self._ny > 1 else 0.0
-        t = -z_m
-        rows, weights, steps, poses = [], [], [], []
-        for px, w_x in ((ix, 1.0 - wx), (ix + 1, wx)):
-            if w_x <= 0.0 or px < 0 or px >= self._nx:
-                continue
-            for py, w_y in ((iy, 1.0 - wy), (iy + 1, wy)):
-                if w_y <= 0.0:
-                    continue
-                pose = px * self._ny + py
-                tb = self._t[pose]
-                k = bisect.bisect_right(tb, t) - 1
-                if k >= 0:
-                    rows.append(self._offsets[pose] + k)
-                    weights.append(w_x * w_y)
-                    steps.append(t - tb[k])
-                    poses.append(pose)
-        if not rows:
+        blend = self._tables.blend(x_m, y_m)
+        forces, poses = self._tables.forces(blend, z_m)
+        if forces is None:
             return np.zeros(self._shape)
-        w = np.array(weights)
-        forces = np.maximum(w @ self._f0[rows] + (w * np.array(steps)) @ self._df[rows], 0.0)
-        if self.stiffening is not None:
-            onset = np.fmax.reduce(self._onset[poses], axis=0)  # neighbouring poses' onsets barely differ
+        if self._element_ab is not None:
+            onset = np.fmax.reduce(self._tables.onset[poses], axis=0)  # neighbouring poses' onsets barely differ
             strain = np.divide(onset - z_m, onset, out=np.zeros_like(forces), where=forces > 0)
-            a, b = self.stiffening
-            forces *= 1.0 + strain * (a + b * strain)
+            # Past the strains solved, the pattern is held where it was solved and only the total keeps
+            # stiffening along the fitted curve: extrapolating each element's own curve would grow the
+            # face's edge peaks without anything to check them against.
+            held = np.minimum(strain, FIT_STRAIN)
+            a, b = self._element_ab
+            scale = 1.0 + held * (a + b * held)
+            if strain.max() > FIT_STRAIN:
+                a_total, b_total = self.stiffening
+                scale *= (1.0 + strain * (a_total + b_total * strain)) / (1.0 + held * (a_total + b_total * held))
+            if self._compressed is not None:
+                moved, _ = self._compressed.forces(blend, z_m)
+                if moved is not None:
+                    ratio = np.divide(moved, forces, out=np.ones_like(forces), where=(moved > 0) & (forces > 0))
+                    scale *= 1.0 + (ratio - 1.0) * (np.minimum(strain, COMPRESSED_STRAIN) / COMPRESSED_STRAIN)
+            forces = forces * scale
         return forces.reshape(self._shape)
 
     def total_force_N(self, x_m: float, y_m: float, z_m: float) -> float:

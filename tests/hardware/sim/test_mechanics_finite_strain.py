@@ -3,15 +3,15 @@
 import numpy as np
 
 from hardware.sim.mechanics.fem import HexGrid, assemble_sparse, graded_levels
-from hardware.sim.mechanics.finite_strain import NeoHookeanBlock, punch_on_block
-from hardware.sim.mechanics.model import ContinuumTissue, MeshSettings
-from hardware.sim.phantom import parse_phantom
+from hardware.sim.mechanics.finite_strain import HyperelasticBlock, homogeneous, punch
+from hardware.sim.mechanics.model import ContinuumTissue, MeshSettings, compressed_material
+from hardware.sim.phantom import Hyperelastic, parse_phantom
 
 
 def block(nu=0.49):
     x = np.linspace(0, 3e-3, 4)
     height = np.full((4, 3), 2e-3) + np.linspace(0, 0.5e-3, 4)[:, None]  # a sloping top: distorted elements
-    return NeoHookeanBlock(HexGrid(x, x[:3], graded_levels(3, 0.2), height), 20e3, nu)
+    return HyperelasticBlock(HexGrid(x, x[:3], graded_levels(3, 0.2), height), homogeneous(20e3, nu))
 
 
 def test_at_rest_the_finite_strain_element_is_the_linear_element():
@@ -36,8 +36,8 @@ def test_the_complex_step_tangent_is_the_derivative_of_the_forces():
 
 
 def test_a_punch_stiffens_as_it_compresses_the_layer():
-    curve = punch_on_block(0.024, 0.030, 0.010, 20e3, 0.49, max_indentation_m=3e-3, step_m=0.5e-3,
-                           spacing_m=2e-3, layers=5)
+    curve = punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), max_indentation_m=3e-3, step_m=0.5e-3,
+                  spacing_m=2e-3, layers=5).curve()
     assert curve.all_compressive
     ratio = curve.ratio()
     assert len(ratio) == 7 and ratio[0] == 1.0
@@ -45,19 +45,90 @@ def test_a_punch_stiffens_as_it_compresses_the_layer():
     assert np.all(np.diff(ratio) > 0) and ratio[-1] > 1.3  # 30 %: much stiffer
 
 
-def test_the_model_scales_element_forces_by_the_stiffening_of_their_own_strain(tmp_path):
-    phantom = parse_phantom({"phantom": {"name": "s", "length_m": 0.024, "width_m": 0.030, "thickness_m": 0.010,
-                                         "youngs_modulus_pa": 20e3, "poisson_ratio": 0.49}})
-    mesh = MeshSettings(spacing_m=1e-3, layers=4, top_layer_m=1e-3, drift_y_m=0.0)
-    linear = ContinuumTissue.load(phantom, tmp_path, settings=mesh)
-    stiff = ContinuumTissue.load(phantom, tmp_path, settings=MeshSettings(**{**mesh.__dict__, "finite_strain": True}))
+BLOCK = {"name": "s", "length_m": 0.024, "width_m": 0.030, "thickness_m": 0.010, "youngs_modulus_pa": 20e3,
+         "poisson_ratio": 0.49}
+# six layers, the top one 0.5 mm: a coarser one cannot tell where the inclusion sits within it
+MESH = MeshSettings(spacing_m=1e-3, layers=6, top_layer_m=0.5e-3, drift_y_m=0.0)
+FINITE = MeshSettings(**{**MESH.__dict__, "finite_strain": True})
+
+
+def test_each_element_stiffens_as_the_block_does_under_it(tmp_path):
+    phantom = parse_phantom({"phantom": BLOCK})
+    linear = ContinuumTissue.load(phantom, tmp_path, settings=MESH)
+    stiff = ContinuumTissue.load(phantom, tmp_path, settings=FINITE)
     assert linear.stiffening is None and stiff.stiffening is not None
     assert len(list(tmp_path.glob("tissue-*.bin"))) == 2  # the tables are shared, the stiffening is its own entry
-    a, b = stiff.stiffening
-    for depth in (0.5e-3, 2e-3, 3.5e-3):
-        s = depth / 0.010
-        z = 0.010 - depth
-        ratio = stiff.element_forces_N(0.012, 0.015, z) / linear.element_forces_N(0.012, 0.015, z)
-        assert np.allclose(ratio, 1 + a * s + b * s * s)
-    assert 1.0 + a * 0.3 + b * 0.09 > 1.08
+    solved = punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), max_indentation_m=2e-3, step_m=0.4e-3,
+                   spacing_m=2e-3, y_spacing_m=2e-3, layers=6)
+    expected = solved.nonlinear_N[-1] / solved.linear_N()[-1]
+    ratio = stiff.element_forces_N(0.012, 0.015, 0.008) / linear.element_forces_N(0.012, 0.015, 0.008)
+    assert np.allclose(ratio, expected, rtol=0.01)
+    # the face's own pattern changes: its edge rows stiffen faster than its inner rows
+    assert ratio[0].mean() > ratio[1].mean() + 0.03 and np.allclose(ratio, ratio[::-1], rtol=1e-9)
     assert not stiff.element_forces_N(0.012, 0.015, 0.0101).any()
+
+
+def _inclusion_contrast(tissue, clean, depth_m):
+    z = tissue.phantom.thickness_m - depth_m
+    forces, base = tissue.element_forces_N(0.012, 0.015, z), clean.element_forces_N(0.012, 0.015, z)
+    return forces[1:3, 6:9].sum() / base[1:3, 6:9].sum() - 1.0
+
+
+def test_an_inclusion_shows_more_as_the_face_presses_deeper_as_a_full_solve_finds(tmp_path):
+    sphere = {"centre_xy_m": [0.012, 0.015], "diameter_m": 0.004, "youngs_modulus_pa": 160e3, "depth_m": 0.002}
+    with_it = parse_phantom({"phantom": {**BLOCK, "inclusions": [sphere]}})
+    clean = parse_phantom({"phantom": BLOCK})
+    models = {name: (ContinuumTissue.load(with_it, tmp_path, settings=mesh),
+                     ContinuumTissue.load(clean, tmp_path, settings=mesh)) for name, mesh in
+              (("linear", MESH), ("finite", FINITE))}
+    shallow, deep = 0.5e-3, 2.5e-3
+    lin = [_inclusion_contrast(*models["linear"], d) for d in (shallow, deep)]
+    fin = [_inclusion_contrast(*models["finite"], d) for d in (shallow, deep)]
+    assert abs(lin[1] - lin[0]) < 0.01 * lin[0]  # small strain: the contrast does not depend on the press
+
+    def material(points):
+        inside = (points[..., 0] ** 2 + points[..., 1] ** 2 + (points[..., 2] - 0.006) ** 2) <= 0.002**2
+        return np.where(inside, 160e3, 20e3), np.full(points.shape[:-1], 0.49)
+
+    full = [punch(0.024, 0.030, 0.010, m, max_indentation_m=deep, step_m=0.5e-3, spacing_m=1e-3,
+                  y_spacing_m=2e-3, layers=6) for m in (material, homogeneous(20e3, 0.49))]
+    growth = [full[0].nonlinear_N[k][1:3, 6:9].sum() / full[1].nonlinear_N[k][1:3, 6:9].sum() for k in (1, -1)]
+    full_growth = growth[1] / growth[0] - 1.0
+    model_growth = (1.0 + fin[1]) / (1.0 + fin[0]) - 1.0
+    assert full_growth > 0.03  # the physics: the tissue over the sphere thins
+    assert 0.5 * full_growth < model_growth < 1.5 * full_growth
+
+
+def test_a_yeoh_law_with_a_positive_second_term_stiffens_faster_than_neo_hookean():
+    common = dict(max_indentation_m=2e-3, step_m=0.25e-3, spacing_m=2e-3, layers=5)
+    neo = punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), **common).curve().ratio()
+    yeoh = punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), law=Hyperelastic("yeoh", 0.5, 0.0),
+                 **common).curve().ratio()
+    assert abs(yeoh[1] - neo[1]) < 0.01  # at small strain the law is the modulus
+    assert yeoh[-1] > neo[-1] + 0.01
+
+
+def test_a_block_in_its_mould_is_stiffer_than_a_free_one(tmp_path):
+    free = ContinuumTissue.load(parse_phantom({"phantom": BLOCK}), tmp_path, settings=MESH)
+    mould = ContinuumTissue.load(parse_phantom({"phantom": {**BLOCK, "sides": "mould"}}), tmp_path, settings=MESH)
+    ratio = mould.total_force_N(0.012, 0.015, 0.009) / free.total_force_N(0.012, 0.015, 0.009)
+    assert 1.2 < ratio < 3.0
+    curve = {sides: punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), max_indentation_m=2e-3, step_m=1e-3,
+                          spacing_m=2e-3, layers=5, sides=sides).curve() for sides in ("free", "mould")}
+    assert curve["mould"].force_linear_N[-1] > 1.2 * curve["free"].force_linear_N[-1]
+
+
+def test_a_compressed_layer_carries_an_inclusion_nearer_its_surface_but_never_out_of_it():
+    shallow = {"centre_xy_m": [0.008, 0.015], "diameter_m": 0.004, "youngs_modulus_pa": 160e3, "depth_m": 0.001}
+    deep = {"centre_xy_m": [0.016, 0.015], "diameter_m": 0.004, "youngs_modulus_pa": 160e3, "depth_m": 0.004}
+    phantom = parse_phantom({"phantom": {**BLOCK, "inclusions": [shallow, deep]}})
+    material = compressed_material(phantom, 0.3)
+
+    def modulus(x, z):
+        return float(material(np.array([[x, 0.015, z]]))[0][0])
+
+    # 4 mm of tissue over the deep one thins to 4 * 0.7 - 2 * 0.3 = 2.2 mm: its top is now 7.8 mm up
+    assert modulus(0.016, 0.0077) == 160e3 and modulus(0.016, 0.0079) == 20e3
+    # 1 mm would thin to 0.1 mm: the shallow one's top reaches 9.9 mm
+    assert modulus(0.008, 0.0098) == 160e3 and modulus(0.008, 0.00995) == 20e3
+    assert compressed_material(phantom, 0.9)(np.array([[0.008, 0.015, 0.00999]]))[0][0] == 160e3  # at the surface

@@ -54,6 +54,15 @@ def test_depth_and_height_describe_the_same_sphere():
     assert a == pytest.approx(b)
 
 
+def test_the_sides_and_the_law_default_to_free_and_neo_hookean_and_can_be_chosen():
+    flat = load_phantom("flat")
+    assert flat.sides == "free" and flat.material.law == "neo_hookean"
+    chosen = parse_phantom(base(sides="mould", material={"law": "yeoh", "c2_over_c1": -0.1, "c3_over_c1": 0.01}))
+    assert chosen.sides == "mould"
+    assert (chosen.material.law, chosen.material.c2_over_c1, chosen.material.c3_over_c1) == ("yeoh", -0.1, 0.01)
+    assert chosen.content_hash() != parse_phantom(base()).content_hash()  # a new model, not a cached one
+
+
 def test_the_content_hash_follows_the_content_only():
     a = parse_phantom(base(inclusions=[sphere(depth_m=0.007)]))
     b = parse_phantom(copy.deepcopy(base(inclusions=[sphere(depth_m=0.007)])))
@@ -93,6 +102,14 @@ def test_the_content_hash_follows_the_content_only():
     (base(surface=[{"kind": "slope", "x_range_m": [0, 0.072], "gradient": [1e300, 0]}]),
      "phantom.surface[0].gradient", "within +-10"),
     (base(inclusions=[sphere(depth_m=0.005, diameter_m=0.5)]), "phantom.inclusions[0].diameter_m", "fit in the layer"),
+    # issue 15: the sides and the law at finite strain
+    (base(sides="tray"), "phantom.sides", "one of free, mould"),
+    (base(material={"law": "ogden"}), "phantom.material.law", "one of neo_hookean, yeoh"),
+    (base(material={"law": "neo_hookean", "c2_over_c1": 0.1}), "phantom.material.c2_over_c1", "unknown key"),
+    (base(material={"law": "yeoh", "c2_over_c1": -0.5, "c3_over_c1": 0.05}), "phantom.material.c2_over_c1",
+     "stops rising"),
+    (base(material={"law": "yeoh", "c3_over_c1": -0.1}), "phantom.material.c2_over_c1", "stops rising"),
+    (base(material="yeoh"), "phantom.material", "must be a table"),
 ])
 def test_a_bad_phantom_names_the_key_and_the_problem(data, key, words):
     with pytest.raises(PhantomError) as err:
