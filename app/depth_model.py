@@ -15,12 +15,18 @@ without and with one spherical inclusion under the middle of the TSI, for every 
 * the face's centre 0-4 mm along x from the tumour (an area's strip is 8 mm: every tumour lies within 4 mm
   of the centre of the area that covers it).
 
-Linear elasticity makes the pattern independent of the tissue's modulus and of how far the face is pressed,
-so one solve per combination serves every level and tissue.
+Linear elasticity makes the pattern independent of the tissue's modulus, so one solve per combination
+serves every tissue. How far the face is pressed matters at finite strain: the tissue over a tumour thins,
+and a level pressed to the nominal strain s sees the tumour whose top lies d deep at rest as the library's
+tumour d (1 - s) - a s / 2 deep (a its diameter), the reduced finite-strain model of the simulated rig
+(hardware.sim.mechanics.model; against a full nonlinear solve it explains most, not all, of how a
+tumour's contrast grows with the press, so on real tissue the estimate can still read somewhat shallow).
 
 **The inversion** (:meth:`DepthModel.estimate`) takes the tumour's contrast in every area whose face
 centre lay within 4 mm of it, averaged over the levels that pressed every element near it (inverse
-variance), and compares it with the model's contrast of the same elements: the library's forces at the
+variance), and compares it with the model's contrast of the same elements, averaged over the same levels
+with the same weights, each level's at the depth its strain (the near elements' median dL over the
+layer's thickness) carried the tumour to: the library's forces at the
 tumour's offset from the face and along the array (shifted to its position, the rest of the face as in
 homogeneous tissue), seen through the sensor's cover, each element's force over the homogeneous block's,
 over the median of that ratio (the flat-field's own scale). The misfit counts each element's measured
@@ -293,6 +299,21 @@ class DepthModel:
         fine = _lerp_axis(fine, lib.diameter_m, self.diameters, 1)
         return _lerp_axis(fine, np.log(lib.modulus_ratio), np.log(self.ratios), 2)
 
+    def _pressed(self, fine: np.ndarray, strain: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """The contrast ``fine`` (depth, diameter, ratio, elements) as the levels saw it, averaged with the
+        levels' ``weights`` (level, element): at finite strain a level pressed to the nominal strain s sees
+        the tumour where the compressed layer carries it, its top at d (1 - s) - a s / 2 for a sphere of
+        diameter a whose top lies d deep at rest (hardware.sim.mechanics.model.compressed_material)."""
+        out = np.zeros_like(fine)
+        for s, w in zip(strain, weights):
+            for j, diameter in enumerate(self.diameters):
+                pressed = np.clip(self.depths * (1.0 - s) - 0.5 * diameter * s, self.depths[0], self.depths[-1])
+                at = (pressed - self.depths[0]) / self.depth_step_m
+                lo = np.minimum(np.floor(at).astype(int), len(self.depths) - 2)
+                frac = (at - lo)[:, None, None]
+                out[:, j] += w * ((1.0 - frac) * fine[lo, j] + frac * fine[lo + 1, j])
+        return out
+
     # ---- the inversion ----
 
     def estimate(self, tumour, levels: np.ndarray, contrast) -> tuple[float, float, float]:
@@ -312,7 +333,7 @@ class DepthModel:
                 continue
             near = np.hypot(offsets[..., 0] + float(centre[0]) - tumour.x_m,
                             offsets[..., 1] + float(centre[1]) - tumour.y_m) <= self.reach_m
-            measured, sigma = _level_mean(contrast.contrast[rows], contrast.sigma[rows], near)
+            measured, sigma, used, weights = _level_mean(contrast.contrast[rows], contrast.sigma[rows], near)
             if measured is None:
                 continue
             onset = levels["onset_height_m"][rows[-1]][near] - self.table_height_m
@@ -320,7 +341,8 @@ class DepthModel:
                 continue
             h = float(np.nanmedian(onset))
             thickness.append(h)
-            predicted = self._fine(self.predict(h, off_x, y_from_edge))[..., near]
+            strain = np.nan_to_num(np.nanmedian(levels["dL_m"][rows[used]][:, near], axis=1) / h)
+            predicted = self._pressed(self._fine(self.predict(h, off_x, y_from_edge))[..., near], strain, weights)
             variance = sigma**2 + (self.model_error * predicted) ** 2 + self.contrast_floor**2
             term = -0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
             log_like = term if log_like is None else log_like + term
@@ -354,16 +376,18 @@ def _shift_y(ratio: np.ndarray, nodes: int) -> np.ndarray:
     return out
 
 
-def _level_mean(contrast: np.ndarray, sigma: np.ndarray, near: np.ndarray
-                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _level_mean(contrast: np.ndarray, sigma: np.ndarray, near: np.ndarray):
     """The inverse-variance mean over an area's levels of the contrast of the ``near`` elements, from the
-    levels that pressed every one of them; (None, None) if none did."""
+    levels that pressed every one of them, its sigma, which levels those were (indices) and each one's
+    weight per element; Nones if no level did."""
     c, s = contrast[:, near], sigma[:, near]
     whole = np.all(np.isfinite(c) & np.isfinite(s) & (s > 0), axis=1)
     if not whole.any():
-        return None, None
+        return None, None, None, None
     precision = 1.0 / s[whole] ** 2
-    return (c[whole] * precision).sum(axis=0) / precision.sum(axis=0), 1.0 / np.sqrt(precision.sum(axis=0))
+    total = precision.sum(axis=0)
+    return ((c[whole] * precision).sum(axis=0) / total, 1.0 / np.sqrt(total), np.flatnonzero(whole),
+            precision / total)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -50,11 +50,14 @@ def test_an_array_the_library_was_not_built_for_is_refused(library):
 
 
 def _one_area(contrast: np.ndarray, sigma: float, thickness_m: float, tumour_x: float, tumour_y: float,
-              face_x: float, levels: int = 3):
-    """Level records of one area, its face centred at (face_x, mid-array), flat surface at ``thickness_m``."""
-    rows = np.zeros(levels, dtype=[("region", "i4"), ("tsi_position_m", "f8", 3), ("onset_height_m", "f8", SHAPE)])
-    rows["tsi_position_m"] = (face_x, SHAPE[1] * PITCH / 2, thickness_m - 2e-3)
+              face_x: float, levels: int = 3, pressed_m: float = 0.0):
+    """Level records of one area, its face centred at (face_x, mid-array), flat surface at ``thickness_m``,
+    every element pressed ``pressed_m`` (0: the small-strain limit, where the contrast is the library's)."""
+    rows = np.zeros(levels, dtype=[("region", "i4"), ("tsi_position_m", "f8", 3), ("onset_height_m", "f8", SHAPE),
+                                   ("dL_m", "f8", SHAPE)])
+    rows["tsi_position_m"] = (face_x, SHAPE[1] * PITCH / 2, thickness_m - pressed_m)
     rows["onset_height_m"] = thickness_m
+    rows["dL_m"] = pressed_m
     rng = np.random.default_rng(7)
     noisy = contrast[None] + rng.normal(0.0, sigma, (levels, *SHAPE))
     measured = SimpleNamespace(contrast=noisy, sigma=np.full_like(noisy, sigma))
@@ -78,6 +81,26 @@ def test_the_interval_covers_a_tumour_the_library_never_held(library):
     assert low <= depth <= high
     assert abs(estimate - depth) < 2e-3
     assert high - low < 0.6 * (library.depth_m[-1] - library.depth_m[0])
+
+
+def test_a_tumour_seen_pressed_deep_is_read_at_its_depth_at_rest(library):
+    """At finite strain the tissue over a tumour thins: pressed to 20 % the 6 mm deep, 7 mm sphere shows as
+    one 6 (1 - 0.2) - 3.5 x 0.2 = 4.1 mm deep does at rest (an independent solve of that). The estimate
+    is the depth at rest, and without the strain it would have been the shallower one."""
+    thickness, depth, pressed = 0.025, 6e-3, 5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (4.1e-3, 7e-3, 8.0))[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    seen = q / np.median(q) - 1.0
+    args = (seen, 0.02, thickness, 0.030, SHAPE[1] * PITCH / 2, 0.032)
+    rows, measured, tumour = _one_area(*args, pressed_m=pressed)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high and abs(estimate - depth) < 1e-3
+    rows, measured, tumour = _one_area(*args)
+    at_rest, *_ = model.estimate(tumour, rows, measured)
+    assert abs(at_rest - 4.1e-3) < 1e-3
 
 
 def test_deeper_tumours_read_deeper(library):
