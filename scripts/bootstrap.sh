@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Make a fresh machine ready: the system libraries Qt needs (when missing) and .venv with everything.
+# Make a fresh machine ready: the system libraries Qt needs, Xvfb and the HDF5 tools (when missing), and
+# .venv with everything.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -22,6 +23,7 @@ have_lib libxcb-shape.so.0 || need+=(libxcb-shape0)
 have_lib libxcb-xinerama.so.0 || need+=(libxcb-xinerama0)
 have_lib libusb-1.0.so.0 || need+=(libusb-1.0-0)
 command -v Xvfb >/dev/null || need+=(xvfb)
+command -v h5dump >/dev/null || need+=(hdf5-tools)  # the test that other HDF5 tools read our files
 if [ ${#need[@]} -gt 0 ]; then
   echo "bootstrap: installing system packages: ${need[*]}"
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"

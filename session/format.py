@@ -24,6 +24,11 @@ it for readers outside Python; :mod:`session.writer` writes it, :mod:`session.re
     /events                 EVENT_DTYPE: one row per event, kinds in EventKind; a cleanly closed file ends
                             with one "closed" row
 
+/stream/ticks, /levels and /events carry ``notes_json`` (what a column means where its name cannot say: that
+``missed_ticks`` is a running total, that regions and levels count from 0 where the console shows them from 1),
+and /stream/ticks and /events ``codes_json``, the name of every code of their coded integer columns
+(:data:`TICK_CODES`; for /events per kind, :data:`EVENT_CODES`).
+
 Text attributes are fixed-length UTF-8 strings. Every dataset is 1-D, chunked, resizable, appended in blocks,
 byte-shuffled, deflated (level 1) and Fletcher-32 checksummed, all of it built into every HDF5, so any HDF5
 tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and no real tick or frame row is
@@ -41,9 +46,10 @@ import math
 
 import numpy as np
 
-from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultRaised, LevelRecord, LevelRecorded,
-                              LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
+from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultKind, FaultRaised, LevelRecord,
+                              LevelRecorded, LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
 from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
+from hardware.interfaces import Phase
 
 FORMAT_NAME = "palpation-console-session"
 FORMAT_VERSION = 2
@@ -100,6 +106,29 @@ OVERVIEW_DTYPE = np.dtype(
     + [(f"{name}_{stat}", np.float64) for name, _, _ in OVERVIEW_CHANNELS for stat in ("min", "max")]
 )
 
+
+
+def _codes(kind) -> dict[str, str]:
+    return {str(int(member)): member.name for member in kind}
+
+
+_SZ_CODES = {"0": "force control in z (S_z = 0)", "1": "position control in z (S_z = 1)"}
+# The meaning of every coded integer column, stored with the file (``codes_json`` attributes) so that a reader
+# without this code can decode it.
+TICK_CODES = {"phase": _codes(Phase), "sz": _SZ_CODES, "region_done": {"0": "no", "1": "yes"},
+              "fault": _codes(FaultKind)}
+EVENT_CODES = {"sz": _SZ_CODES, "phase": _codes(Phase), "fault": _codes(FaultKind), "fault_cleared": _codes(FaultKind),
+               "notice": {"0": "info", "1": "warning"}, "region_done": "the number of levels recorded"}
+TICK_NOTES = {
+    "tick": "index of the control period since the loop started; a jump between rows is rows lost",
+    "t_s": "the loop's clock at the start of the tick, s; the session's own time is t_s minus the first row's",
+    "missed_ticks": "running total since the loop started of the control periods the stall policy skipped "
+                    "(not a count per row: the periods skipped before a row are its value minus the previous "
+                    "row's)",
+    "region": "palpated area, counted from 0 in the order palpated (the console shows it counted from 1)",
+    "level": "force level within the area's ramp, counted from 0 (the console shows it counted from 1); "
+             "-1 outside the ramp",
+}
 
 class EventKind:
     """Values of the ``kind`` column of /events."""

@@ -44,8 +44,9 @@ import h5py
 import numpy as np
 
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
-from session.format import (CHUNK_ROWS, EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS,
-                            OVERVIEW_DTYPE, EventKind, Overview, event_row, rows_for_event)
+from session.format import (CHUNK_ROWS, EVENT_CODES, EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE,
+                            OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TICK_CODES, TICK_NOTES, EventKind, Overview,
+                            event_row, rows_for_event)
 from session.info import SessionInfo, software_version
 
 log = logging.getLogger(__name__)
@@ -192,7 +193,9 @@ class SessionRecorder:
             raise RecorderError(f"cannot record to {folder}: only {free / 2**20:.0f} MB free on its disk; the "
                                 f"recorder needs at least {self.min_free_bytes / 2**20:.0f} MB")
         try:
-            f = h5py.File(self.path, "w-", libver="latest", rdcc_nbytes=8 * 2**20)
+            # the oldest file format that keeps SWMR (crash safety): the HDF5 1.10 tools distributions ship
+            # read it, where "latest" (HDF5 2.0's) gave h5ls *ERROR* for every dataset
+            f = h5py.File(self.path, "w-", libver=("v110", "v110"), rdcc_nbytes=8 * 2**20)
         except FileExistsError:
             raise RecorderError(f"cannot record to {self.path}: the file already exists") from None
         except OSError as err:
@@ -250,6 +253,12 @@ class SessionRecorder:
                                  numbered=True)
         self._events = _Appender(table(f, "events", EVENT_DTYPE, "events",
                                        "one row per event; see session.format.EventKind"), numbered=True)
+        numbering = {key: TICK_NOTES[key] for key in ("region", "level")}
+        for ds, codes, notes in ((self._ticks.ds, TICK_CODES, TICK_NOTES), (self._levels.ds, None, numbering),
+                                 (self._events.ds, EVENT_CODES, numbering)):
+            if codes is not None:
+                ds.attrs["codes_json"] = _fixed(json.dumps(codes, sort_keys=True))
+            ds.attrs["notes_json"] = _fixed(json.dumps(notes, sort_keys=True))
 
     # ---- producer side (any thread) ------------------------------------------------------------------
 

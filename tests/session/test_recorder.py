@@ -83,6 +83,17 @@ def test_recorded_session_is_self_describing(recorded):
         assert np.allclose(levels["force_desired_N"], [0.5, 1.0, 1.5] * 3)
         assert np.allclose(levels["tsi_position_m"][::3, :2], REGIONS_XY_M, atol=2e-4)
         overview = f["stream/overview"][:]
+        # issue 13: the file says what its codes and its less obvious columns mean, without this code
+        codes = json.loads(f["stream/ticks"].attrs["codes_json"].decode())
+        notes = json.loads(f["stream/ticks"].attrs["notes_json"].decode())
+        event_codes = json.loads(f["events"].attrs["codes_json"].decode())
+        level_notes = json.loads(f["levels"].attrs["notes_json"].decode())
+    assert {codes["phase"][str(p)] for p in np.unique(ticks["phase"])} >= {"APPROACH", "SETTLING", "DONE"}
+    assert codes["sz"]["1"].startswith("position control") and codes["fault"]["0"] == "NONE"
+    assert "running total" in notes["missed_ticks"]
+    assert "counted from 0" in notes["region"] and "counted from 0" in level_notes["level"]
+    phase_rows = events[events["kind"] == b"phase"]
+    assert [event_codes["phase"][str(c)] for c in phase_rows["code"]] == [t.decode() for t in phase_rows["text"]]
     assert len(overview) == math.ceil(len(ticks) / OVERVIEW_BUCKET_ROWS)
     assert overview["n_rows"].sum() == len(ticks)
     k = len(overview) // 2
