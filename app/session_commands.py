@@ -126,7 +126,7 @@ def _print_summary(analysis: SessionAnalysis, out) -> None:
     session, stitched, tumours = analysis.session, analysis.stitched, analysis.tumours
     forces = ", ".join(f"{f:g}" for f in stitched.level_forces_N()) or "none"
     print(f"{session.path.name}: {len(session.regions())} regions, {len(session.levels)} recorded levels "
-          f"(forces {forces} N), {stitched.covered_fraction() * 100:.0f} % of the grid covered", file=out)
+          f"(forces {forces} N), {stitched.coverage_text(session.tissue_extent_m)}", file=out)
     print(f"  flat field: {analysis.flat_field}", file=out)
     for warning in session.warnings:
         print(f"  warning: {warning}", file=out)

@@ -154,8 +154,8 @@ def report_lines(analysis: SessionAnalysis) -> tuple[list[str], list[list[str]],
         + f"; {len(session.regions())} regions, force levels {forces} N",
         f"Analysis: cell {p.cell_m * 1e3:g} mm, L0 source {l0}; spots where the contrast is significant at a "
         f"false-alarm rate of {detect_params.false_alarm_per_area:g} per palpated area (accuracy "
-        f"{detect_params.accuracy * 100:g} %); covered {stitched.covered_fraction() * 100:.0f} % of the grid at "
-        f"the highest level",
+        f"{detect_params.accuracy * 100:g} %); {stitched.coverage_text(session.tissue_extent_m)} at the highest "
+        f"level",
         f"Flat field: {analysis.flat_field}",
     ]
     header += [f"Warning: {w}" for w in session.warnings]

@@ -342,6 +342,16 @@ class Session:
         return float(value) if isinstance(value, (int, float)) and value > 0 else 0.2e-3
 
     @property
+    def tissue_extent_m(self) -> tuple[float, float, float, float] | None:
+        """(x_min, x_max, y_min, y_max) of the tissue in the tissue frame, where the file records it (a
+        simulated phantom's footprint); None otherwise."""
+        table = _table(self.phantom, "phantom") if self.phantom else {}
+        size = [table.get(key) for key in ("length_m", "width_m")]
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in size):
+            return (0.0, float(size[0]), 0.0, float(size[1]))
+        return None
+
+    @property
     def phantom_name(self) -> str:
         if self.phantom:
             return str(_table(self.phantom, "phantom").get("name", ""))

@@ -144,12 +144,27 @@ class StitchResult:
     def level_forces_N(self) -> list[float]:
         return [lm.force_N for lm in self.levels]
 
-    def covered_fraction(self, index: int = -1) -> float:
-        """Share of the grid's bounding box palpated at that level (the last by default)."""
+    def covered_fraction(self, index: int = -1, extent_m: tuple[float, float, float, float] | None = None) -> float:
+        """Share palpated at that level (the last by default) of ``extent_m`` (x_min, x_max, y_min, y_max: the
+        tissue, where it is known), or of the grid's bounding box, which is only what was palpated."""
         if not self.levels:
             return 0.0
-        cov = self.levels[index].coverage
-        return float(np.count_nonzero(cov > 0.5)) / cov.size
+        covered = self.levels[index].coverage > 0.5
+        if extent_m is None:
+            return float(np.count_nonzero(covered)) / covered.size
+        x0, x1, y0, y1 = extent_m
+        inside = ((self.grid.x_centres_m()[:, None] >= x0) & (self.grid.x_centres_m()[:, None] <= x1)
+                  & (self.grid.y_centres_m()[None, :] >= y0) & (self.grid.y_centres_m()[None, :] <= y1))
+        cell_area = self.grid.cell_m**2
+        return min(1.0, float(np.count_nonzero(covered & inside)) * cell_area / ((x1 - x0) * (y1 - y0)))
+
+    def coverage_text(self, extent_m: tuple[float, float, float, float] | None) -> str:
+        """'72 % of the tissue (72 x 30 mm)', or, where the tissue's size is not recorded, of what was palpated."""
+        share = self.covered_fraction(extent_m=extent_m) * 100
+        if extent_m is None:
+            return f"{share:.0f} % of the palpated extent covered (the tissue's size is not recorded)"
+        x0, x1, y0, y1 = extent_m
+        return f"{share:.0f} % of the tissue ({(x1 - x0) * 1e3:g} x {(y1 - y0) * 1e3:g} mm) covered"
 
 
 def recompute_stiffness(levels: np.ndarray, element_area_m2: float, params: StitchParams,

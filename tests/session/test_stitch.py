@@ -116,6 +116,17 @@ def test_one_map_per_force_level_lowest_first():
     assert result.covered_fraction(0) == pytest.approx(1.0) and result.covered_fraction() == pytest.approx(0.75)
 
 
+def test_coverage_is_of_the_tissue_where_its_size_is_known_not_of_what_was_palpated():
+    # issue 13: 2 of the 9 areas of a 72 x 30 mm phantom palpated read "100 % of the grid covered"
+    levels = levels_of(*[level_record(r, 0, 1.0, (0.004 + 0.008 * r, 0.015)) for r in range(2)])
+    result = stitch(levels, PITCH, AREA, StitchParams(cell_m=1e-3))
+    assert result.covered_fraction() == pytest.approx(1.0)  # of the palpated extent
+    tissue = (0.0, 0.072, 0.0, 0.030)
+    assert result.covered_fraction(extent_m=tissue) == pytest.approx(2 / 9)
+    assert result.coverage_text(tissue) == "22 % of the tissue (72 x 30 mm) covered"
+    assert "palpated extent" in result.coverage_text(None) and "not recorded" in result.coverage_text(None)
+
+
 def test_l0_sources():
     record = level_record(0, 0, 2.0, (0.01, 0.015))
     levels = levels_of(record)
