@@ -96,7 +96,7 @@ def cmd_run(args) -> int:
 def cmd_simulate(args) -> int:
     from app.simulate import simulate
 
-    return simulate(_config(args), max_time_s=args.max_time_s, verbose=args.verbose)
+    return simulate(_config(args), max_time_s=args.max_time_s, verbose=args.verbose, record=not args.no_record)
 
 
 DELEGATED = {
@@ -109,11 +109,15 @@ DELEGATED = {
 
 
 def build_parser() -> argparse.ArgumentParser:
+    config_help = "a TOML file overriding resources/config/default.toml"
     parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
-    parser.add_argument("--config", type=Path, help="a TOML file overriding resources/config/default.toml")
+    parser.add_argument("--config", type=Path, help=config_help)
+    # the same option after the subcommand (``simulate --config FILE``); SUPPRESS keeps a value given before it
+    config_after = argparse.ArgumentParser(add_help=False)
+    config_after.add_argument("--config", type=Path, default=argparse.SUPPRESS, help=config_help)
     sub = parser.add_subparsers(dest="command")
 
-    run = sub.add_parser("run", help="open the console (default)")
+    run = sub.add_parser("run", help="open the console (default)", parents=[config_after])
     run.add_argument("--phantom", help="simulated rig: phantom name or TOML file")
     real = run.add_argument_group("real hardware", "override [rig] backend and the [hardware] tables of the "
                                   "config (see docs/hardware.md); --slave or --sensor imply --backend udp")
@@ -129,11 +133,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="how long after the window opens --screenshot is taken (default 10)")
     run.set_defaults(func=cmd_run)
 
-    sim = sub.add_parser("simulate", help="palpate a phantom headlessly and print every recorded level")
+    sim = sub.add_parser("simulate", help="palpate a phantom headlessly, print every recorded level and record "
+                         "the session", parents=[config_after])
     sim.add_argument("--phantom", help="phantom name (resources/phantoms) or TOML file")
     sim.add_argument("--seed", type=int, help="random seed of the simulated sensor")
     sim.add_argument("--max-time-s", type=float, default=600.0, help="give up after this much simulated time")
     sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
+    sim.add_argument("--no-record", action="store_true",
+                     help="do not record the session (by default it goes to a new file in the sessions folder, "
+                          "for stitch and review)")
     sim.set_defaults(func=cmd_simulate)
 
     for name, (_, help_text) in DELEGATED.items():

@@ -15,6 +15,8 @@ from control.messages import (CommandApplied, CommandRefused, FaultRaised, Level
                               RegionAborted, RegionDone)
 from hardware.settings import ConfigError
 from hardware.sim.mechanics.progress import TextProgressBar
+from session.info import new_session_path
+from session.writer import RecorderError, SessionRecorder
 
 
 def _level_line(r) -> str:
@@ -30,9 +32,11 @@ def _level_line(r) -> str:
 HEADER = ("  level  F_d [N] F_ts [N] depth[mm] contact E_med[kPa] E_max[kPa] p_max[kPa] RMSE[N] settle[s]")
 
 
-def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False) -> int:
+def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False, record: bool = True) -> int:
     """Palpate the phantom end to end on a virtual clock with the scripted operator, as in Section IV-A;
-    prints every recorded level. Returns the exit code: 0 if every area was done without a problem."""
+    prints every recorded level and, unless ``record`` is False, records the session to a new file in the
+    sessions folder, as the console does (so that ``stitch`` and ``review`` work without the GUI). Returns
+    the exit code: 0 if every area was done without a problem, 2 if the session could not be recorded."""
     if config.rig.backend != "sim":
         raise ConfigError("rig.backend", f"simulate palpates the simulated rig, not {config.rig.backend!r}"
                                          " (use `run` for real hardware)")
@@ -40,9 +44,30 @@ def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False
     operator = rig.master
     if operator is None or not hasattr(operator, "finished"):
         raise ConfigError("rig.backend", "simulate needs the simulated rig's scripted operator")
+    recorder = None
+    if record:
+        from app.recording import recording_summary, session_info
+
+        path = new_session_path()
+        try:
+            recorder = SessionRecorder(path, session_info(config, rig))
+        except RecorderError as err:
+            print(f"error: {err} (simulate --no-record palpates without recording)", file=sys.stderr)
+            return 2
     phantom = rig.description.get("phantom", config.rig.phantom)
     print(f"Palpating phantom {phantom!r} with the scripted operator ({config.control.ramp.n_levels} levels, "
           f"{config.control.ramp.force_min_N:g}-{config.control.ramp.force_max_N:g} N)")
+    if recorder is not None:
+        print(f"Recording the session to {recorder.path}")
+    try:
+        return _palpate(config, rig, operator, max_time_s, verbose, recorder)
+    finally:
+        if recorder is not None:
+            status = recorder.close()
+            print(f"Session recorded: {status.path} ({recording_summary(status)})")
+
+
+def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool, recorder) -> int:
     failures = 0
     done = 0
     with FastForward(config.control, rig) as ff:
@@ -66,7 +91,11 @@ def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False
                     print(f"  ! {getattr(event, 'message', None) or getattr(event, 'reason', '')}")
                 elif isinstance(event, (CommandApplied, CommandRefused, Notice)) and verbose:
                     print(f"  {event}")
-            ff.clear()  # the rows are not needed here: keep memory flat over long runs
+            if recorder is not None:
+                recorder.add_ticks(ff.ticks)
+                recorder.add_frames(ff.frames)
+                recorder.add_events(ff.events)
+            ff.clear()  # the rows are in the file (or not wanted): keep memory flat over long runs
             printed = 0
 
         while not operator.finished:

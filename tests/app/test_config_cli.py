@@ -70,11 +70,32 @@ def test_a_negative_seed_is_one_line(capsys):
     assert "rig.seed: must be a whole number from 0" in capsys.readouterr().err
 
 
-def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done(capsys):
+def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done_and_records_it(capsys):
+    from session.info import sessions_dir
+    from session.reader import open_session
+
     assert main(["simulate"]) == 0
     out = capsys.readouterr().out
     assert "9 of 9 regions done, 0 problems" in out
     assert out.count("done (7 levels)") == 9
+    (path,) = sessions_dir().glob("*.h5")  # issue 13: stitch and review work without the GUI
+    assert f"Session recorded: {path} (63 force levels" in out
+    with open_session(path) as s:
+        assert len(s.levels) == 63 and s.closed_cleanly
+        assert s.tissue_extent_m == (0.0, 0.072, 0.0, 0.030)  # what coverage is a share of
+
+
+def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(tmp_path, capsys):
+    from session.info import sessions_dir
+
+    config = tmp_path / "two-levels.toml"
+    config.write_text("[control.ramp]\nforce_max_N = 2.0\n")
+    assert main(["simulate", "--config", str(config), "--no-record"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("done (2 levels)") == 9 and "Recording" not in out
+    assert not list(sessions_dir().glob("*.h5"))
+    assert main(["--config", str(config), "simulate", "--no-record"]) == 0  # before it, as before
+    assert capsys.readouterr().out.count("done (2 levels)") == 9
 
 
 def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
