@@ -18,6 +18,10 @@ from control.telemetry import LoopHealth
 
 GOOD, WATCH, BAD = "#6ee07a", "#ffc37a", "#ff7b7b"
 LATE_WATCH_PCT, LATE_BAD_PCT = 0.5, 2.0  # share of ticks more than 0.5 ms late
+# Periods skipped by the stall policy: a stall of a few periods is a blip; one longer than the sensor's
+# timeout is as long as a stale-data fault allows (the panel's missed-ticks row turns red there).
+STALL_WATCH_MS = 10.0
+VERDICT = {"good": "Loop OK", "watch": "Loop: check", "bad": "LOOP / DEVICE PROBLEM"}
 AGE_REFRESH_EVERY = 6  # update the age readouts every this many ticks shown (10 Hz at 60 Hz)
 
 
@@ -29,10 +33,6 @@ def health_summary(health: LoopHealth) -> str:
             + ("real-time priority" if health.rt_priority else "no real-time priority")
             + (f" · CPU {health.cpu}" if health.cpu is not None else "")
             + (f" · {health.warning}" if health.warning else ""))
-
-
-def health_degraded(health: LoopHealth) -> bool:
-    return bool(health.warning) or health.late_over_0_5ms_pct > 1.0
 
 
 class HealthPanel(QtWidgets.QWidget):
@@ -90,14 +90,21 @@ class HealthPanel(QtWidgets.QWidget):
         return self._labels[name].property("level")
 
     def overall(self) -> tuple[str, str]:
-        """(worst level, two short lines) for a glance: the loop's rate and lateness, and each device's age."""
-        names = ("loopRate", "lateTicks", "jitter", "sensorAge", "masterAge", "slaveAge")
+        """(worst level, two short lines) for a glance: the loop's rate and lateness, and each device's age.
+
+        The one verdict on the loop's health: the status bar leads with the same words (:data:`VERDICT`).
+        Every figure counts but real-time priority, whose absence is normal on a desktop machine; the
+        reason it was refused does."""
+        names = ("loopRate", "lateTicks", "jitter", "missedTicks", "sensorAge", "masterAge", "slaveAge")
         levels = [self.level(n) for n in names if n in self._short]
         if not levels:
             return "watch", "loop: no report yet"
+        if self._warning.text() and not self._warning.isHidden():
+            levels.append("watch")
         worst = "bad" if "bad" in levels else "watch" if "watch" in levels else "good"
-        head = {"good": "Loop OK", "watch": "Loop: check", "bad": "LOOP / DEVICE PROBLEM"}[worst]
-        loop = " · ".join(self._short[n] for n in ("loopRate", "lateTicks") if n in self._short)
+        shown = ["loopRate", "lateTicks"] + (["missedTicks"] if self.level("missedTicks") != "good" else [])
+        loop = " · ".join(self._short[n] for n in shown if n in self._short)
+        head = VERDICT[worst]
         ages = " · ".join(f"{device} {self._short[n]}" for n, device in
                           (("sensorAge", "sensor"), ("slaveAge", "robot"), ("masterAge", "master")) if n in self._short)
         return worst, f"{head} · {loop}" + (f"\n{ages}" if ages else "")
@@ -114,8 +121,11 @@ class HealthPanel(QtWidgets.QWidget):
         jitter = health.p99_abs_jitter_us
         self._short["jitter"] = f"{jitter:.0f} µs"
         self._set(L["jitter"], f"{jitter:.0f} µs", "good" if jitter < 200 else "watch" if jitter < 500 else "bad")
-        self._set(L["missedTicks"], f"{health.missed_ticks} / {health.longest_stall_ms:.1f} ms",
-                  "good" if health.missed_ticks == 0 else "watch")
+        stall = health.longest_stall_ms
+        self._short["missedTicks"] = f"missed {health.missed_ticks} (stall {stall:.0f} ms)"
+        self._set(L["missedTicks"], f"{health.missed_ticks} / {stall:.1f} ms",
+                  "good" if health.missed_ticks == 0 or stall <= STALL_WATCH_MS
+                  else "watch" if stall <= 1e3 * self._limits.sensor_timeout_s else "bad")
         cpu = f", CPU {health.cpu}" if health.cpu is not None else ""
         self._set(L["rtPriority"], ("yes" if health.rt_priority else "no") + cpu,
                   "good" if health.rt_priority else "watch")

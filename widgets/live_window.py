@@ -50,7 +50,7 @@ from session.export import depth_model_text
 from session.flatfield import FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.flowchart import FlowchartPanel
-from widgets.health import HealthPanel, health_degraded, health_summary
+from widgets.health import VERDICT, HealthPanel, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
 from widgets.messages import MessagesPane, Severity
@@ -857,8 +857,9 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _show_health(self, health: LoopHealth) -> None:
         self._health_panel.show_health(health)
         self._show_health_chip()
-        self._set_text(self._health, health_summary(health))
-        degraded = health_degraded(health)
+        level, _ = self._health_panel.overall()
+        self._set_text(self._health, f"{VERDICT[level]} · {health_summary(health)}")
+        degraded = level != "good"
         if degraded != self._health_degraded:
             self._health_degraded = degraded
             self._health.setProperty("degraded", degraded)

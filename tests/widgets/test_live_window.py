@@ -469,6 +469,27 @@ def test_the_health_chip_sums_up_the_loop_and_the_devices(window, controller):
     assert "sensor 200 ms" in chip.text()
 
 
+def test_the_chip_and_the_status_bar_give_one_verdict_on_the_loop(window, controller):
+    # issue 13: the health box said "Loop OK" while the status bar said "longest stall 108 ms · missed 480"
+    chip, bar = label(window, "healthChip"), label(window, "loopHealth")
+    calm = LoopHealth(rate_hz=1000.0, late_over_0_5ms_pct=0.05, p99_abs_jitter_us=30.0, missed_ticks=2,
+                      longest_stall_ms=3.0, rt_priority=True, cpu=1)
+    push(controller, make_tick(), health=calm)  # a blip of two periods is no reason to look
+    assert chip.text().startswith("Loop OK") and bar.text().startswith("Loop OK · ")
+    assert bar.property("degraded") is False
+    stalled = LoopHealth(**{**{f: getattr(calm, f) for f in calm.__slots__}, "missed_ticks": 480,
+                            "longest_stall_ms": 108.0})
+    push(controller, make_tick(), health=stalled)  # longer than the sensor's 60 ms timeout
+    assert chip.property("level") == "bad" and "missed 480 (stall 108 ms)" in chip.text()
+    assert chip.text().startswith("LOOP / DEVICE PROBLEM") and bar.text().startswith("LOOP / DEVICE PROBLEM · ")
+    assert bar.property("degraded") is True
+    shorter = LoopHealth(**{**{f: getattr(calm, f) for f in calm.__slots__}, "missed_ticks": 40,
+                            "longest_stall_ms": 30.0})
+    panel = HealthPanel(SafetyLimits())
+    panel.show_health(shorter)
+    assert panel.level("missedTicks") == "watch" and panel.overall()[1].startswith("Loop: check")
+
+
 def test_a_double_click_on_the_tissue_sends_the_probe_there_only_off_the_tissue(window, controller):
     tissue = window.findChild(WholeTissueView)
     push(controller, make_tick(phase=Phase.APPROACH, force_measured_N=0.8))
