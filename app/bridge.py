@@ -179,6 +179,7 @@ class _Worker(QObject):
         self._home = home
         self._pump: _Pump | None = None
         self._timer: QTimer | None = None
+        self._stopped_on_request = False
 
     @Slot()
     def start_driver(self) -> None:
@@ -198,6 +199,7 @@ class _Worker(QObject):
             self.start_failed.emit(f"{type(err).__name__}: {err}" if str(err) else type(err).__name__)
             return
         self._pump = pump
+        self._stopped_on_request = False
         for sink in self.sinks:
             sink.driver_started()
         if self._timer is None:
@@ -211,6 +213,7 @@ class _Worker(QObject):
     def stop_driver(self) -> None:
         if self._pump is None:
             return
+        self._stopped_on_request = True
         self._timer.stop()
         self._on_timer()  # hand the GUI what arrived since the last display tick
         if self._pump is not None:  # the last drain may have found it dead
@@ -221,7 +224,10 @@ class _Worker(QObject):
     @Slot(object)
     def send(self, command: Command) -> None:
         if self._pump is None:
-            log.warning("controller is not running; %s was dropped", type(command).__name__)
+            # After the operator stopped it (quitting, say), a command still in flight (a jog key's repeat)
+            # has nowhere to go and nothing to tell; before a start, or after a crash, it is worth a warning.
+            level = logging.DEBUG if self._stopped_on_request else logging.WARNING
+            log.log(level, "controller is not running; %s was not sent", type(command).__name__)
             return
         try:
             self._pump.send(command)

@@ -1,5 +1,6 @@
 """The GUI bridge: snapshots at display rate, commands, crash reports, and a clean shutdown."""
 
+import logging
 import os
 import signal
 from pathlib import Path
@@ -15,7 +16,7 @@ from app.recording import SessionRecording, session_info
 from app.rigs import RigSpec
 from app.ring import NAME_PREFIX
 from control.config import ControlConfig
-from control.messages import EStop, FaultKind, FaultRaised
+from control.messages import EStop, FaultKind, FaultRaised, Jog
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE, LiveSnapshot
 from session.reader import open_session
 
@@ -182,3 +183,18 @@ def test_shutdown_without_start_is_harmless(bridges):
     bridge.shutdown()
     with pytest.raises(ValueError, match="display_hz"):
         ControllerBridge(lambda: None, display_hz=0)
+
+
+def test_a_command_after_the_operator_stopped_the_controller_is_not_a_warning(qtbot, bridges, caplog):
+    # issue 13: quitting printed "controller is not running; Jog was dropped"
+    bridge = bridges(ControllerBridge.for_fast_forward(ControlConfig(), RigSpec(), speed=4.0))
+    with caplog.at_level(logging.DEBUG, logger="app.bridge"):
+        bridge._worker.send(Jog((0.0, 0.0, 1e-3)))  # never started: worth a warning
+        assert [r.levelno for r in caplog.records] == [logging.WARNING]
+        with qtbot.waitSignal(bridge.started, timeout=10_000):
+            bridge.start()
+        with qtbot.waitSignal(bridge.stopped, timeout=10_000):
+            bridge.stop()
+        caplog.clear()
+        bridge._worker.send(Jog((0.0, 0.0, 1e-3)))  # a key repeat still in flight as the console quits
+        assert [r.levelno for r in caplog.records] == [logging.DEBUG] and "not sent" in caplog.text
