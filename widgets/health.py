@@ -74,7 +74,7 @@ class HealthPanel(QtWidgets.QWidget):
     def _row(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str) -> QtWidgets.QLabel:
         grid.addWidget(QtWidgets.QLabel(caption), row, 0)
         value = QtWidgets.QLabel("—", objectName=name)
-        value.setMinimumWidth(150)  # changing figures must not re-lay out the panel
+        value.setMinimumWidth(120)  # changing figures must not re-lay out the panel
         grid.addWidget(value, row, 1)
         return value
 

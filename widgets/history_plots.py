@@ -113,7 +113,7 @@ class HistoryPlots(QtWidgets.QWidget):
                           (self._recorded, "recordedMarkers")):
             obj.setObjectName(name)
             fitem.addItem(obj)
-        self._legend = QtWidgets.QLabel(objectName="forceLegend")
+        self._legend = QtWidgets.QLabel(objectName="forceLegend", wordWrap=True)
         self._legend.setText(
             f"<span style='color:{_hex(F_DESIRED_COLOUR)}'>━━ F_d desired</span>&nbsp;&nbsp;&nbsp;"
             f"<span style='color:{_hex(F_MEASURED_COLOUR)}'>━━ F_ts measured</span>&nbsp;&nbsp;&nbsp;"

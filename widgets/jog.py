@@ -37,6 +37,8 @@ QSpinBox, QComboBox { color: #ececec; background: #2a2a2a; border: 1px solid #5a
 QSpinBox:disabled, QComboBox:disabled { color: #6a6a6a; border-color: #3a3a3a; }
 QPushButton[class="jog"] { font-size: 12pt; font-weight: bold; min-width: 64px; min-height: 32px; }
 QLabel#jogPosition { font-family: monospace; font-size: 11pt; }
+QLabel#jogStepCaption { color: #d8d8d8; }
+QLabel#jogStepCaption:disabled { color: #9a9a9a; }
 QLabel#jogReason, QLabel#autopilotStatus { color: #ffc37a; }
 QLabel#autopilotStatus[state="running"] { color: #8cc0ff; font-weight: bold; }
 QLabel#autopilotStatus[state="finished"] { color: #6ee07a; font-weight: bold; }
@@ -92,7 +94,7 @@ class JogPanel(QtWidgets.QWidget):
         self._position = QtWidgets.QLabel("TSI  —", objectName="jogPosition")
         self._reason_label = QtWidgets.QLabel("", objectName="jogReason", wordWrap=True)
         step_row = QtWidgets.QHBoxLayout()
-        step_row.addWidget(QtWidgets.QLabel("Step"))
+        step_row.addWidget(QtWidgets.QLabel("Step", objectName="jogStepCaption"))
         step_row.addWidget(self._step)
         step_row.addStretch(1)
         layout = QtWidgets.QVBoxLayout(self)

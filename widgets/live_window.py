@@ -74,6 +74,7 @@ STIFFNESS_FLOOR_PA = 100e3
 MOVE_TO_MAX_FORCE_N = 0.05
 
 _SIDE_STYLE = """
+QScrollArea#sideScroll, QWidget#sideReadouts { background: transparent; }
 QLabel { color: #ececec; }
 QLabel[class="caption"] { color: #b0b0b0; font-size: 12pt; }
 QLabel[class="readout"] { font-size: 22pt; font-weight: bold; color: #f4f4f4; }
@@ -171,10 +172,6 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._ramp_to_restore: RampSettings | None = None
 
         self.setWindowTitle("Palpation Console")
-        screen = QtGui.QGuiApplication.primaryScreen()
-        room = screen.availableGeometry().size() if screen is not None else QtCore.QSize(*DEFAULT_SIZE)
-        # until a saved geometry says otherwise
-        self.resize(min(DEFAULT_SIZE[0], room.width()), min(DEFAULT_SIZE[1], room.height()))
         self.setPalette(dark_palette())
         self.setAutoFillBackground(True)
         self.setDockOptions(QtWidgets.QMainWindow.DockOption.AnimatedDocks
@@ -207,8 +204,15 @@ class LiveWindow(QtWidgets.QMainWindow):
 
         self._health = QtWidgets.QLabel("loop: waiting for the controller's first report", objectName="loopHealth")
         self._health.setStyleSheet(_HEALTH_STYLE)
-        self.statusBar().addPermanentWidget(self._health)
+        # the whole line would set the window's minimum width; what does not fit is in the health panel
+        self._health.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
+        self.statusBar().addPermanentWidget(self._health, 1)
         self._build_shortcuts()
+        # Within the screen, once every dock is in (docks added later widen the window past a size set
+        # before them), until a saved geometry says otherwise.
+        screen = QtGui.QGuiApplication.primaryScreen()
+        room = screen.availableGeometry().size() if screen is not None else QtCore.QSize(*DEFAULT_SIZE)
+        self.resize(min(DEFAULT_SIZE[0], room.width()), min(DEFAULT_SIZE[1], room.height()))
         self._default_state = self.saveState(SETTINGS_VERSION)
         self._restore_settings()
 
@@ -246,8 +250,20 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _build_control_dock(self) -> None:
         panel = QtWidgets.QWidget(objectName="sidePanel")
         panel.setStyleSheet(_SIDE_STYLE)
-        col = QtWidgets.QVBoxLayout(panel)
-        col.setContentsMargins(8, 4, 8, 8)
+        outer = QtWidgets.QVBoxLayout(panel)
+        outer.setContentsMargins(0, 0, 0, 8)
+        outer.setSpacing(6)
+        # On a short screen the readouts scroll; the loop's health, tare and STOP stay in view below them.
+        readouts = QtWidgets.QWidget(objectName="sideReadouts")
+        scroll = QtWidgets.QScrollArea(objectName="sideScroll")
+        scroll.setWidgetResizable(True)
+        scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        scroll.setWidget(readouts)
+        scroll.viewport().setAutoFillBackground(False)
+        outer.addWidget(scroll, 1)
+        col = QtWidgets.QVBoxLayout(readouts)
+        col.setContentsMargins(8, 4, 8, 0)
         col.setSpacing(6)
 
         self._sz = SzSwitch()
@@ -273,6 +289,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._contact = ContactPanel()
         col.addWidget(self._contact)
         col.addStretch(1)
+        col = QtWidgets.QVBoxLayout()
+        col.setContentsMargins(8, 0, 8, 0)
+        col.setSpacing(6)
+        outer.addLayout(col)
         self._health_chip = QtWidgets.QLabel("loop: no report yet", objectName="healthChip")
         self._health_chip.setToolTip("Loop health and the age of each device's newest reading; details in the "
                                      "Loop health panel")
@@ -381,7 +401,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.tabifyDockWidget(messages_dock, session_dock)
         messages_dock.raise_()
         self.resizeDocks([tissue_dock, jog_dock], [470, 360], QtCore.Qt.Orientation.Vertical)
-        self.resizeDocks([tissue_dock], [400], QtCore.Qt.Orientation.Horizontal)
+        self.resizeDocks([tissue_dock], [380], QtCore.Qt.Orientation.Horizontal)
         self.resizeDocks([history_dock, messages_dock], [560, 420], QtCore.Qt.Orientation.Horizontal)
         self.resizeDocks([history_dock], [320], QtCore.Qt.Orientation.Vertical)
 

@@ -232,24 +232,32 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._level_error.setStyleSheet("color: #ff6b6b; font-weight: bold;")
         self._level_error.hide()
 
+        # Two rows, the reading above the controls: in one the map could not be narrower than ~830 px, and
+        # the console did not fit a 1600 px screen.
+        heading = QtWidgets.QHBoxLayout()
+        heading.setContentsMargins(0, 0, 0, 0)
+        heading.addWidget(self._title)
+        heading.addSpacing(8)
+        heading.addWidget(self._max_label)
+        heading.addStretch(1)
         bar = QtWidgets.QHBoxLayout()
         bar.setContentsMargins(0, 0, 0, 0)
-        bar.addWidget(self._title)
-        bar.addSpacing(8)
-        bar.addWidget(self._max_label)
-        bar.addStretch(1)
         bar.addWidget(self._cells)
         bar.addWidget(self._contour)
         bar.addWidget(self._iso)
         bar.addWidget(self._contrast_box)
-        bar.addSpacing(12)
+        bar.addStretch(1)
         bar.addWidget(self._lock)
         bar.addWidget(self._min_spin)
         self._to_label = QtWidgets.QLabel("to")
         bar.addWidget(self._to_label)
         bar.addWidget(self._max_spin)
         bar.addWidget(self._level_error)
-        self._bar_layout = bar
+        self._bar_layout = QtWidgets.QVBoxLayout()
+        self._bar_layout.setContentsMargins(0, 0, 0, 0)
+        self._bar_layout.setSpacing(2)
+        self._bar_layout.addLayout(heading)
+        self._bar_layout.addLayout(bar)
 
     def _make_spin(self, name: str, tip: str) -> QtWidgets.QDoubleSpinBox:
         spin = QtWidgets.QDoubleSpinBox(objectName=name, enabled=False)

@@ -65,6 +65,7 @@ class WholeTissueView(QtWidgets.QWidget):
         self._level_combo = QtWidgets.QComboBox(objectName="tissueLevel")
         self._level_combo.setToolTip("Force level of the stitched maps")
         self._level_combo.setMinimumWidth(120)
+        self._level_combo.setPlaceholderText("no level recorded yet")
         self._level_combo.activated.connect(self._level_chosen)
         self._buttons: dict[str, QtWidgets.QRadioButton] = {}
         group = QtWidgets.QButtonGroup(self)
@@ -77,8 +78,10 @@ class WholeTissueView(QtWidgets.QWidget):
             top.addWidget(button)
         self._buttons[self._quantity].setChecked(True)
         top.addStretch(1)
-        top.addWidget(QtWidgets.QLabel("at"))
-        top.addWidget(self._level_combo)
+        at = QtWidgets.QHBoxLayout()  # a row of its own: beside the quantities the view could not be narrow
+        at.addWidget(QtWidgets.QLabel("at"))
+        at.addWidget(self._level_combo)
+        at.addStretch(1)
         self._summary = QtWidgets.QLabel("no area palpated yet", objectName="tissueSummary", wordWrap=True)
 
         self._build_plot(areas)
@@ -86,6 +89,7 @@ class WholeTissueView(QtWidgets.QWidget):
         layout.setContentsMargins(2, 2, 2, 2)
         layout.setSpacing(2)
         layout.addLayout(top)
+        layout.addLayout(at)
         layout.addWidget(self._plot, 1)
         layout.addWidget(self._summary)
         self._refresh_levels()

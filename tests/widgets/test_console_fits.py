@@ -1,0 +1,74 @@
+"""The console fits the screens it is used on, and looks as it did (issue 13).
+
+On 1600 x 1000 it once opened 1692 px wide, cutting off the FORCE button, the level boxes, the region-done
+flag, F_d / F_ts, the depth figure and the STOP button. Each size is checked two ways: every part an
+operator needs lies within the window, and the window's picture matches a stored reference within a
+tolerance, as pyqtgraph checks its own drawing. The references (tests/widgets/golden/) were made with Qt's
+offscreen platform and the DejaVu fonts; after an intended change of the layout, or on a machine with
+other fonts, remake them with ``PALPATION_UPDATE_GOLDEN=1`` and look at them before committing.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from tests.widgets.test_live_window import CONFIG, PLAN, FakeController
+from widgets.live_window import LiveWindow
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+# what an operator needs in view at every size
+ESSENTIAL = ("szPosition", "szForce", "levelLadder", "regionDone", "forceDesired", "forceMeasured", "indentation",
+             "tareButton", "estopButton", "healthChip", "pressureMap", "stiffnessMap")
+# a pixel differs if any channel differs by more than this; the clock in the first message always does
+CHANNEL_TOLERANCE = 48
+MAX_DIFFERING_PCT = 1.0
+
+
+def _pixels(image: QtGui.QImage) -> np.ndarray:
+    image = image.convertToFormat(QtGui.QImage.Format.Format_RGB888)
+    raw = np.frombuffer(image.constBits(), np.uint8, image.sizeInBytes())
+    return raw.reshape(image.height(), image.bytesPerLine())[:, : 3 * image.width()].reshape(
+        image.height(), image.width(), 3).copy()
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1600, 1000)])
+def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size):
+    width, height = size
+    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
+    window = LiveWindow(FakeController(), config=CONFIG, settings=settings, plan=PLAN)
+    qtbot.addWidget(window)
+    hint = window.minimumSizeHint()
+    assert hint.width() <= width and hint.height() <= height - 40  # room for a title bar
+    window.resize(width, height)
+    window.show()
+    qtbot.waitExposed(window)
+    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
+    side = window.findChild(QtWidgets.QScrollArea, "sideScroll")  # settled: its contents as wide as its view
+    qtbot.waitUntil(lambda: side.widget().width() == side.viewport().width())
+    inside = window.rect()
+    for name in ESSENTIAL:
+        widget = window.findChild(QtWidgets.QWidget, name)
+        assert widget is not None and widget.isVisible(), name
+        box = QtCore.QRect(widget.mapTo(window, QtCore.QPoint(0, 0)), widget.size())
+        assert inside.contains(box), f"{name} at {box} is cut off by the {width} x {height} window"
+        child = widget  # nor by anything it sits in (a dock, a scroll area's viewport)
+        while child is not window:
+            parent = child.parentWidget()
+            assert parent.rect().contains(QtCore.QRect(widget.mapTo(parent, QtCore.QPoint(0, 0)), widget.size())), (
+                f"{name} is cut off by {type(parent).__name__} {parent.objectName()!r}")
+            child = parent
+
+    picture = _pixels(window.grab().toImage())
+    reference = GOLDEN / f"console_{width}x{height}.png"
+    if os.environ.get("PALPATION_UPDATE_GOLDEN"):
+        window.grab().save(str(reference))
+    stored = _pixels(QtGui.QImage(str(reference)))
+    assert stored.shape == picture.shape, f"{reference.name}: {stored.shape} against {picture.shape}"
+    differing = np.any(np.abs(stored.astype(int) - picture.astype(int)) > CHANNEL_TOLERANCE, axis=2)
+    assert differing.mean() * 100 <= MAX_DIFFERING_PCT, (
+        f"{differing.mean() * 100:.2f} % of the pixels differ from {reference.name}")
