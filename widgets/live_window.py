@@ -818,11 +818,14 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def _show_frame(self, frame: np.ndarray) -> None:
         pressure = frame["pressure_pa"]
-        self._pressure.set_data(pressure)
+        metrics = contact_metrics(pressure, self._config.contact.confirm_threshold_pa, self._sensor)
+        # In the air the array reads its own noise: shown in colour it looks like a light touch (a dark blue
+        # map, "max 0.1 kPa"); below the contact threshold everywhere, the map is the grey no-contact state.
+        self._pressure.set_no_data_text("no contact" if np.isfinite(pressure).any() else "no sensor frame yet")
+        self._pressure.set_data(pressure if metrics.elements else np.full_like(pressure, np.nan))
         self._stiffness.set_data(frame["stiffness_pa"])
         if self._pressure.contrast_view() or self._stiffness.contrast_view():
             self._show_frame_contrast(frame)
-        metrics = contact_metrics(pressure, self._config.contact.confirm_threshold_pa, self._sensor)
         self._contact.show_metrics(metrics, frame["tsi_position_m"])
         self._pressure.set_marker_m(metrics.centre_m)
 

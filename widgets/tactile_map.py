@@ -378,6 +378,12 @@ class TactileMapWidget(QtWidgets.QWidget):
 
     # ---- public API ----------------------------------------------------------------------------------
 
+    def set_no_data_text(self, text: str) -> None:
+        """What the map says when it has nothing to show (no frame yet, no contact, ...)."""
+        if text != self._no_data_text:
+            self._no_data_text = text
+            self._render()
+
     def set_data(self, array_pa: np.ndarray) -> None:
         """Show a (4, 15) array in Pa (rows = x, cols = y). NaN or infinite elements are drawn as no data."""
         array = np.asarray(array_pa)

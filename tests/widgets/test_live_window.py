@@ -265,6 +265,21 @@ def test_maps_show_new_frames_only_with_the_contact_figures(window, controller):
     np.testing.assert_allclose(pressure.data_pa(), newer["pressure_pa"], rtol=1e-6)
 
 
+def test_in_the_air_the_pressure_map_is_the_grey_no_contact_state_not_a_dark_blue_one(window, controller):
+    # issue 13: no contact showed a dark-blue map reading "max 0.1 kPa", the array's own noise
+    pressure = window.findChild(TactileMapWidget, "pressureMap")
+    air = make_frame(seq=7, peak_pa=0.0)
+    air["pressure_pa"] = np.random.default_rng(3).normal(60.0, 40.0, (4, 15))  # far below the 900 Pa threshold
+    push(controller, make_tick(), frame=air)
+    assert np.isnan(pressure.data_pa()).all()
+    assert pressure.findChild(QtWidgets.QLabel, "maxLabel").text() == "max —"
+    assert pressure._no_data_label.textItem.toPlainText() == "no contact" and pressure._no_data_label.isVisible()
+    touch = make_frame(seq=8)
+    push(controller, make_tick(), frame=touch)
+    np.testing.assert_allclose(pressure.data_pa(), touch["pressure_pa"], rtol=1e-6)
+    assert not pressure._no_data_label.isVisible()
+
+
 def test_loop_health_reaches_the_status_bar_and_the_panel(window, controller):
     health = label(window, "loopHealth")
     push(controller, make_tick(), health=HEALTH)
