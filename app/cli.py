@@ -81,16 +81,13 @@ def display_problem(environ=os.environ) -> str:
 
 def cmd_run(args) -> int:
     from app.gui import run_gui
-    from app.rigs import prepare_rig
-    from hardware.sim.mechanics.progress import TextProgressBar
 
     problem = display_problem()
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
-    config = _config(args)
-    prepare_rig(config.rig, TextProgressBar())  # first use of a phantom: precompute its tissue model here
-    return run_gui(config, screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
+    # the first use of a phantom precomputes its tissue model: run_gui shows it in the console
+    return run_gui(_config(args), screenshot=args.screenshot, screenshot_after_s=args.screenshot_after_s)
 
 
 def cmd_simulate(args) -> int:

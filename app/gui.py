@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from app.config import AppConfig
 from app.depth_model import LIBRARY_PATH, DepthModel, DepthModelError
 from app.recording import SessionRecording, session_info
+from hardware.sim.mechanics.progress import Progress
 from session.info import sessions_dir
 
 
@@ -63,6 +65,61 @@ def wire_recording(window, recording: SessionRecording) -> None:
     panel.note_submitted.connect(note)
 
 
+def prepare_in_console(prepare: Callable[[Progress], None], title: str, terminal: Progress | None = None) -> None:
+    """Run ``prepare(progress)`` (the first use of a phantom: its tissue model, tens of seconds) off the GUI
+    thread while a progress dialog shows how far it is, so a new user sees the wait in the console, not
+    only on a terminal they may not be looking at; ``terminal`` hears the same. An exception in
+    ``prepare`` is raised here. Returns at once, without a dialog, when it takes less than half a second
+    (a cached model)."""
+    import threading
+
+    from PySide6 import QtCore, QtWidgets
+
+    class Relay(QtCore.QObject):
+        moved = QtCore.Signal(float, str)
+        finished = QtCore.Signal()
+
+    relay = Relay()
+    dialog = QtWidgets.QProgressDialog(title, "", 0, 1000)
+    dialog.setObjectName("prepareProgress")
+    dialog.setWindowTitle("Palpation Console")
+    dialog.setCancelButton(None)  # the model is needed; quitting the console is the way out
+    dialog.setMinimumDuration(2**31 - 1)  # shown by the timer below, not by its own guess of what is left
+    dialog.setMinimumWidth(480)
+
+    def moved(fraction: float, message: str) -> None:
+        dialog.setLabelText(f"{title}\n{message}")
+        dialog.setValue(int(round(1000 * min(1.0, max(0.0, fraction)))))
+
+    relay.moved.connect(moved)
+    loop = QtCore.QEventLoop()
+    relay.finished.connect(loop.quit)
+    failure: list[BaseException] = []
+
+    def report(fraction: float, message: str) -> None:  # on the worker thread: queued to the GUI's
+        relay.moved.emit(fraction, message)
+        if terminal is not None:
+            terminal(fraction, message)
+
+    def work() -> None:
+        try:
+            prepare(report)
+        except BaseException as err:  # noqa: BLE001 - handed to the GUI thread and raised there
+            failure.append(err)
+        finally:
+            relay.finished.emit()
+
+    worker = threading.Thread(target=work, name="prepare-rig", daemon=True)
+    worker.start()
+    QtCore.QTimer.singleShot(500, lambda: worker.is_alive() and dialog.show())
+    loop.exec()
+    worker.join()
+    dialog.close()
+    dialog.deleteLater()
+    if failure:
+        raise failure[0]
+
+
 def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | None = None,
             screenshot_after_s: float = 10.0, autopilot: bool | None = None) -> int:
     """Run the console until its window closes. With ``screenshot``, save the window to that PNG after
@@ -73,7 +130,8 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     from PySide6 import QtCore, QtWidgets
 
     from app.bridge import ControllerBridge
-    from app.rigs import plan_for_rig
+    from app.rigs import plan_for_rig, prepare_rig
+    from hardware.sim.mechanics.progress import TextProgressBar
     from widgets.live_window import LiveWindow
 
     rig = console_rig(config)
@@ -82,6 +140,10 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(argv or sys.argv[:1])
     app.setApplicationName("Palpation Console")
     app.setOrganizationName("palpation-console")
+    # the first use of a phantom: its tissue model, before the controller process starts
+    prepare_in_console(lambda progress: prepare_rig(rig, progress),
+                       f"Preparing the tissue model of {rig.phantom!r} (once per phantom; cached after)",
+                       terminal=TextProgressBar())
     bridge = ControllerBridge.for_process(config.control, rig)
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)
