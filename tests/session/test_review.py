@@ -67,8 +67,18 @@ def test_browse_regions_and_levels(qtbot, window, recorded):
     assert "Region 3, level 2" in child(window, QtWidgets.QLabel, "recordInfo").text()
     indentation = window.findChild(QtWidgets.QWidget, "indentationMap")
     assert np.array_equal(indentation.values(), levels["dL_m"][7], equal_nan=True)
+    # issue 13: dL on the TSI, in the coordinates of the maps above it (y -15..15 mm across, x -4..4 mm up)
+    (y0, y1), (x0, x1) = indentation._view.viewRange()
+    assert y0 < -14.5 and y1 > 14.5 and x0 < -3.8 and x1 > 3.8 and abs(y0 + y1) < 1.0 and abs(x0 + x1) < 0.5
     window.close_session()
     assert sha256(path) == before
+    # ... and closing the session clears every heading and map, not only the tables
+    for record_map in (pressure, stiffness):
+        assert np.isnan(record_map.data_pa()).all()
+        assert record_map.findChild(QtWidgets.QLabel, "maxLabel").text() == "max —"
+    assert np.isnan(indentation.values()).all()
+    assert child(window, QtWidgets.QLabel, "recordInfo").text() == ""
+    assert window.statusBar().currentMessage() == "File > Open a session (.h5)"
 
 
 @pytest.fixture(scope="module")

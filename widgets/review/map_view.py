@@ -31,7 +31,7 @@ class GridMapView(QtWidgets.QWidget):
     """
 
     def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3, x_horizontal: bool = True,
-                 contrast: bool = False, parent: QtWidgets.QWidget | None = None):
+                 contrast: bool = False, on_tsi: bool = False, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._unit, self._scale = unit, scale
         self._range = contrast_range if contrast else colour_range
@@ -48,7 +48,9 @@ class GridMapView(QtWidgets.QWidget):
         self._plot = pg.PlotWidget()
         self._plot.setObjectName("plot")
         item = self._plot.getPlotItem()
-        bottom, left = ("x (mm)", "y (mm)") if x_horizontal else ("y (mm)", "x (mm)")
+        # ``on_tsi``: coordinates from the TSI's centre, named as the live tactile maps name them
+        y_name = "y on the TSI (mm)" if on_tsi else "y (mm)"
+        bottom, left = ("x (mm)", y_name) if x_horizontal else (y_name, "x (mm)")
         self._view = map_view(self._plot, bottom, left)
         self._no_data, self._image = add_map_layers(self._view, "mapImage")
         self._truth = pg.ScatterPlotItem(pxMode=False, brush=None,

@@ -134,7 +134,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._pressure_map.setObjectName("pressureMap")
         self._stiffness_map = TactileMapWidget("Stiffness (Eq. 1)")
         self._stiffness_map.setObjectName("stiffnessMap")
-        self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, x_horizontal=False)
+        self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, x_horizontal=False,
+                                            on_tsi=True)
         self._indentation_map.setObjectName("indentationMap")
 
         maps = QtWidgets.QWidget()
@@ -342,10 +343,15 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._level_combo.clear()
         self._stitched_map.clear()
         self._contrast_map.clear()
+        self._indentation_map.clear()
+        for record_map in (self._pressure_map, self._stiffness_map):  # with their "max ..." headings
+            record_map.set_data(np.full(record_map.data_pa().shape, np.nan))
         self._summary.setText("")
         self._record_info.setText("")
+        self._banner.hide()
         self._set_exports_enabled(False)
         self.setWindowTitle("Palpation Console — session review")
+        self.statusBar().showMessage("File > Open a session (.h5)")
 
     def analysis_params(self) -> AnalysisParams:
         """The parameters in the analysis panel; raises StitchError / DetectError naming a bad one."""
@@ -580,7 +586,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         x, y, z = (float(v) for v in rec["tsi_position_m"])
         rows, cols = rec["dL_m"].shape
         half_x, half_y = rows * session.pitch_m / 2, cols * session.pitch_m / 2
-        self._indentation_map.set_map(rec["dL_m"], (x - half_x, x + half_x, y - half_y, y + half_y))
+        # on the TSI, as the pressure and stiffness maps above it
+        self._indentation_map.set_map(rec["dL_m"], (-half_x, half_x, -half_y, half_y))
         n_levels = int(np.count_nonzero(session.levels["region"] == rec["region"]))
         self._record_info.setText(
             f"<b>Region {int(rec['region']) + 1}, level {int(rec['level']) + 1}</b> ({n_levels} recorded): "
