@@ -527,7 +527,10 @@ class TactileMapWidget(QtWidgets.QWidget):
         self._max_spin.setEnabled(on)
         self._level_error.hide()
         if not on:
-            self._levels_kpa_follow()
+            if np.isfinite(self._data_kpa).any():
+                self._levels_kpa_follow()
+            else:  # nothing to follow (no contact): the range starts again from the automatic floor
+                self._apply_levels((0.0, self._floor_kpa))
             self._render()
 
     def _spin_changed(self) -> None:
