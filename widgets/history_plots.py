@@ -24,17 +24,13 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from widgets.plot_style import follow_palette
+from widgets.plot_style import (DEPTH_COLOUR, F_DESIRED_COLOUR, F_MEASURED_COLOUR, LIMIT_COLOUR, RECORDED_COLOUR,
+                                 follow_palette)
 from widgets.tactile_map import nice_step
 
 SAMPLE_HZ = 50.0
 KEEP_FRACTION = 0.25  # of the window still in view after a jump
 _FORCE_MARGIN = 1.2
-F_DESIRED_COLOUR = (255, 163, 72)
-F_MEASURED_COLOUR = (120, 220, 255)
-DEPTH_COLOUR = (230, 140, 255)
-RECORDED_COLOUR = (95, 211, 95)
-LIMIT_COLOUR = (255, 107, 107)
 
 
 def _hex(rgb: tuple[int, int, int]) -> str:

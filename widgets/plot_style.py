@@ -9,6 +9,14 @@ from PySide6 import QtGui, QtWidgets
 
 from widgets.colormaps import CONTOUR_LUT, NO_DATA_RGB
 
+# One colour per quantity wherever it is drawn (the console's history, the reviewer's timeline), so a
+# reviewer reads a trace as the operator saw it; chosen for the dark plot backgrounds both use.
+F_DESIRED_COLOUR = (255, 163, 72)
+F_MEASURED_COLOUR = (120, 220, 255)
+DEPTH_COLOUR = (230, 140, 255)
+RECORDED_COLOUR = (95, 211, 95)
+LIMIT_COLOUR = (255, 107, 107)
+
 
 def map_view(plot: pg.PlotWidget, bottom: str, left: str) -> pg.ViewBox:
     """A map's axes: labelled, square pixels, no context menu or auto-range button (a map has one scale)."""

@@ -295,3 +295,20 @@ def test_quit_closes_the_reviewer(qtbot, window):
     assert quit_action.shortcut() == QtGui.QKeySequence(QtGui.QKeySequence.StandardKey.Quit)
     quit_action.trigger()
     assert not window.isVisible()
+
+
+def test_the_timeline_draws_f_d_and_f_ts_in_the_consoles_colours(qtbot):
+    # issue 13: the reviewer drew F_d blue and F_ts orange, the console F_d orange and F_ts cyan
+    from widgets.history_plots import HistoryPlots
+    from widgets.plot_style import F_DESIRED_COLOUR, F_MEASURED_COLOUR
+    from widgets.review.timeline import TimelineWidget
+
+    timeline, history = TimelineWidget(), HistoryPlots()
+    qtbot.addWidget(timeline)
+    qtbot.addWidget(history)
+
+    def rgb(curve):
+        return curve.opts["pen"].color().getRgb()[:3]
+
+    assert rgb(timeline._f_desired) == rgb(history._f_desired) == F_DESIRED_COLOUR
+    assert rgb(timeline._f_measured) == rgb(history._f_measured) == F_MEASURED_COLOUR

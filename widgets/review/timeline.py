@@ -15,6 +15,7 @@ from PySide6 import QtCore, QtWidgets
 
 from session.format import EventKind
 from session.reader import SessionFileError
+from widgets.plot_style import DEPTH_COLOUR, F_DESIRED_COLOUR, F_MEASURED_COLOUR
 
 _FIELDS = ["t_s", "force_measured_N", "force_desired_N", "indentation_m"]
 
@@ -56,9 +57,9 @@ class TimelineWidget(QtWidgets.QWidget):
             plot.getViewBox().setMouseEnabled(x=True, y=False)
         self._depth.setLabel("bottom", "loop time (s)")
         self._force.addLegend(offset=(10, 5))
-        self._f_measured = self._force.plot(pen=pg.mkPen((240, 180, 40), width=1), name="measured F_ts")
-        self._f_desired = self._force.plot(pen=pg.mkPen((90, 160, 255), width=1), name="desired F_d")
-        self._indent = self._depth.plot(pen=pg.mkPen((120, 220, 120), width=1), connect="finite")
+        self._f_measured = self._force.plot(pen=pg.mkPen(F_MEASURED_COLOUR, width=1), name="measured F_ts")
+        self._f_desired = self._force.plot(pen=pg.mkPen(F_DESIRED_COLOUR, width=1), name="desired F_d")
+        self._indent = self._depth.plot(pen=pg.mkPen(DEPTH_COLOUR, width=1), connect="finite")
         for curve in (self._f_measured, self._f_desired, self._indent):
             curve.setClipToView(True)
             curve.setDownsampling(auto=True, method="peak")
