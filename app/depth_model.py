@@ -329,7 +329,8 @@ class DepthModel:
             centre = levels["tsi_position_m"][rows[-1]]
             off_x = float(centre[0]) - tumour.x_m
             y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
-            if abs(off_x) > self.library.offset_x_m[-1] + 1e-9 or not 0.0 <= y_from_edge <= self.shape[1] * self.pitch_m:
+            if (abs(off_x) > self.library.offset_x_m[-1] + 1e-9
+                    or not 0.0 <= y_from_edge <= self.shape[1] * self.pitch_m):
                 continue
             near = np.hypot(offsets[..., 0] + float(centre[0]) - tumour.x_m,
                             offsets[..., 1] + float(centre[1]) - tumour.y_m) <= self.reach_m

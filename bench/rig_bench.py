@@ -170,8 +170,10 @@ def _validation(cache_dir: str) -> dict:
                 clean_finite, clean_linear = models["none"]
                 clean = full["none"].nonlinear_N[same[0]].sum()
                 row["contrast_full"] = float(solution.nonlinear_N[k].sum() / clean - 1)
-                row["contrast_full_linear"] = float(solution.linear_N_per_m.sum() / full["none"].linear_N_per_m.sum() - 1)
-                row["contrast_model"] = float(finite.total_force_N(x0, y0, z) / clean_finite.total_force_N(x0, y0, z) - 1)
+                row["contrast_full_linear"] = float(solution.linear_N_per_m.sum()
+                                                    / full["none"].linear_N_per_m.sum() - 1)
+                row["contrast_model"] = float(finite.total_force_N(x0, y0, z)
+                                              / clean_finite.total_force_N(x0, y0, z) - 1)
                 row["contrast_model_linear"] = float(linear.total_force_N(x0, y0, z)
                                                      / clean_linear.total_force_N(x0, y0, z) - 1)
             rows.append(row)
@@ -202,7 +204,8 @@ def _print_summary(result: dict) -> None:
     print("finite-strain model against a full nonlinear solve (flat phantom, one tumour under the face):")
     for case, rows in result["full_solve_validation"].items():
         for row in rows:
-            line = (f"  {case:12s} {row['depth_mm']:4.1f} mm: element ratio error max {row['element_err_max_pct']:4.1f} %"
+            line = (f"  {case:12s} {row['depth_mm']:4.1f} mm: element ratio error max "
+                    f"{row['element_err_max_pct']:4.1f} %"
                     f" rms {row['element_err_rms_pct']:4.1f} % (uniform correction: max"
                     f" {row['uniform_element_err_max_pct']:4.1f} %), total {row['total_err_pct']:+5.1f} %")
             if "contrast_full" in row:

@@ -80,7 +80,8 @@ class HyperelasticBlock:
         self.w0 = np.linalg.det(jac)  # Gauss weights are 1
         self.g0 = np.einsum("qaj,eqji->eqai", dn, np.linalg.inv(jac))  # dN_a/dX_i
         self.v0 = self.w0.sum(axis=1)
-        young, nu = (np.broadcast_to(v, self.w0.shape) for v in material(np.einsum("qa,eai->eqi", fac.prod(axis=2) / 8.0, xe)))
+        points = np.einsum("qa,eai->eqi", fac.prod(axis=2) / 8.0, xe)  # the Gauss points
+        young, nu = (np.broadcast_to(v, self.w0.shape) for v in material(points))
         self.mu = young / (2.0 * (1.0 + nu))  # (nel, 8)
         self.kappa = self.v0 / np.einsum("eq,eq->e", self.w0, 3.0 * (1.0 - 2.0 * nu) / young)  # (nel,)
         self.n_dofs = 3 * coords.shape[0]

@@ -28,14 +28,16 @@ model, two factors on each element's linear force, both functions of the element
 
 * the **homogeneous** factor ``1 + a s + b s^2``, per element: :mod:`.finite_strain` solves the face
   pressed into the phantom's homogeneous base block at finite strain (its hyperelastic law and side
-  condition) once per phantom, and fits each element's nonlinear/linear force. The face's own pattern
-  changes with it: its edge rows stiffen faster than its inner rows, the elements at the phantom's free
-  sides slower;
+  condition) once per phantom, up to ``FIT_STRAIN``, and fits each element's nonlinear/linear force. The
+  face's own pattern changes with it: its edge rows stiffen faster than its inner rows, the elements at
+  the phantom's free sides slower. Past ``FIT_STRAIN`` the pattern is held and only the total keeps
+  stiffening along its own fitted curve;
 * the **inclusion** factor: as the layer compresses, the tissue over a stiff inclusion thins, so the
   inclusion shows more the harder the face presses. A second set of linear tables has every inclusion
   where a layer compressed by ``COMPRESSED_STRAIN`` carries it (:func:`compressed_material`); an
   element's force ratio between the two sets at the same pose and height, ``r``, gives the factor
-  ``1 + (r - 1) s / COMPRESSED_STRAIN``, interpolated linearly in the strain.
+  ``1 + (r - 1) min(s, COMPRESSED_STRAIN) / COMPRESSED_STRAIN``: linear in the strain up to the state
+  tabulated, held beyond it.
 
 Against a full nonlinear solve of the flat phantom with one tumour under the face (``bench.rig_bench``,
 docs/phantoms.md) it follows each element's force within a few per cent where the uniform correction it
@@ -59,7 +61,8 @@ import numpy as np
 from hardware.interfaces import TactileConstraints
 from hardware.sim.mechanics import cache as cache_mod
 from hardware.sim.mechanics.contact import contact_path, tributary_weights
-from hardware.sim.mechanics.fem import HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs, wall_dofs
+from hardware.sim.mechanics.fem import (HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs,
+                                        wall_dofs)
 from hardware.sim.mechanics.progress import Progress, stage
 from hardware.sim.phantom import Phantom
 
