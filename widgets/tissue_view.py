@@ -299,13 +299,12 @@ class WholeTissueView(QtWidgets.QWidget):
 
     def _describe(self, level) -> str:
         regions = self._maps.region_count
-        covered_m2 = float(np.count_nonzero(level.coverage > 0.5)) * self._result.grid.cell_m ** 2
         text = f"{self._maps.level_count} levels recorded in {regions} area{'s' if regions != 1 else ''}"
         if self._extent is not None:
-            x0, x1, y0, y1 = self._extent
-            share = min(1.0, covered_m2 / ((x1 - x0) * (y1 - y0)))
+            share = self._result.covered_fraction(self._result.levels.index(level), extent_m=self._extent)
             text += f" · {share * 100:.0f} % of the phantom covered at {level.force_N:g} N"
         else:
+            covered_m2 = float(np.count_nonzero(level.coverage > 0.5)) * self._result.grid.cell_m ** 2
             text += f" · {covered_m2 * 1e6:.0f} mm² covered at {level.force_N:g} N"
         if math.isfinite(level.tsi_indentation_m):
             text += f" · mean depth {level.tsi_indentation_m * 1e3:.1f} mm"

@@ -260,7 +260,7 @@ def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress
     per_element, *_ = np.linalg.lstsq(basis, excess[:, loaded], rcond=None)
     coeffs = np.zeros((2, linear.shape[1]))  # elements off the phantom carry nothing to scale
     coeffs[:, loaded] = per_element
-    total, *_ = np.linalg.lstsq(basis, nonlinear.sum(axis=1) / linear.sum(axis=1) - 1.0, rcond=None)
+    total, *_ = np.linalg.lstsq(basis, solution.curve().ratio()[1:] - 1.0, rcond=None)
     return {"element_ab": coeffs, "total_ab": total}
 
 
