@@ -167,6 +167,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._texts: dict[QtWidgets.QLabel, str] = {}
         self._frame_seq: int | None = None
         self._state = ConsoleState(self._config)
+        self._new_session = True  # the next tick is t = 0 in the messages: each run is a session of its own
         self._fault_shown: tuple[int, str] | None = None
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
@@ -560,7 +561,8 @@ class LiveWindow(QtWidgets.QMainWindow):
                                f"{ramp.force_max_N:g} N in {ramp.force_step_N:g} N steps.")
             self._ramp_editor.request(ramp)
         tick = snapshot.tick
-        if self._state.tick is None:  # the first tick is t = 0 for the operator
+        if self._new_session:  # the run's (and its session file's) first tick is t = 0 for the operator
+            self._new_session = False
             self._messages.set_time_origin(float(snapshot.ticks[0]["t_s"]) if len(snapshot.ticks)
                                            else float(tick["t_s"]))
         self._state.on_tick(tick)
@@ -640,6 +642,7 @@ class LiveWindow(QtWidgets.QMainWindow):
     @QtCore.Slot()
     def _on_started(self) -> None:
         self._state.started()
+        self._new_session = True
         self._messages.add("Controller running.", Severity.OK)
 
     @QtCore.Slot()

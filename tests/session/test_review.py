@@ -221,6 +221,25 @@ def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window
     assert window.session.recovered and window.session.n_ticks == 3000 and len(window.session.levels) == 1
 
 
+def test_times_are_told_from_the_session_start_not_the_loop_clock(qtbot, window, tmp_path):
+    """issue 13: a session recorded after the loop ran for 500 s reads from t = 0 on the timeline and in the
+    record's description."""
+    path = tmp_path / "late.h5"
+    rec = SessionRecorder(path, INFO)
+    rec.add_ticks(tick_rows(500_000, 20_000))  # loop time 500-520 s
+    rec.add_events([LevelRecorded(512.0, level_record(0, 0, 1.0, (0.01, 0.015), t_s=512.0))])
+    rec.close()
+    open_in(qtbot, window, path)
+    timeline = window.findChild(QtWidgets.QWidget, "timeline")
+    t0, t1 = timeline.visible_range_s()
+    assert -1.0 < t0 <= 0.0 and 19.5 < t1 < 21.0
+    assert "12.00 s into the session" in child(window, QtWidgets.QLabel, "recordInfo").text()
+    with qtbot.waitSignal(timeline.range_loaded, timeout=5000, check_params_cb=lambda mode: mode == "full"):
+        timeline.show_range(2.0, 4.0)  # seconds into the session: loop time 502-504 s, every tick
+    xs = timeline._f_measured.xData
+    assert xs.min() <= 2.0 and xs.max() >= 4.0 and xs.max() < 20.5
+
+
 def test_recent_files(qtbot, window, recorded, settings, tmp_path):
     open_in(qtbot, window, recorded[0])
     recent = RecentSessions(settings)

@@ -308,13 +308,21 @@ def test_device_ages_turn_red_past_the_safety_timeouts(controller, settings):
     assert panel.level("masterAge") == "good"
 
 
-def test_messages_carry_timestamps_from_the_first_tick(window, controller):
+def test_messages_carry_the_time_since_the_session_started(window, controller):
+    controller.started.emit()
     push(controller, make_tick(t_s=100.0))
     push(controller, make_tick(t_s=102.5), events=[Notice(102.5, "Tactile sensor tared: the current reading "
                                                                  "is the new zero.")])
     line = window.messages().lines()[-1]
     assert "t    2.50 s" in line and "Tactile sensor tared" in line
     assert line[:8].count(":") == 2  # the wall-clock time it arrived, HH:MM:SS
+    # issue 13: a second run records a session of its own, and its times start again from its first tick
+    controller.stopped.emit()
+    controller.started.emit()
+    push(controller, make_tick(t_s=340.0))
+    push(controller, make_tick(t_s=341.25), events=[Notice(341.25, "Second run.")])
+    line = window.messages().lines()[-1]
+    assert "t    1.25 s" in line and "Second run." in line
 
 
 def test_level_records_fill_the_history_and_the_whole_tissue_view(window, controller):

@@ -1,4 +1,5 @@
-"""The session's timeline: measured and desired force, and the TSI indentation, against loop time.
+"""The session's timeline: measured and desired force, and the TSI indentation, against the time since
+the session started (its first tick; the loop's own clock starts wherever the controller's did).
 
 Zoomed out it draws the file's overview (min and max of every 1000 ticks, a zig-zag that reads as the
 signal's envelope), so an hour is a few thousand points; once the visible span is at most
@@ -43,6 +44,7 @@ class TimelineWidget(QtWidgets.QWidget):
         self._session = None
         self._mode = "overview"
         self._loaded: tuple[float, float] | None = None  # time span of the full-resolution data drawn
+        self._origin_s = 0.0  # the loop time of the session's first tick: t = 0 on the axis
         self._overview = None
 
         self._layout = pg.GraphicsLayoutWidget()
@@ -55,7 +57,7 @@ class TimelineWidget(QtWidgets.QWidget):
             plot.showGrid(x=True, y=True, alpha=0.2)
             plot.setLabel("left", label)
             plot.getViewBox().setMouseEnabled(x=True, y=False)
-        self._depth.setLabel("bottom", "loop time (s)")
+        self._depth.setLabel("bottom", "time since the session started (s)")
         self._force.addLegend(offset=(10, 5))
         self._f_measured = self._force.plot(pen=pg.mkPen(F_MEASURED_COLOUR, width=1), name="measured F_ts")
         self._f_desired = self._force.plot(pen=pg.mkPen(F_DESIRED_COLOUR, width=1), name="desired F_d")
@@ -90,27 +92,33 @@ class TimelineWidget(QtWidgets.QWidget):
     def points_drawn(self) -> int:
         return len(self._f_measured.xData) if self._f_measured.xData is not None else 0
 
+    def origin_s(self) -> float:
+        """The loop time drawn as t = 0 (the session's first tick); every time here is relative to it."""
+        return self._origin_s
+
     def set_session(self, session) -> None:
         self._session = session
         self._loaded = None
+        t0, t1 = session.time_span_s()
+        self._origin_s = t0
         ov = session.overview()
         self._overview = ov
         for line in self._faults:
             self._force.removeItem(line)
         self._faults = []
         levels = session.levels
-        self._levels.setData(x=levels["t_s"], y=levels["force_measured_N"], data=np.arange(len(levels)))
+        self._levels.setData(x=levels["t_s"] - t0, y=levels["force_measured_N"], data=np.arange(len(levels)))
         for row in session.events[session.events["kind"] == EventKind.FAULT.encode()]:
-            line = pg.InfiniteLine(pos=float(row["t_s"]), angle=90, pen=pg.mkPen((230, 60, 60), width=1.5))
+            line = pg.InfiniteLine(pos=float(row["t_s"]) - t0, angle=90, pen=pg.mkPen((230, 60, 60), width=1.5))
             self._force.addItem(line)
             self._faults.append(line)
-        t0, t1 = session.time_span_s()
         self._draw_overview()
-        self._force.setXRange(t0, max(t1, t0 + 1e-3), padding=0.01)
+        self._force.setXRange(0.0, max(t1 - t0, 1e-3), padding=0.01)
         self._info.setText(f"{session.n_ticks:,} ticks over {t1 - t0:,.1f} s; zoom in below "
                            f"{self.full_res_span_s:g} s to see every tick")
 
     def show_range(self, t0_s: float, t1_s: float) -> None:
+        """Show seconds ``t0_s`` to ``t1_s`` after the session started."""
         self._force.setXRange(t0_s, t1_s, padding=0.0)
 
     def visible_range_s(self) -> tuple[float, float]:
@@ -118,6 +126,7 @@ class TimelineWidget(QtWidgets.QWidget):
 
     def clear(self) -> None:
         self._session = None
+        self._origin_s = 0.0
         self._overview = None
         for curve in (self._f_measured, self._f_desired, self._indent):
             curve.setData([], [])
@@ -133,12 +142,10 @@ class TimelineWidget(QtWidgets.QWidget):
         ov = self._overview
         if ov is None:
             return
-        self._f_measured.setData(*_envelope(ov["t_start_s"], ov["t_end_s"], ov["force_measured_N_min"],
-                                            ov["force_measured_N_max"]))
-        self._f_desired.setData(*_envelope(ov["t_start_s"], ov["t_end_s"], ov["force_desired_N_min"],
-                                           ov["force_desired_N_max"]))
-        self._indent.setData(*_envelope(ov["t_start_s"], ov["t_end_s"], ov["indentation_m_min"] * 1e3,
-                                        ov["indentation_m_max"] * 1e3))
+        start, end = ov["t_start_s"] - self._origin_s, ov["t_end_s"] - self._origin_s
+        self._f_measured.setData(*_envelope(start, end, ov["force_measured_N_min"], ov["force_measured_N_max"]))
+        self._f_desired.setData(*_envelope(start, end, ov["force_desired_N_min"], ov["force_desired_N_max"]))
+        self._indent.setData(*_envelope(start, end, ov["indentation_m_min"] * 1e3, ov["indentation_m_max"] * 1e3))
         self._mode = "overview"
         self._loaded = None
 
@@ -158,12 +165,12 @@ class TimelineWidget(QtWidgets.QWidget):
         margin = min(span, self.full_res_span_s) / 2
         a, b = t0 - margin, t1 + margin
         try:
-            rows = self._session.ticks_between(a, b, _FIELDS)
+            rows = self._session.ticks_between(a + self._origin_s, b + self._origin_s, _FIELDS)
         except SessionFileError as err:  # a damaged stretch of the stream: say so, keep the overview
             self._info.setText(f"Cannot show every tick here: {err.problem}")
             self.range_loaded.emit(self._mode)
             return
-        t = rows["t_s"]
+        t = rows["t_s"] - self._origin_s
         self._f_measured.setData(t, rows["force_measured_N"])
         self._f_desired.setData(t, rows["force_desired_N"])
         self._indent.setData(t, rows["indentation_m"] * 1e3)
