@@ -158,9 +158,10 @@ class StitchResult:
         cell_area = self.grid.cell_m**2
         return min(1.0, float(np.count_nonzero(covered & inside)) * cell_area / ((x1 - x0) * (y1 - y0)))
 
-    def coverage_text(self, extent_m: tuple[float, float, float, float] | None) -> str:
-        """'72 % of the tissue (72 x 30 mm)', or, where the tissue's size is not recorded, of what was palpated."""
-        share = self.covered_fraction(extent_m=extent_m) * 100
+    def coverage_text(self, extent_m: tuple[float, float, float, float] | None, index: int = -1) -> str:
+        """'72 % of the tissue (72 x 30 mm)' at level ``index`` (the last by default), or, where the tissue's
+        size is not recorded, of what was palpated."""
+        share = self.covered_fraction(index, extent_m) * 100
         if extent_m is None:
             return f"{share:.0f} % of the palpated extent covered (the tissue's size is not recorded)"
         x0, x1, y0, y1 = extent_m

@@ -53,6 +53,7 @@ from widgets.flowchart import FlowchartPanel
 from widgets.health import VERDICT, HealthPanel, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
+from widgets.plot_style import dark_palette
 from widgets.messages import MessagesPane, Severity
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.session_panel import SessionPanel
@@ -109,19 +110,6 @@ def _fmt(value: float, unit: str, decimals: int = 2, scale: float = 1.0) -> str:
         return "—"
     # adding 0.0 turns the -0.0 a small negative reading rounds to into 0.0: a sign no digit carries is noise
     return f"{round(v * scale, decimals) + 0.0:.{decimals}f} {unit}"
-
-
-def dark_palette() -> QtGui.QPalette:
-    palette = QtGui.QPalette()
-    role, group = QtGui.QPalette.ColorRole, QtGui.QPalette.ColorGroup
-    for r, colour in ((role.Window, "#1e1e1e"), (role.WindowText, "#ececec"), (role.Base, "#2a2a2a"),
-                      (role.AlternateBase, "#323232"), (role.Text, "#ececec"), (role.Button, "#3a3a3a"),
-                      (role.ButtonText, "#ececec"), (role.ToolTipBase, "#ffffe0"), (role.ToolTipText, "#000000"),
-                      (role.Highlight, "#1f6fd1"), (role.HighlightedText, "#ffffff")):
-        palette.setColor(r, QtGui.QColor(colour))
-    for r in (role.WindowText, role.Text, role.ButtonText):
-        palette.setColor(group.Disabled, r, QtGui.QColor("#7a7a7a"))
-    return palette
 
 
 def console_settings() -> QtCore.QSettings:

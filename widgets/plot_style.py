@@ -18,6 +18,21 @@ RECORDED_COLOUR = (95, 211, 95)
 LIMIT_COLOUR = (255, 107, 107)
 
 
+def dark_palette() -> QtGui.QPalette:
+    """The console's and the reviewer's one scheme: dark, as a console beside a robot in a dimmed lab is,
+    and the background the trace colours above were chosen for."""
+    palette = QtGui.QPalette()
+    role, group = QtGui.QPalette.ColorRole, QtGui.QPalette.ColorGroup
+    for r, colour in ((role.Window, "#1e1e1e"), (role.WindowText, "#ececec"), (role.Base, "#2a2a2a"),
+                      (role.AlternateBase, "#323232"), (role.Text, "#ececec"), (role.Button, "#3a3a3a"),
+                      (role.ButtonText, "#ececec"), (role.ToolTipBase, "#ffffe0"), (role.ToolTipText, "#000000"),
+                      (role.Highlight, "#1f6fd1"), (role.HighlightedText, "#ffffff")):
+        palette.setColor(r, QtGui.QColor(colour))
+    for r in (role.WindowText, role.Text, role.ButtonText):
+        palette.setColor(group.Disabled, r, QtGui.QColor("#7a7a7a"))
+    return palette
+
+
 def map_view(plot: pg.PlotWidget, bottom: str, left: str) -> pg.ViewBox:
     """A map's axes: labelled, square pixels, no context menu or auto-range button (a map has one scale)."""
     item = plot.getPlotItem()

@@ -105,6 +105,9 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded, referenc
     stitched_map = window.findChild(QtWidgets.QWidget, "stitchedMap")
     assert np.array_equal(stitched_map.values(), window.stitched.levels[2].stiffness_pa, equal_nan=True)
     assert stitched_map.marker_counts() == (2, 3)  # two found by the stiffness map; the phantom's three
+    # issue 13: three of the nine areas are a share of the tissue, not "100 % of the grid"
+    title = stitched_map.findChild(QtWidgets.QLabel).text()
+    assert title.endswith("% of the tissue (72 x 30 mm) covered") and "100 %" not in title, title
     contrast_map = window.findChild(QtWidgets.QWidget, "contrastMap")  # beside it, the same map's contrast
     assert np.array_equal(contrast_map.values(), window.stitched.levels[2].extra["stiffness_contrast"],
                           equal_nan=True)
@@ -116,8 +119,8 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded, referenc
     assert tumours.rowCount() == 4
     assert [tumours.item(r, 0).text() for r in range(4)] == ["stiffness", "stiffness", "force", "force"]
     headers = [tumours.horizontalHeaderItem(c).text() for c in range(tumours.columnCount())]
-    assert headers[3:8] == ["Score (z)", "Contrast (%)", "First level (N)", "Depth, rule (mm)",
-                            "Depth, model (mm, 90 %)"]
+    assert headers[3:8] == ["Score\n(z)", "Contrast\n(%)", "First level\n(N)", "Depth, rule\n(mm)",
+                            "Depth, model\n(mm, 90 %)"]
     assert float(tumours.item(0, 3).text()) > 3.0
     assert tumours.item(0, 8).text().startswith("#1, 2.0 mm deep")
     assert "of the 2 palpated tumours (of 3)" in child(window, QtWidgets.QLabel, "analysisSummary").text()
@@ -305,6 +308,31 @@ def test_the_whole_tissue_page_fits_a_laptop_screen(qtbot, window, recorded, ref
     assert hint.width() <= 1280 and hint.height() <= 800, hint
     for name in ("stitchedMap", "contrastMap"):  # however long the title, a map can narrow
         assert window.findChild(QtWidgets.QWidget, name).minimumSizeHint().width() <= 400
+    # issue 13: at 1280 x 800 the tumour table shows every column whole, without scrolling sideways
+    window.resize(1280, 800)
+    table = child(window, QtWidgets.QTableWidget, "tumourTable")
+    qtbot.waitUntil(lambda: table.isVisible() and table.width() > 600)
+    assert table.rowCount() == 4
+    assert table.horizontalScrollBar().maximum() == 0
+    header = table.horizontalHeader()
+    for c in range(table.columnCount()):
+        needed = max([header.sectionSizeFromContents(c).width()]
+                     + [table.sizeHintForColumn(c)])
+        assert table.columnWidth(c) >= needed, (table.horizontalHeaderItem(c).text(), table.columnWidth(c), needed)
+
+
+def test_the_reviewer_is_in_the_consoles_dark_scheme_throughout(qtbot, window, recorded):
+    """issue 13: the timeline was black in an otherwise light window."""
+    open_in(qtbot, window, recorded[0])
+    window_colour = window.palette().color(QtGui.QPalette.ColorRole.Window)
+    assert window_colour.lightness() < 60
+    timeline = child(window, QtWidgets.QWidget, "timelinePlots")
+    assert timeline.backgroundBrush().color() == window.palette().color(QtGui.QPalette.ColorRole.Base)
+    for name in ("regionTable", "tumourTable"):
+        table = child(window, QtWidgets.QTableWidget, name)
+        assert table.palette().color(QtGui.QPalette.ColorRole.Base).lightness() < 60
+    axis_text = timeline.ci.getItem(1, 0).getAxis("bottom").textPen().color()
+    assert axis_text.lightness() > 180  # light text on the dark plot
 
 
 def test_quit_closes_the_reviewer(qtbot, window):

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from session.format import EventKind
 from session.reader import SessionFileError
-from widgets.plot_style import DEPTH_COLOUR, F_DESIRED_COLOUR, F_MEASURED_COLOUR
+from widgets.plot_style import DEPTH_COLOUR, F_DESIRED_COLOUR, F_MEASURED_COLOUR, follow_palette
 
 _FIELDS = ["t_s", "force_measured_N", "force_desired_N", "indentation_m"]
 
@@ -58,9 +58,8 @@ class TimelineWidget(QtWidgets.QWidget):
             plot.setLabel("left", label)
             plot.getViewBox().setMouseEnabled(x=True, y=False)
         self._depth.setLabel("bottom", "time since the session started (s)")
-        self._force.addLegend(offset=(10, 5))
-        self._f_measured = self._force.plot(pen=pg.mkPen(F_MEASURED_COLOUR, width=1), name="measured F_ts")
-        self._f_desired = self._force.plot(pen=pg.mkPen(F_DESIRED_COLOUR, width=1), name="desired F_d")
+        self._f_measured = self._force.plot(pen=pg.mkPen(F_MEASURED_COLOUR, width=1))
+        self._f_desired = self._force.plot(pen=pg.mkPen(F_DESIRED_COLOUR, width=1))
         self._indent = self._depth.plot(pen=pg.mkPen(DEPTH_COLOUR, width=1), connect="finite")
         for curve in (self._f_measured, self._f_desired, self._indent):
             curve.setClipToView(True)
@@ -78,10 +77,20 @@ class TimelineWidget(QtWidgets.QWidget):
         self._force.getViewBox().sigXRangeChanged.connect(lambda *_: self._settle.start())
 
         self._info = QtWidgets.QLabel("", objectName="timelineInfo")
+        # The key sits under the plots, not in them: a legend inside covers a stretch of the ramps.
+        key = QtWidgets.QLabel(" ".join(f'<span style="color: rgb{colour}">&#9644; {name}</span>&nbsp;'
+                                        for colour, name in ((F_MEASURED_COLOUR, "measured F_ts"),
+                                                             (F_DESIRED_COLOUR, "desired F_d"),
+                                                             (DEPTH_COLOUR, "TSI indentation"))),
+                               objectName="timelineKey")
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(self._info, 1)
+        row.addWidget(key)
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         layout.addWidget(self._layout, 1)
-        layout.addWidget(self._info)
+        layout.addLayout(row)
+        self._apply_palette()
 
     # ---- public API ----------------------------------------------------------------------------------
 
@@ -137,6 +146,16 @@ class TimelineWidget(QtWidgets.QWidget):
         self._info.setText("")
 
     # ---- internals -----------------------------------------------------------------------------------
+
+    def _apply_palette(self) -> None:
+        follow_palette(self, [self._layout], [plot.getAxis(side) for plot in (self._force, self._depth)
+                                              for side in ("left", "bottom")],
+                       background=QtGui.QPalette.ColorRole.Base)
+
+    def changeEvent(self, event: QtCore.QEvent) -> None:
+        if event.type() == QtCore.QEvent.Type.PaletteChange:
+            self._apply_palette()
+        super().changeEvent(event)
 
     def _draw_overview(self) -> None:
         ov = self._overview

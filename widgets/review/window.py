@@ -30,6 +30,7 @@ from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
 from widgets.colormaps import colour_range
 from widgets.map_painting import render_maps_png, write_report
+from widgets.plot_style import dark_palette
 from widgets.review.map_view import GridMapView
 from widgets.review.recent import RecentSessions
 from widgets.review.timeline import TimelineWidget
@@ -82,6 +83,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._depth_model: tuple[DepthModel | None, str] | None = None  # for the open session, and any problem
         self._reference: Reference | None = None
         self.setWindowTitle("Palpation Console — session review")
+        self.setPalette(dark_palette())  # the console's scheme: a trace reads as the operator saw it
         self.recent = RecentSessions(settings)
         self._start_folder = Path(start_folder) if start_folder else Path.home()
         self._session: Session | None = None
@@ -144,12 +146,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
         grid.addWidget(self._record_info)
         grid.addWidget(self._pressure_map, 1)
         grid.addWidget(self._stiffness_map, 1)
-        grid.addWidget(self._indentation_map, 1)
+        # dL under the table, where a short table leaves room: the two maps the paper reads get the height
         table_box = QtWidgets.QWidget()
         table_layout = QtWidgets.QVBoxLayout(table_box)
         table_layout.setContentsMargins(0, 0, 0, 0)
         table_layout.addWidget(QtWidgets.QLabel("TSI indentation (mm) per region and force level"))
         table_layout.addWidget(self._region_table, 1)
+        self._indentation_map.setMaximumHeight(230)  # a 4 x 15 map on a column this wide needs no more
+        table_layout.addWidget(self._indentation_map)
         split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         split.addWidget(table_box)
         split.addWidget(maps)
@@ -202,6 +206,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._l0_fixed_spin = spin("l0FixedSpin", 0.5, 200.0, 25.0, 0.5, " mm")
         self._l0_fixed_spin.setEnabled(False)
         self._l0_combo.currentIndexChanged.connect(self._l0_changed)
+        for combo in (self._physics_combo, self._l0_combo):  # long option names elide rather than widen the panel
+            combo.setSizeAdjustPolicy(QtWidgets.QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+            combo.setMinimumContentsLength(16)
         form = QtWidgets.QFormLayout()
         form.addRow("Grid cell", self._cell_spin)
         form.addRow("False alarms", self._false_alarm_spin)
@@ -217,6 +224,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._tumour_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self._tumour_table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
         self._tumour_table.verticalHeader().hide()
+        # compact rows: three tumours and their header in the height a laptop screen leaves under the maps
+        self._tumour_table.verticalHeader().setDefaultSectionSize(self.fontMetrics().height() + 8)
+        self._tumour_table.horizontalHeader().setStretchLastSection(True)
         self._tumour_table.setToolTip("Select a tumour to see its map at the level where it first shows")
         self._tumour_table.currentCellChanged.connect(lambda r, *_: self._tumour_selected(r))
 
@@ -225,9 +235,17 @@ class ReviewWindow(QtWidgets.QMainWindow):
         side_layout.setContentsMargins(0, 0, 0, 0)
         side_layout.addWidget(analysis)
         side_layout.addWidget(self._summary)
-        side_layout.addWidget(QtWidgets.QLabel("Tumours (score: z over healthy tissue; depth by the paper's rule = "
-                                               "TSI indentation at the first level)", wordWrap=True))
-        side_layout.addWidget(self._tumour_table, 1)
+        side_layout.addStretch(1)
+        # no wider than the form needs: the long summary wraps instead of taking the table's width
+        side.setMaximumWidth(analysis.minimumSizeHint().width() + 2 * self.fontMetrics().height())
+        # The tumour table spans the maps' width, where its nine columns are read without scrolling sideways.
+        table_box = QtWidgets.QWidget()
+        table_layout = QtWidgets.QVBoxLayout(table_box)
+        table_layout.setContentsMargins(0, 0, 0, 0)
+        table_layout.addWidget(QtWidgets.QLabel("Tumours (score: z over healthy tissue; depth by the paper's rule = "
+                                                "TSI indentation at the first level; select one to see where it "
+                                                "first shows)", wordWrap=True))
+        table_layout.addWidget(self._tumour_table, 1)
 
         bar = QtWidgets.QHBoxLayout()
         bar.addWidget(QtWidgets.QLabel("Force level"))
@@ -240,16 +258,24 @@ class ReviewWindow(QtWidgets.QMainWindow):
         left_layout = QtWidgets.QVBoxLayout(left)
         left_layout.setContentsMargins(0, 0, 0, 0)
         left_layout.addLayout(bar)
-        maps = QtWidgets.QHBoxLayout()
-        maps.addWidget(self._stitched_map, 1)
-        maps.addWidget(self._contrast_map, 1)
-        left_layout.addLayout(maps, 1)
-        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
-        split.addWidget(left)
-        split.addWidget(side)
-        split.setStretchFactor(0, 3)
-        split.setStretchFactor(1, 2)
-        return split
+        maps = QtWidgets.QWidget()
+        maps_layout = QtWidgets.QHBoxLayout(maps)
+        maps_layout.setContentsMargins(0, 0, 0, 0)
+        maps_layout.addWidget(self._stitched_map, 1)
+        maps_layout.addWidget(self._contrast_map, 1)
+        maps_over_table = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        maps_over_table.addWidget(maps)
+        maps_over_table.addWidget(table_box)
+        maps_over_table.setStretchFactor(0, 3)
+        maps_over_table.setStretchFactor(1, 2)
+        maps_over_table.setSizes([300, 170])
+        left_layout.addWidget(maps_over_table, 1)
+        page = QtWidgets.QWidget()
+        page_layout = QtWidgets.QHBoxLayout(page)
+        page_layout.setContentsMargins(0, 0, 0, 0)
+        page_layout.addWidget(left, 1)
+        page_layout.addWidget(side)  # the analysis form keeps its own width; the maps and table get the rest
+        return page
 
     def _build_menu(self) -> None:
         menu = self.menuBar().addMenu("&File")
@@ -607,9 +633,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         label, attribute, unit, scale, source = QUANTITIES[self._quantity_combo.currentIndex()]
         self._stitched_map.set_unit(unit, scale)
         self._stitched_map.set_map(lm.quantity(attribute), stitched.grid.extent_m)
-        covered = float(np.count_nonzero(lm.coverage > 0.5)) / lm.coverage.size
         self._stitched_map.set_title(f"{label} at {lm.force_N:g} N — {len(lm.records)} regions, TSI indentation "
-                                     f"{_mm(lm.tsi_indentation_m, 2)} mm, {covered * 100:.0f} % of the grid covered")
+                                     f"{_mm(lm.tsi_indentation_m, 2)} mm, "
+                                     f"{stitched.coverage_text(self._session.tissue_extent_m, index)}")
         found = [(t.x_m, t.y_m) for t in self._analysis.tumours
                  if t.source == source and lm.force_N >= t.first_level_N - 1e-9]
         truth = [(float(g["x_m"]), float(g["y_m"]), float(g.get("diameter_m", 8e-3)))
@@ -627,8 +653,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
     def _fill_tumour_table(self) -> None:
         analysis = self._analysis
         session, tumours = analysis.session, analysis.tumours
-        headers = ["Map", "x (mm)", "y (mm)", "Score (z)", "Contrast (%)", "First level (N)", "Depth, rule (mm)",
-                   "Depth, model (mm, 90 %)"]
+        # units on a second line: the columns are as wide as their figures, and all fit beside the maps
+        headers = ["Map", "x\n(mm)", "y\n(mm)", "Score\n(z)", "Contrast\n(%)", "First level\n(N)",
+                   "Depth, rule\n(mm)", "Depth, model\n(mm, 90 %)"]
         if analysis.has_ground_truth:
             headers.append("True tumour")
             found, fp = analysis.found_count(), analysis.false_positives
