@@ -96,12 +96,17 @@ def cmd_simulate(args) -> int:
     return simulate(_config(args), max_time_s=args.max_time_s, verbose=args.verbose, record=not args.no_record)
 
 
+# name: (entry point, help, what --config gives it; None: it reads no configuration)
 DELEGATED = {
-    "review": ("app.session_commands.review_main", "open a recorded session read-only in the reviewer"),
-    "stitch": ("app.session_commands.stitch_main", "stitch a session into whole-tissue maps and find the tumours"),
-    "slave": ("hardware.udp.server.slave_main", "run the slave side of the UDP master/slave link"),
-    "devices": ("hardware.discovery.main", "list the tactile sensors, masters and links this machine can see"),
-    "study": ("app.study.study_main", "validate tumour detection and depth on seeded simulated phantoms"),
+    "review": ("app.session_commands.review_main", "open a recorded session read-only in the reviewer", None),
+    "stitch": ("app.session_commands.stitch_main", "stitch a session into whole-tissue maps and find the tumours",
+               None),
+    "slave": ("hardware.udp.server.slave_main", "run the slave side of the UDP master/slave link",
+              "its simulated robot's [sim] table"),
+    "devices": ("hardware.discovery.main", "list the tactile sensors, masters and links this machine can see",
+                "also probe the [hardware] devices it names"),
+    "study": ("app.study.study_main", "validate tumour detection and depth on seeded simulated phantoms",
+              "the [control] and [sim] settings every phantom is palpated with"),
 }
 
 
@@ -141,18 +146,39 @@ def build_parser() -> argparse.ArgumentParser:
                           "for stitch and review)")
     sim.set_defaults(func=cmd_simulate)
 
-    for name, (_, help_text) in DELEGATED.items():
+    for name, (_, help_text, _config) in DELEGATED.items():
         sub.add_parser(name, help=help_text, add_help=False)  # listed in --help; main() hands them their argv
     return parser
 
 
+def _delegated(argv: list[str]) -> tuple[str, list[str]] | None:
+    """(subcommand, its argv) when ``argv`` names a delegated subcommand, with a ``--config FILE`` given
+    before it moved after it, where the subcommand's own parser reads it (one given after it wins)."""
+    before: list[str] = []
+    rest = argv
+    if rest and rest[0] == "--config" and len(rest) >= 2:
+        before, rest = rest[:2], rest[2:]
+    elif rest and rest[0].startswith("--config="):
+        before, rest = rest[:1], rest[1:]
+    if not rest or rest[0] not in DELEGATED:
+        return None
+    return rest[0], [*before, *rest[1:]]
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in DELEGATED:  # these subcommands own their argparse
+    delegated = _delegated(argv)
+    if delegated is not None:  # these subcommands own their argparse
         import importlib
 
-        module, name = DELEGATED[argv[0]][0].rsplit(".", 1)
-        return getattr(importlib.import_module(module), name)(argv[1:])
+        command, sub_argv = delegated
+        entry, _, config_use = DELEGATED[command]
+        if config_use is None and any(a == "--config" or a.startswith("--config=") for a in sub_argv):
+            print(f"error: {command} reads no configuration file: it works from what the session recorded and "
+                  f"its own options (palpation-console {command} --help)", file=sys.stderr)
+            return 2
+        module, name = entry.rsplit(".", 1)
+        return getattr(importlib.import_module(module), name)(sub_argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

@@ -22,11 +22,12 @@ class AppConfig:
     raw: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
 
-def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+def merge_tables(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``override`` laid over it, table by table (neither is changed)."""
     out = dict(base)
     for key, value in override.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+            out[key] = merge_tables(out[key], value)
         else:
             out[key] = value
     return out
@@ -77,11 +78,11 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     data = read_toml(DEFAULT_CONFIG)
     sources = [str(DEFAULT_CONFIG)]
     if path is not None:
-        data = _merge(data, read_toml(Path(path)))
+        data = merge_tables(data, read_toml(Path(path)))
         sources.append(str(path))
     if not overrides:
         return parse_config(data, tuple(sources))
     # The files alone first: a mistake in them is reported against the file, so any mistake left after
     # merging came from the command line and is reported against it.
     parse_config(data, tuple(sources))
-    return parse_config(_merge(data, overrides), (*sources, COMMAND_LINE))
+    return parse_config(merge_tables(data, overrides), (*sources, COMMAND_LINE))

@@ -188,9 +188,11 @@ def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution 
     return cases
 
 
-def run_case(case: StudyCase, out_dir: str, keep_session: bool = True) -> dict[str, Any]:
+def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
+             settings: dict[str, Any] | None = None) -> dict[str, Any]:
     """Palpate ``case`` on the simulated rig, analyse its session and score it; a JSON-able result, with
-    ``error`` (one line) instead of the figures when the case could not be run.
+    ``error`` (one line) instead of the figures when the case could not be run. ``settings``: a
+    configuration's tables (``--config``) under the case's own phantom, seeds, tissue and top force.
 
     A top-level function of plain arguments, so any executor can ship it to a worker."""
     from hardware.interfaces import DeviceError
@@ -198,13 +200,13 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True) -> dict[s
     from session.reader import SessionFileError
 
     try:
-        return _run_case(case, Path(out_dir), keep_session)
+        return _run_case(case, Path(out_dir), keep_session, settings or {})
     except (ConfigError, PhantomError, DeviceError, SessionFileError, ValueError, OSError) as err:
         return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
 
 
-def _run_case(case: StudyCase, folder: Path, keep_session: bool) -> dict[str, Any]:
-    from app.config import load_config
+def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[str, Any]) -> dict[str, Any]:
+    from app.config import load_config, merge_tables
     from app.depth_model import DepthModel
     from app.physics import physics_for
     from app.recording import record_simulation
@@ -216,9 +218,10 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool) -> dict[str, An
     folder.mkdir(parents=True, exist_ok=True)
     phantom_path = folder / f"{case.name}.toml"
     phantom_path.write_text(tomli_w.dumps(case.phantom), encoding="utf-8")
-    config = load_config(None, {"rig": {"phantom": str(phantom_path), "seed": case.rig_seed},
-                                "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue},
-                                "control": {"ramp": {"force_max_N": case.force_max_N}}})
+    config = load_config(None, merge_tables(settings, {
+        "rig": {"backend": "sim", "phantom": str(phantom_path), "seed": case.rig_seed},
+        "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue},
+        "control": {"ramp": {"force_max_N": case.force_max_N}}}))
     started = time.perf_counter()
     phantom = load_phantom(phantom_path)
     tissue = build_tissue(phantom, config.rig.sim)
@@ -323,11 +326,13 @@ class DaskExecutor:
 
 
 def run_study(cases: list[StudyCase], executor: Executor, out_dir: Path, keep_sessions: bool = True,
-              progress: Callable[[dict], None] | None = None) -> tuple[list[dict], float]:
-    """Every case's result (in the order of ``cases``) and the study's wall time in seconds."""
+              progress: Callable[[dict], None] | None = None,
+              settings: dict[str, Any] | None = None) -> tuple[list[dict], float]:
+    """Every case's result (in the order of ``cases``) and the study's wall time in seconds; ``settings``
+    as :func:`run_case` takes them (shipped to every worker: a Dask worker need not see the file)."""
     started = time.perf_counter()
     results = {}
-    for result in executor.run(run_case, cases, str(out_dir), keep_sessions):
+    for result in executor.run(run_case, cases, str(out_dir), keep_sessions, settings or {}):
         results[result["name"]] = result
         if progress is not None:
             progress(result)
@@ -492,6 +497,9 @@ def study_parser():
                         help="run on this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786) instead of "
                              "local processes; needs pip install 'palpation-console[study]'")
     parser.add_argument("--no-sessions", action="store_true", help="do not keep the session files")
+    parser.add_argument("--config", type=Path, help="a TOML configuration whose [control] and [sim] settings "
+                        "(ramp steps, gains, contact, safety; sensor noise, tissue model) every phantom is "
+                        "palpated with; each case keeps its own phantom, seeds and top force")
     return parser
 
 
@@ -513,6 +521,17 @@ def study_main(argv: list[str] | None = None) -> int:
     if any(problems):
         print(f"error: {next(p for p in problems if p)}", file=sys.stderr)
         return 2
+    settings: dict[str, Any] = {}
+    if args.config is not None:
+        from app.config import load_config
+        from hardware.settings import read_toml
+
+        try:
+            load_config(args.config)  # every mistake in the file said here, before a worker starts
+            settings = {k: v for k, v in read_toml(args.config).items() if k in ("control", "sim")}
+        except ConfigError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     json_path = args.json or args.out / "study.json"
     plot_path = args.plot or args.out / "study.png"
     try:
@@ -537,13 +556,14 @@ def study_main(argv: list[str] | None = None) -> int:
         print(f"  [{done[0]}/{len(cases)}] {result['name']}: {what}", flush=True)
 
     try:
-        results, wall_s = run_study(cases, executor, args.out, not args.no_sessions, progress)
+        results, wall_s = run_study(cases, executor, args.out, not args.no_sessions, progress, settings)
     except KeyboardInterrupt:
         return 130
     finally:
         executor.close()
     doc = study_document(cases, results, wall_s, args.seed, executor.workers,
                          "dask" if args.scheduler else "local")
+    doc["config"] = str(args.config) if args.config is not None else None  # what the phantoms were palpated with
     print_summary(doc["maps"], wall_s)
     try:
         json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@ import socket
 import sys
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import serial
 import usb.core
@@ -20,7 +21,9 @@ from serial.tools import list_ports
 from hardware.serial_tactile.adapter import describe_open_error
 from hardware.serial_tactile.config import format_vid_pid
 from hardware.serial_tactile.driver import FrameParser
+from hardware.settings import ConfigError, read_toml
 from hardware.udp import protocol as P
+from hardware.udp.rig import HardwareSettings
 from hardware.udp.server import DEFAULT_PORT
 from hardware.usb.spacemouse import KNOWN_SPACEMICE
 from hardware.usb.tactile import DEFAULT_TACTILE_ID
@@ -162,6 +165,19 @@ def _host_port(text: str) -> tuple[str, int]:
         raise argparse.ArgumentTypeError(f"expected HOST[:PORT], got {text!r}") from None
 
 
+def _configured_probes(config: dict) -> tuple[list[tuple[str, int]], list[tuple[str, int]], list[str]]:
+    """What the configuration's [hardware] tables name, checked as ``run`` checks them: serial ports with
+    their baud, slave addresses, USB ids. Only what the file names: its defaults are no one's device."""
+    tables = config.get("hardware", {})
+    settings = HardwareSettings.from_mapping(tables)
+    slaves = [(settings.slave.host, settings.slave.port)] if "slave" in tables else []
+    if settings.sensor_kind == "serial":
+        return [(settings.sensor.port, settings.sensor.baud)], slaves, []
+    if settings.sensor_kind == "usb":
+        return [], slaves, [settings.sensor.vid_pid]
+    return [], slaves, []
+
+
 def main(argv: list[str] | None = None, usb_backend=None) -> int:
     """Entry point of ``palpation-console devices``; 1 if a requested probe found nothing usable."""
     parser = argparse.ArgumentParser(prog="palpation-console devices",
@@ -176,11 +192,24 @@ def main(argv: list[str] | None = None, usb_backend=None) -> int:
                         help=f"USB id of your tactile array (default {DEFAULT_TACTILE_ID})")
     parser.add_argument("--all", action="store_true", help="list every USB device, not only recognised ones")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    parser.add_argument("--config", type=Path, help="a console configuration (TOML): also probe the devices "
+                        "its [hardware] tables name (the sensor's serial port or USB id, the slave's address)")
     args = parser.parse_args(argv)
+    serial_probes = [(port, args.baud) for port in args.probe_serial]
+    if args.config is not None:
+        try:
+            serial_more, udp_more, ids_more = _configured_probes(read_toml(args.config))
+        except ConfigError as err:
+            print(f"error: {err}" if str(args.config) in str(err) else f"error: {args.config}: {err}",
+                  file=sys.stderr)
+            return 2
+        serial_probes += serial_more
+        args.probe_udp += udp_more
+        args.tactile_vid_pid += ids_more
 
     ports = serial_ports()
     devices, usb_problem = usb_devices(usb_backend, tuple(args.tactile_vid_pid) or (DEFAULT_TACTILE_ID,))
-    probes = [probe_serial(p, args.baud) for p in args.probe_serial]
+    probes = [probe_serial(port, baud) for port, baud in serial_probes]
     probes += [probe_udp(h, p) for h, p in args.probe_udp]
     failed = any(not f.role for f in probes)
     if args.json:

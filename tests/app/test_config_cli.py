@@ -130,6 +130,23 @@ def test_every_delegated_subcommand_reaches_its_own_parser(capsys):
         assert f"usage: palpation-console {name}" in capsys.readouterr().out
 
 
+def test_every_subcommand_takes_config_before_or_after_it_or_says_why_not(tmp_path, capsys, monkeypatch):
+    """issue 13: `--config FILE review` failed with "unrecognized arguments"; stitch and review analyse what a
+    session recorded, so they say they read no configuration rather than ignore it."""
+    config = tmp_path / "lab.toml"
+    config.write_text('[hardware.slave]\nhost = "127.0.0.1"\nport = 9\n')
+    for argv in (["--config", str(config), "stitch", "x.h5"], ["stitch", "x.h5", "--config", str(config)],
+                 [f"--config={config}", "review"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "reads no configuration file" in err and len(err.strip().splitlines()) == 1, argv
+    seen = []
+    monkeypatch.setattr("hardware.discovery.main", lambda argv: seen.append(argv) or 0)
+    assert main(["--config", str(config), "devices", "--json"]) == 0
+    assert main(["devices", "--config", str(config)]) == 0
+    assert seen == [["--config", str(config), "--json"], ["--config", str(config)]]
+
+
 def test_run_without_a_display_says_what_to_do_before_building_anything(monkeypatch, capsys):
     import sys
 

@@ -128,3 +128,25 @@ def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys,
     doc = json.loads((out / "study.json").read_text())
     assert set(ACCURACY_KEYS) | {"study_wall_s", "maps", "cases"} <= set(doc)
     assert (out / "study.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys, monkeypatch, qapp):
+    """issue 13: `study --config FILE` (or `--config FILE study`): the lab's ramp, not the defaults."""
+    from app.cli import main
+    from session.reader import open_session
+
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper: tiny_cases(n, seed))
+    config = tmp_path / "fine-ramp.toml"
+    config.write_text("[control.ramp]\nforce_min_N = 0.5\nforce_step_N = 0.5\n")
+    out = tmp_path / "s"
+    assert main(["--config", str(config), "study", "-n", "1", "--seed", "2", "--workers", "1",
+                 "--out", str(out)]) == 0
+    doc = json.loads((out / "study.json").read_text())
+    assert doc["config"] == str(config)
+    with open_session(doc["cases"][0]["session"]) as session:
+        assert sorted(set(np.round(session.levels["force_desired_N"], 3))) == [0.5, 1.0, 1.5, 2.0]
+    capsys.readouterr()
+    config.write_text("[control.ramp]\nforce_step_N = -1.0\n")
+    assert study_main(["-n", "1", "--out", str(out), "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "control.ramp.force_step_N" in err and len(err.strip().splitlines()) == 1

@@ -85,3 +85,25 @@ def test_probing_a_slave_answers_without_disturbing_it():
     assert all(kind == "hold" for kind, _ in robot.orders)
     nobody = discovery.probe_udp(host, port, timeout_s=0.05, count=1)
     assert nobody.role == "" and "no answer" in nobody.note
+
+
+def test_a_configuration_adds_the_devices_it_names_to_the_probes(tmp_path, capsys):
+    """issue 13: `devices --config FILE` probes the sensor port and slave the console would use."""
+    config = tmp_path / "lab.toml"
+    gone = tmp_path / "ttyTSI"
+    config.write_text(f'[hardware.sensor]\nkind = "serial"\nport = "{gone}"\nbaud = 921600\n'
+                      '[hardware.slave]\nhost = "127.0.0.1"\nport = 9\n')
+    assert discovery.main(["--config", str(config), "--json"], usb_backend=EmulatedBackend()) == 1
+    probes = {p["address"]: p for p in json.loads(capsys.readouterr().out)["probes"]}
+    assert set(probes) == {str(gone), "127.0.0.1:9"}
+    assert "there is no serial port" in probes[str(gone)]["note"] and probes["127.0.0.1:9"]["role"] == ""
+    own_id = EmulatedBackend(UsbTactileDevice(vendor_id=0x16C0, product_id=0x05DC))  # the lab's own USB id
+    assert discovery.main([], usb_backend=own_id) == 0
+    assert "16c0:05dc" not in capsys.readouterr().out  # not recognised without the configuration
+    config.write_text('[hardware.sensor]\nkind = "usb"\nvid_pid = "16c0:05dc"\n')
+    assert discovery.main(["--config", str(config)], usb_backend=own_id) == 0
+    assert "16c0:05dc" in capsys.readouterr().out
+    config.write_text('[hardware.sensor]\nkind = "serial"\nport = "/dev/ttyACM0"\nbaud = 9600\n')
+    assert discovery.main(["--config", str(config)], usb_backend=EmulatedBackend()) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {config}: hardware.sensor.baud") and len(err.strip().splitlines()) == 1
