@@ -53,8 +53,8 @@ from widgets.flowchart import FlowchartPanel
 from widgets.health import VERDICT, HealthPanel, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
-from widgets.plot_style import dark_palette
 from widgets.messages import MessagesPane, Severity
+from widgets.plot_style import dark_palette
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.session_panel import SessionPanel
 from widgets.settings_panel import GainsEditor, RampEditor
