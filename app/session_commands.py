@@ -269,8 +269,11 @@ def review_main(argv: list[str] | None = None) -> int:
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     window = ReviewWindow(start_folder=sessions_dir(), physics=physics_options(), depth_model=DepthModel.for_session)
-    screen = app.primaryScreen().availableGeometry()
-    window.resize(min(1400, screen.width()), min(900, screen.height()))
+    if app.platformName() == "offscreen":  # no screen to fit (a headless screenshot): the size a document wants
+        window.resize(1400, 900)
+    else:
+        screen = app.primaryScreen().availableGeometry()
+        window.resize(min(1400, screen.width()), min(900, screen.height()))
     window.show()
     if args.file is not None:
         window.open_file(args.file)
