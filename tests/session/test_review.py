@@ -177,6 +177,10 @@ def test_the_timeline_reads_every_tick_only_when_zoomed_in(qtbot, window, record
     open_in(qtbot, window, recorded[0])
     timeline = window.findChild(QtWidgets.QWidget, "timeline")
     assert timeline.mode() == "overview"
+    # the indentation on its own scale: the presses fill the plot, the rises between areas run off its foot
+    low, high = timeline._depth.getViewBox().viewRange()[1]
+    deepest = float(np.nanmax(window.session.levels["indentation_m"])) * 1e3
+    assert -1.5 < low <= 0.0 and deepest < high < 1.5 * deepest
     assert timeline.points_drawn() == 2 * len(window.session.overview())
     with qtbot.waitSignal(timeline.range_loaded, timeout=5000, check_params_cb=lambda mode: mode == "full"):
         timeline.show_range(10.0, 15.0)

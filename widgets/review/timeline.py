@@ -123,6 +123,10 @@ class TimelineWidget(QtWidgets.QWidget):
             self._faults.append(line)
         self._draw_overview()
         self._force.setXRange(0.0, max(t1 - t0, 1e-3), padding=0.01)
+        # The indentation's own scale, from the surface to the deepest press: between areas the probe rises
+        # tens of millimetres above its last contact, which would squeeze the presses into a sliver.
+        deepest = np.nanmax(ov["indentation_m_max"], initial=0.0) * 1e3 if len(ov) else 0.0
+        self._depth.setYRange(-1.0, max(float(deepest), 1.0) * 1.08, padding=0.0)
         self._info.setText(f"{session.n_ticks:,} ticks over {t1 - t0:,.1f} s; zoom in below "
                            f"{self.full_res_span_s:g} s to see every tick")
 
