@@ -206,6 +206,8 @@ def main(argv: list[str] | None = None, usb_backend=None) -> int:
         serial_probes += serial_more
         args.probe_udp += udp_more
         args.tactile_vid_pid += ids_more
+        if not (serial_more or udp_more or ids_more) and not args.json:
+            print(f"({args.config} names no serial port, USB id or slave: its [hardware] tables are not set)")
 
     ports = serial_ports()
     devices, usb_problem = usb_devices(usb_backend, tuple(args.tactile_vid_pid) or (DEFAULT_TACTILE_ID,))

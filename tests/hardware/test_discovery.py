@@ -103,6 +103,9 @@ def test_a_configuration_adds_the_devices_it_names_to_the_probes(tmp_path, capsy
     config.write_text('[hardware.sensor]\nkind = "usb"\nvid_pid = "16c0:05dc"\n')
     assert discovery.main(["--config", str(config)], usb_backend=own_id) == 0
     assert "16c0:05dc" in capsys.readouterr().out
+    config.write_text('[control.ramp]\nforce_max_N = 5.0\n')  # a configuration for the simulated rig
+    assert discovery.main(["--config", str(config)], usb_backend=EmulatedBackend()) == 0
+    assert "names no serial port, USB id or slave" in capsys.readouterr().out
     config.write_text('[hardware.sensor]\nkind = "serial"\nport = "/dev/ttyACM0"\nbaud = 9600\n')
     assert discovery.main(["--config", str(config)], usb_backend=EmulatedBackend()) == 2
     err = capsys.readouterr().err
