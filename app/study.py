@@ -524,11 +524,9 @@ def study_main(argv: list[str] | None = None) -> int:
     settings: dict[str, Any] = {}
     if args.config is not None:
         from app.config import load_config
-        from hardware.settings import read_toml
 
-        try:
-            load_config(args.config)  # every mistake in the file said here, before a worker starts
-            settings = {k: v for k, v in read_toml(args.config).items() if k in ("control", "sim")}
+        try:  # every mistake in the file said here, before a worker starts
+            settings = {k: v for k, v in load_config(args.config).raw.items() if k in ("control", "sim")}
         except ConfigError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

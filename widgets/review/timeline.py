@@ -101,10 +101,6 @@ class TimelineWidget(QtWidgets.QWidget):
     def points_drawn(self) -> int:
         return len(self._f_measured.xData) if self._f_measured.xData is not None else 0
 
-    def origin_s(self) -> float:
-        """The loop time drawn as t = 0 (the session's first tick); every time here is relative to it."""
-        return self._origin_s
-
     def set_session(self, session) -> None:
         self._session = session
         self._loaded = None

@@ -343,12 +343,12 @@ class ReviewWindow(QtWidgets.QMainWindow):
             self._show_banner("  ".join(session.warnings), "warning")
         else:
             self._banner.hide()
-        self._timeline.set_session(session)  # first: a record's time is told from the session's start
         self._fill_region_table()
         if len(session.levels):
             self.select_record(0)
         else:
             self._record_info.setText("No force level was recorded in this session.")
+        self._timeline.set_session(session)
         self.reanalyse()
         self._set_exports_enabled(True)
 
@@ -618,7 +618,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._record_info.setText(
             f"<b>Region {int(rec['region']) + 1}, level {int(rec['level']) + 1}</b> ({n_levels} recorded): "
             f"F_d {rec['force_desired_N']:.2f} N, F_ts {rec['force_measured_N']:.3f} N, RMSE {rec['rmse_N']:.3f} N, "
-            f"settled in {rec['settle_time_s']:.2f} s, {rec['t_s'] - self._timeline.origin_s():.2f} s into the session; "
+            f"settled in {rec['settle_time_s']:.2f} s, {rec['t_s'] - session.time_span_s()[0]:.2f} s into the session; "
             f"TSI at ({x * 1e3:.1f}, {y * 1e3:.1f}, "
             f"{z * 1e3:.1f}) mm; TSI indentation {_mm(float(rec['indentation_m']), 2)} mm")
 
