@@ -83,6 +83,31 @@ def test_the_interval_covers_a_tumour_the_library_never_held(library):
     assert high - low < 0.6 * (library.depth_m[-1] - library.depth_m[0])
 
 
+def test_the_tissues_side_does_not_draw_the_depth(library):
+    """A sphere 1 mm from a free side of the tissue (the face spans the tissue's width, as in the paper's
+    protocol), 3 mm deep at rest, 9 mm across, 5 times stiffer, in a 25 mm layer pressed to 20 %: it shows
+    as one 3 (1 - 0.2) - 4.5 x 0.2 = 1.5 mm deep does at rest (an independent solve of that, with the
+    side). The library shifts a mid-array signature sideways and knows no side, so the elements on the side
+    are left out: what they read (the simulated sessions of the validation study read down to -0.2 there
+    beside a shallow tumour) does not move the estimate, which covers the truth."""
+    thickness, depth, pressed, tumour_y = 0.025, 3e-3, 5e-3, 24.5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (1.5e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    seen = q / np.median(q) - 1.0
+    estimates = []
+    for side in (seen[:, -1], np.full(SHAPE[0], -0.2)):
+        rows, measured, tumour = _one_area(np.concatenate([seen[:, :-1], side[:, None]], axis=1), 0.02, thickness,
+                                           0.030, tumour_y, 0.032, pressed_m=pressed)
+        estimates.append(model.estimate(tumour, rows, measured))
+    assert estimates[0] == estimates[1]
+    estimate, low, high = estimates[0]
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 1e-3
+
+
 def test_a_tumour_seen_pressed_deep_is_read_at_its_depth_at_rest(library):
     """At finite strain the tissue over a tumour thins: pressed to 20 % the 6 mm deep, 7 mm sphere shows as
     one 6 (1 - 0.2) - 3.5 x 0.2 = 4.1 mm deep does at rest (an independent solve of that). The estimate
