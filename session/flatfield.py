@@ -27,9 +27,11 @@ How (written down once, here):
 
   - the sensor's noise on the level's mean: the element's scatter over its settled window
     (``pressure_std_pa``) over the square root of the frames averaged (``window_frames``);
-  - the scatter of healthy tissue: the robust spread of all contrasts at that level (1.4826 times their
-    median absolute value), never less than ``accuracy``, the repeatability one element's reading can
-    have from one loading to the next; with a reference, the reference's own scatter is added;
+  - the scatter of healthy tissue: the robust spread of the contrasts at that level (1.4826 times their
+    median absolute value), over the whole face and, where larger, over the part of the face the element
+    is in (its inside, edge rows, side columns, corners: the physics is surer of some than of others),
+    never less than ``accuracy``, the repeatability one element's reading can have from one loading to the
+    next; with a reference, the reference's own scatter is added;
   - the geometry: how well the share is known where the surface had to be rebuilt (``share_sigma``).
 
 * The **stiffness map** (Eq. 1, E = F L0 / (A dL)) is compared with the stiffness homogeneous tissue of the
@@ -265,6 +267,46 @@ def _baseline_without_each(measured: np.ndarray, share: np.ndarray, share_sigma:
     return bases, scales
 
 
+def _face_parts(shape: tuple[int, int]) -> np.ndarray:
+    """Each element's part of the face: 0 inside, 1 the two edge rows across the face's length, 2 the two
+    side columns along it, 3 the four corners."""
+    rows, cols = shape
+    parts = np.zeros(shape, dtype=int)
+    parts[[0, rows - 1], :] = 1
+    parts[:, [0, cols - 1]] = 2
+    parts[np.ix_([0, rows - 1], [0, cols - 1])] = 3
+    return parts
+
+
+# A robust spread from fewer contrasts than this is itself uncertain by more than about a fifth: a part of
+# the face with fewer takes the whole face's.
+MIN_PART_CONTRASTS = 16
+
+
+def _healthy_scatter(rel: np.ndarray, accuracy: float) -> np.ndarray:
+    """(rows, cols) the scatter of healthy tissue at one level: the robust spread of the level's contrasts
+    ``rel`` (records, rows, cols) over the whole face, or over the element's part of it (:func:`_face_parts`)
+    where that is larger. The physics is least sure where the face ends: in the simulated sessions the side
+    columns, where the face meets the tissue's free sides, scatter two to three times as much as the rest,
+    and one spread for the whole face let them raise spots at several times the stated false-alarm rate."""
+    def spread(values: np.ndarray) -> float:
+        return max(accuracy, 1.4826 * float(np.nanmedian(np.abs(values))))
+
+    if not np.isfinite(rel).any():
+        return np.full(rel.shape[1:], accuracy)
+    whole = spread(rel)
+    parts = _face_parts(rel.shape[1:])
+    out = np.full(rel.shape[1:], whole)
+    for part in np.unique(parts):
+        values = rel[:, parts == part]
+        if np.isfinite(values).sum() >= MIN_PART_CONTRASTS:
+            # Never below the whole face's: a part that scattered less over a handful of areas is no surer
+            # for it (the paper's flat phantom: its side columns' own spread, 0.02, let the load a shallow
+            # tumour moves onto them, +0.1, read as two more tumours).
+            out[parts == part] = max(whole, spread(values))
+    return out
+
+
 def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
              share_sigma: np.ndarray | None = None, reference: Reference | None = None,
              accuracy: float = ACCURACY, description: str = "") -> Contrast:
@@ -299,8 +341,8 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
         exp = scale[:, None, None] * base * s
         with np.errstate(invalid="ignore", divide="ignore"):
             rel = np.where(_trusted(g), m / exp - 1.0, np.nan)
-            healthy = max(accuracy, 1.4826 * float(np.nanmedian(np.abs(rel)))) if np.isfinite(rel).any() else accuracy
             sensor = np.nan_to_num(noise[records] / m, nan=0.0)
+        healthy = _healthy_scatter(rel, accuracy)
         expected[records] = exp
         sigma[records] = np.sqrt(sensor ** 2 + healthy ** 2 + np.nan_to_num(ref_scatter, nan=0.0) ** 2 + g ** 2)
     with np.errstate(invalid="ignore", divide="ignore"):
