@@ -288,6 +288,42 @@ def compressed_material(phantom: Phantom, strain: float) -> MaterialFn:
     return phantom_material(dataclasses.replace(phantom, inclusions=tuple(moved)))
 
 
+@dataclass(frozen=True, eq=False)
+class FiniteStrain:
+    """The reduced model's homogeneous finite-strain factor (module docstring) of one block."""
+
+    element_ab: np.ndarray  # (2, elements): each element's (a, b)
+    total_ab: tuple[float, float]  # the total force's (a, b)
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> FiniteStrain:
+        return cls(np.asarray(arrays["element_ab"], dtype=float), tuple(float(v) for v in arrays["total_ab"]))
+
+    def scale(self, strain: np.ndarray) -> np.ndarray:
+        """Each element's nonlinear over linear force at its nominal strain (flat, one per element)."""
+        # Past the strains solved, the pattern is held where it was solved and only the total keeps
+        # stiffening along the fitted curve: extrapolating each element's own curve would grow the
+        # face's edge peaks without anything to check them against.
+        held = np.minimum(strain, FIT_STRAIN)
+        a, b = self.element_ab
+        out = 1.0 + held * (a + b * held)
+        if strain.max() > FIT_STRAIN:
+            a_total, b_total = self.total_ab
+            out *= (1.0 + strain * (a_total + b_total * strain)) / (1.0 + held * (a_total + b_total * held))
+        return out
+
+
+def homogeneous_stiffening(phantom: Phantom, sensor: TactileConstraints | None = None,
+                           cache_dir: str | Path | None = None, progress: Progress | None = None) -> FiniteStrain:
+    """The finite-strain factor of ``phantom``'s homogeneous base block (its inclusions play no part), from
+    the cache if there, else solved (a few seconds) and cached."""
+    sensor = sensor or TactileConstraints()
+    folder = Path(cache_dir) if cache_dir is not None else cache_mod.default_cache_dir()
+    arrays = _cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
+                     lambda: _stiffening(phantom, sensor, progress), _check_stiffening)
+    return FiniteStrain.from_arrays(arrays)
+
+
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
     if (np.asarray(arrays["element_ab"]).ndim != 2 or len(arrays["element_ab"]) != 2
             or np.asarray(arrays["total_ab"]).shape != (2,)):
@@ -401,10 +437,10 @@ class ContinuumTissue:
             raise ValueError("inconsistent tissue tables")
         if stiffening is not None and np.asarray(stiffening["element_ab"]).shape != (2, n_el):
             raise ValueError("inconsistent cache entry")
-        # (a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports), or None for the
-        # purely linear model; each element has its own (a, b) in _element_ab
-        self.stiffening = None if stiffening is None else tuple(float(v) for v in stiffening["total_ab"])
-        self._element_ab = None if stiffening is None else np.asarray(stiffening["element_ab"], dtype=float)
+        # the finite-strain factor, or None for the purely linear model
+        self.finite_strain = None if stiffening is None else FiniteStrain.from_arrays(stiffening)
+        # (a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports)
+        self.stiffening = None if stiffening is None else self.finite_strain.total_ab
         self.precompute_s = float(tables["precompute_s"]) + (0.0 if compressed is None
                                                              else float(compressed["precompute_s"]))
         self.mesh_shape = tuple(int(v) for v in tables["mesh_shape"])
@@ -453,18 +489,10 @@ class ContinuumTissue:
         forces, poses = self._tables.forces(blend, z_m)
         if forces is None:
             return np.zeros(self._shape)
-        if self._element_ab is not None:
+        if self.finite_strain is not None:
             onset = np.fmax.reduce(self._tables.onset[poses], axis=0)  # neighbouring poses' onsets barely differ
             strain = np.divide(onset - z_m, onset, out=np.zeros_like(forces), where=forces > 0)
-            # Past the strains solved, the pattern is held where it was solved and only the total keeps
-            # stiffening along the fitted curve: extrapolating each element's own curve would grow the
-            # face's edge peaks without anything to check them against.
-            held = np.minimum(strain, FIT_STRAIN)
-            a, b = self._element_ab
-            scale = 1.0 + held * (a + b * held)
-            if strain.max() > FIT_STRAIN:
-                a_total, b_total = self.stiffening
-                scale *= (1.0 + strain * (a_total + b_total * strain)) / (1.0 + held * (a_total + b_total * held))
+            scale = self.finite_strain.scale(strain)
             if self._compressed is not None:
                 moved, _ = self._compressed.forces(blend, z_m)
                 if moved is not None:

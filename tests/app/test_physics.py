@@ -1,0 +1,47 @@
+"""The rebuilt physics of the flat field at finite strain: tissue that stands higher under the face is pressed
+further, and stiffens more than linear elasticity says."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.physics import BlockResponse, _block_compliance, measured_surface
+from hardware.sim.mechanics.model import FiniteStrain
+from session.synthetic import level_record
+from tests.session.test_stitch import levels_of
+
+PITCH = 2e-3
+BASE_M, RIDGE_M = 0.020, 0.023
+RIDGE = slice(6, 9)  # a 6 mm ridge along the face, under its middle columns
+
+
+def ridge_levels(face_heights_m):
+    records = []
+    for k, z in enumerate(face_heights_m):
+        levels = levels_of(level_record(0, k, 1.0 + k, (0.004, 0.015), thickness_m=BASE_M))
+        levels["tsi_position_m"][0, 2] = z
+        onset = np.full((4, 15), BASE_M)
+        onset[:, RIDGE] = RIDGE_M
+        levels["onset_height_m"] = onset
+        levels["dL_m"] = onset - z
+        records.append(levels)
+    return np.concatenate(records)
+
+
+def test_a_ridge_pressed_further_carries_more_at_finite_strain(tmp_path):
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    # every element alike, so that only the strain differs between the ridge and the base
+    finite = FiniteStrain(np.stack([np.full(60, 0.5), np.full(60, 1.0)]), (0.5, 1.0))
+    nonlinear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), finite, 0.0)
+    linear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    ratio = nonlinear.pattern(levels).share / linear.pattern(levels).share
+    ridge_over_base = ratio[:, 1:3, 7].mean(axis=1) / ratio[:, 1:3, 2].mean(axis=1)
+    z = levels["tsi_position_m"][:, 2]
+    expected = np.array([finite.scale(np.full(60, (RIDGE_M - h) / RIDGE_M))[0]
+                         / finite.scale(np.full(60, (BASE_M - h) / BASE_M))[0] for h in z])
+    # the ridge's strain (23 - z) / 23 runs ahead of the base's (20 - z) / 20: 5 to 10 % more load on it
+    np.testing.assert_allclose(ridge_over_base, expected, rtol=0.02)
+    assert np.all(expected > 1.04)
+    assert "finite strain" in nonlinear.description and "finite strain" not in linear.description
