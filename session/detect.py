@@ -318,11 +318,16 @@ def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, st
         width = math.exp(log_width)
         return w * (height * np.exp(-0.5 * ((x - cx) ** 2 + (y - cy) ** 2) / width ** 2) - c)
 
+    # The centre stays over the elements fitted: data that still rise at the face's edge put a blob's peak
+    # beyond it, where nothing was palpated (a spot at the tissue's side was placed 5 mm off the tissue).
+    x_lo, x_hi = float(x.min()) - pitch_m / 2, float(x.max()) + pitch_m / 2
+    y_lo, y_hi = float(y.min()) - pitch_m / 2, float(y.max()) + pitch_m / 2
     best, best_cost = starts[0], math.inf
     for x_m, y_m in starts:
+        x_m, y_m = min(max(x_m, x_lo), x_hi), min(max(y_m, y_lo), y_hi)
         start = (float(c.max()), x_m, y_m, math.log(pitch_m))
-        lower = (0.0, x_m - radius_m, y_m - radius_m, math.log(0.5 * pitch_m))
-        upper = (np.inf, x_m + radius_m, y_m + radius_m, math.log(4 * radius_m))
+        lower = (0.0, max(x_m - radius_m, x_lo), max(y_m - radius_m, y_lo), math.log(0.5 * pitch_m))
+        upper = (np.inf, min(x_m + radius_m, x_hi), min(y_m + radius_m, y_hi), math.log(4 * radius_m))
         try:
             fit = least_squares(residual, start, bounds=(lower, upper), max_nfev=200)
         except (ValueError, np.linalg.LinAlgError):

@@ -15,6 +15,7 @@ from session.analysis import SessionAnalysis
 from session.detect import DetectError, DetectParams, Tumour, detect, match_ground_truth, threshold
 from session.flatfield import Reference, contrast
 from session.reader import open_session
+from session.stitch import element_offsets_m
 from session.synthetic import level_record
 
 from tests.session.test_stitch import PITCH, levels_of
@@ -176,3 +177,20 @@ def test_two_tracks_the_blob_fit_puts_on_one_tumour_are_one_tumour_first_seen_at
     assert one.first_level_N == 2.0 and one.levels_N == (2.0, 3.0, 4.0)
     over_it_at_2N = [i for i in range(len(levels)) if levels["region"][i] == 1 and levels["level"][i] == 1][0]
     assert one.depth_m == levels["indentation_m"][over_it_at_2N]
+
+
+def test_a_tumour_beside_the_palpated_tissue_is_placed_at_its_edge_not_beyond():
+    # the faces span y 0-30 mm; a stiff spot past their side raises the side columns most, and a blob fitted
+    # to that rise alone peaks off the tissue, where nothing was palpated
+    from types import SimpleNamespace
+
+    from session.detect import _blob_centre
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    offsets = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
+    rising = 0.5 * np.exp(-0.5 * (np.hypot(offsets[..., 0] - 0.020, offsets[..., 1] - 0.033) / 3e-3) ** 2)
+    seen = SimpleNamespace(contrast=rising, sigma=np.full(rising.shape, 0.02))
+    records = np.flatnonzero(levels["level"] == 2)
+    x, y = _blob_centre(levels, seen, records, [(0.020, 0.029)], PITCH, DetectParams().fit_radius_m)
+    assert abs(x - 0.020) < 0.5e-3
+    assert 0.029 <= y <= 0.030
