@@ -45,3 +45,19 @@ def test_a_ridge_pressed_further_carries_more_at_finite_strain(tmp_path):
     np.testing.assert_allclose(ridge_over_base, expected, rtol=0.02)
     assert np.all(expected > 1.04)
     assert "finite strain" in nonlinear.description and "finite strain" not in linear.description
+
+
+def test_on_a_flat_surface_the_level_baseline_keeps_the_face_pattern_finite_strain_gives(tmp_path):
+    # the face's edge rows stiffen faster than its inner rows; on a flat surface every area of a level shows
+    # that alike, and the flat field's baseline measures it, so the physics leaves the pattern linear there
+    levels = ridge_levels((0.019, 0.017))
+    levels["onset_height_m"] = BASE_M
+    levels["dL_m"] = BASE_M - levels["tsi_position_m"][:, 2][:, None, None]
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    a = np.where(np.arange(4)[:, None] % 3 == 0, 0.5, 0.57) * np.ones((4, 15))
+    b = np.where(np.arange(4)[:, None] % 3 == 0, 2.5, -1.6) * np.ones((4, 15))
+    finite = FiniteStrain(np.stack([a.ravel(), b.ravel()]), (0.5, 1.0))
+    nonlinear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), finite, 0.0)
+    linear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    np.testing.assert_allclose(nonlinear.pattern(levels).share, linear.pattern(levels).share, rtol=1e-9)
