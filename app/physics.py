@@ -260,14 +260,6 @@ class BlockResponse(HomogeneousTissue):
                 raised.flat[e] += half.flat[e]
                 with np.errstate(invalid="ignore", divide="ignore"):
                     variance = variance + np.nan_to_num((self._share(row, raised) - base) / base) ** 2
-            import os
-            if os.environ.get("JOINT"):
-                moved = half * (half > 2.0 * onset_noise)
-                if moved.any():
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        up = np.nan_to_num((self._share(row, mid + moved) - base) / base)
-                        down = np.nan_to_num((self._share(row, mid - moved) - base) / base)
-                    variance = variance + 0.5 * (up ** 2 + down ** 2)
             share[k] = base
             sigma[k] = np.sqrt(variance + self._extent_variance(row, mid, base))
         return Pattern(share, np.where(np.isfinite(share), sigma, np.nan))
