@@ -317,11 +317,15 @@ def homogeneous_stiffening(phantom: Phantom, sensor: TactileConstraints | None =
                            cache_dir: str | Path | None = None, progress: Progress | None = None) -> FiniteStrain:
     """The finite-strain factor of ``phantom``'s homogeneous base block (its inclusions play no part), from
     the cache if there, else solved (a few seconds) and cached."""
-    sensor = sensor or TactileConstraints()
     folder = Path(cache_dir) if cache_dir is not None else cache_mod.default_cache_dir()
-    arrays = _cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
-                     lambda: _stiffening(phantom, sensor, progress), _check_stiffening)
-    return FiniteStrain.from_arrays(arrays)
+    return FiniteStrain.from_arrays(_stiffening_cached(phantom, sensor or TactileConstraints(), folder, progress))
+
+
+def _stiffening_cached(phantom: Phantom, sensor: TactileConstraints, folder: Path,
+                       progress: Progress | None) -> dict[str, np.ndarray]:
+    # the key leaves the mesh out (cache_key): the finite-strain solve has its own
+    return _cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
+                   lambda: _stiffening(phantom, sensor, progress), _check_stiffening)
 
 
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
@@ -439,12 +443,15 @@ class ContinuumTissue:
             raise ValueError("inconsistent cache entry")
         # the finite-strain factor, or None for the purely linear model
         self.finite_strain = None if stiffening is None else FiniteStrain.from_arrays(stiffening)
-        # (a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports)
-        self.stiffening = None if stiffening is None else self.finite_strain.total_ab
         self.precompute_s = float(tables["precompute_s"]) + (0.0 if compressed is None
                                                              else float(compressed["precompute_s"]))
         self.mesh_shape = tuple(int(v) for v in tables["mesh_shape"])
         self._shape = sensor.shape
+
+    @property
+    def stiffening(self) -> tuple[float, float] | None:
+        """(a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports), or None."""
+        return None if self.finite_strain is None else self.finite_strain.total_ab
 
     @classmethod
     def load(cls, phantom: Phantom, cache_dir: str | Path | None = None, progress: Progress | None = None,
@@ -476,9 +483,7 @@ class ContinuumTissue:
                 lambda: precompute(phantom, settings, sensor, stage(progress, ends[1], ends[2]),
                                    compressed_material(phantom, COMPRESSED_STRAIN)), check)
         if settings.finite_strain:
-            stiffening = _cached(folder, cache_key(phantom, settings, sensor, "stiffening"),
-                                 lambda: _stiffening(phantom, sensor, stage(progress, ends[-1], 1.0)),
-                                 _check_stiffening)
+            stiffening = _stiffening_cached(phantom, sensor, folder, stage(progress, ends[-1], 1.0))
         if progress:
             progress(1.0, f"tissue model of {phantom.name!r} ready")
         return cls(phantom, sensor, tables, stiffening, compressed)
