@@ -180,7 +180,12 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
                 weight = (near[i, j] == 0).astype(float)
             x = float(tsi[0] + (weight * offsets[..., 0]).sum() / weight.sum())
             y = float(tsi[1] + (weight * offsets[..., 1]).sum() / weight.sum())
-            edge = i in (0, shape[0] - 1) or j in (0, shape[1] - 1)
+            # What raised it may lie beyond the face if the statistic peaks on the face's edge or the contrast
+            # it summed is largest there (a tumour under the next area shows here as a rise towards the edge;
+            # the widest blob tried may peak a row or two inside it).
+            summed = near[i, j] <= max(1.5 * pitch_m, max(params.kernel_widths_m))
+            si, sj = np.unravel_index(np.nanargmax(np.where(summed, c, -np.inf)), shape)
+            edge = bool({i, si} & {0, shape[0] - 1} or {j, sj} & {0, shape[1] - 1})
             out.append(Spot(r, int(level_of[r]), float(force_of[r]), x, y, float(z[i, j]), float(np.nanmax(c[around])),
                             int(around.sum()), edge))
     return out
@@ -213,12 +218,14 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
     rows = levels.dtype["pressure_pa"].shape[0]
     # One cluster per tumour and level. A spot that reaches its face's edge sees only the near side of what
     # raised it, and its centroid falls short of it by up to the face's width: it joins a stronger spot of
-    # a neighbouring area that far away.
+    # a neighbouring area that far away, whichever spot of its cluster that is (a strong tumour at a seam
+    # raised the edge of the area beyond the next one, 8 mm from the next one's spot, 12 mm from the
+    # cluster's strongest).
     per_level: list[list[list[Spot]]] = [[] for _ in groups]
     for spot in sorted(found, key=lambda s: -s.score):
         clusters = per_level[spot.level_index]
         reach = params.merge_radius_m + (rows * pitch_m / 2 if spot.at_edge else 0.0)
-        near = [c for c in clusters if math.hypot(spot.x_m - c[0].x_m, spot.y_m - c[0].y_m) <= reach]
+        near = [c for c in clusters if any(math.hypot(spot.x_m - o.x_m, spot.y_m - o.y_m) <= reach for o in c)]
         if near:
             near[0].append(spot)
         else:

@@ -194,3 +194,21 @@ def test_a_tumour_beside_the_palpated_tissue_is_placed_at_its_edge_not_beyond():
     x, y = _blob_centre(levels, seen, records, [(0.020, 0.029)], PITCH, DetectParams().fit_radius_m)
     assert abs(x - 0.020) < 0.5e-3
     assert 0.029 <= y <= 0.030
+
+
+def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_that_tumour():
+    # A stiff tumour just inside the fourth area's face, at its seam with the third: both see it at their
+    # edges. It also stiffens the tissue at the near edge of the second area, 8 mm beyond the third's face,
+    # which rises towards that edge; that rise is its far field, not a tumour.
+    from types import SimpleNamespace
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    x = np.asarray(levels["tsi_position_m"][:, None, None, 0]) + element_offsets_m(4, 15, PITCH)[None][..., 0]
+    y = np.asarray(levels["tsi_position_m"][:, None, None, 1]) + element_offsets_m(4, 15, PITCH)[None][..., 1]
+    blob = 0.8 * np.exp(-0.5 * ((x - 0.0324) ** 2 + (y - 0.015) ** 2) / 2.5e-3 ** 2)
+    far = np.where((levels["region"] == 1)[:, None, None],
+                   0.15 * np.exp(-0.5 * ((x - 0.024) ** 2 + (y - 0.015) ** 2) / 2e-3 ** 2), 0.0)
+    seen = SimpleNamespace(map="stiffness", contrast=blob + far, sigma=np.full(blob.shape, 0.02), modes=None)
+    found = detect(levels, seen, PITCH)
+    assert len(found) == 1
+    assert math.hypot(found[0].x_m - 0.0324, found[0].y_m - 0.015) < 1e-3
