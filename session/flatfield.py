@@ -15,7 +15,9 @@ How (written down once, here):
     a **reference palpation** of tumour-free tissue (:class:`Reference`, recorded once and reused), or it
     is **estimated from the session** itself: for each element, the median over the other areas
     palpated at that level (an area never vouches for itself) of measured / (scale * share), each area
-    weighted by how sure its share is, which tolerates a minority of areas with tumours. With physics it
+    weighted by how sure its share is, which tolerates a minority of areas with tumours. An element fewer
+    than ``MIN_VOUCHING`` other areas are sure of (a bump under most of them) takes the median of its part
+    of the face, and that part's spread as its uncertainty. With physics it
     stays within ``BASELINE_RANGE`` of one; without, it is the whole pattern of the face (and a tumour that
     lies under the same elements of most areas is taken for part of it: say so, use physics).
   - ``scale`` is the record's own level (the tissue's modulus there, the force actually reached): the
@@ -31,7 +33,8 @@ How (written down once, here):
     median absolute value), over the whole face and, where larger, over the part of the face the element
     is in (its inside, edge rows, side columns, corners: the physics is surer of some than of others),
     never less than ``accuracy``, the repeatability one element's reading can have from one loading to the
-    next; with a reference, the reference's own scatter is added;
+    next; with a reference, the reference's own scatter is added, and without, the baseline's own
+    uncertainty where too few areas vouched for it;
   - the geometry: how well the share is known where the surface had to be rebuilt (``share_sigma``).
 
 * The **stiffness map** (Eq. 1, E = F L0 / (A dL)) is compared with the stiffness homogeneous tissue of the
@@ -159,7 +162,7 @@ class Reference:
         forces, baselines, scatters = [], [], []
         measured = _measured(levels, quantity)
         for force, records in level_groups(levels):
-            base, scale = _session_baseline(measured[records], share[records], share_sigma[records], physics)
+            base, scale, _ = _session_baseline(measured[records], share[records], share_sigma[records], physics)
             rel = measured[records] / (scale[:, None, None] * base * share[records]) - 1.0
             forces.append(force)
             baselines.append(base)
@@ -222,49 +225,86 @@ def _trusted(share_sigma: np.ndarray) -> np.ndarray:
 
 
 def _session_baseline(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool = True,
-                      iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """(baseline per element, scale per record) estimated from the records of one level together. An element
-    counts towards its baseline only in the records that trust their physics there (:func:`_trusted`), and
-    needs ``MIN_VOUCHING`` of them, so that one area with a tumour cannot be taken for the baseline; an
-    element too few records vouch for keeps a baseline of one. ``bounded``: the physics gave the face's
-    pattern, and the baseline only corrects it (within ``BASELINE_RANGE``)."""
+                      iterations: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(baseline per element, scale per record, the baseline's uncertainty per element) estimated from the
+    records of one level together. An element counts towards its baseline only in the records that trust
+    their physics there (:func:`_trusted`), and needs ``MIN_VOUCHING`` of them, so that one area with a
+    tumour cannot be taken for the baseline. An element too few records vouch for is given what the
+    vouched elements of its part of the face (:func:`_face_parts`) have, their median, and their spread as
+    its uncertainty (zero where vouched): the physics' systematic error is mostly a part's (at finite strain
+    the edge rows stiffen faster than the inside, by about a tenth at 5 N), and an element left at one
+    there read 8 % harder than healthy tissue in three areas in a row. ``bounded``: the physics gave the
+    face's pattern, and the baseline only corrects it (within ``BASELINE_RANGE``)."""
     ratio = measured / share
     trusted = _trusted(share_sigma) & np.isfinite(ratio)
     sigma = np.nan_to_num(share_sigma, nan=np.inf)
     enough = trusted.sum(axis=0) >= MIN_VOUCHING
     weight = np.where(trusted & enough[None], 1.0 / (ACCURACY ** 2 + sigma ** 2), 0.0)
     base = np.ones(measured.shape[1:])
+    spread = np.zeros(base.shape)
     scale = np.ones(len(measured))
     for _ in range(iterations):
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.nanmedian((ratio / base).reshape(len(measured), -1), axis=1)
             base = _weighted_median(ratio / scale[:, None, None], weight, axis=0)
-        base = np.where(np.isfinite(base), base, 1.0)
-        base = base / np.median(base)
+        vouched = enough & np.isfinite(base)
+        base = np.where(vouched, base, 1.0)
+        base = base / np.median(base[vouched]) if vouched.any() else base
+        base, spread = _unvouched(base, vouched, BASELINE_RANGE if bounded else 1.0)
         if bounded:
             base = np.clip(base, 1.0 / (1.0 + BASELINE_RANGE), 1.0 + BASELINE_RANGE)
-    return base, scale
+    return base, scale, spread
+
+
+# a part of the face needs this many vouched elements to stand for its others (a median and a spread)
+MIN_PART_VOUCHED = 4
+
+
+def _unvouched(base: np.ndarray, vouched: np.ndarray, unknown: float) -> tuple[np.ndarray, np.ndarray]:
+    """(baseline, its uncertainty) with each unvouched element given the median and the robust spread of the
+    vouched elements of its part of the face, or of the whole face where its part has too few, or one
+    and ``unknown`` where the face has too few."""
+    if vouched.all():
+        return base, np.zeros(base.shape)
+    parts = _face_parts(base.shape)
+    out, spread = base.copy(), np.zeros(base.shape)
+    for part in np.unique(parts):
+        missing = (parts == part) & ~vouched
+        if not missing.any():
+            continue
+        known = base[(parts == part) & vouched]
+        if len(known) < MIN_PART_VOUCHED:
+            known = base[vouched]
+        if len(known) < MIN_PART_VOUCHED:
+            out[missing], spread[missing] = 1.0, unknown
+            continue
+        centre = float(np.median(known))
+        out[missing] = centre
+        spread[missing] = max(ACCURACY, 1.4826 * float(np.median(np.abs(known - centre))))
+    return out, spread
 
 
 def _baseline_without_each(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """(baseline per record and element, scale per record), each record's baseline estimated from the other
-    records of its level: a record must not vouch for itself (the median of five would then return one of
-    its own readings exactly, and the scatter of healthy tissue measured on those residuals would come out
-    too small), nor can a tumour under it lift its own baseline."""
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(baseline per record and element, scale per record, the baseline's uncertainty per record and
+    element), each record's baseline estimated from the other records of its level: a record must not
+    vouch for itself (the median of five would then return one of its own readings exactly, and the
+    scatter of healthy tissue measured on those residuals would come out too small), nor can a tumour
+    under it lift its own baseline."""
     n = len(measured)
     if n <= MIN_VOUCHING:  # too few others to vouch: everything is left to the shared estimate
-        base, scale = _session_baseline(measured, share, share_sigma, bounded)
-        return np.broadcast_to(base, measured.shape).copy(), scale
+        base, scale, spread = _session_baseline(measured, share, share_sigma, bounded)
+        return np.broadcast_to(base, measured.shape).copy(), scale, np.broadcast_to(spread, measured.shape).copy()
     bases = np.empty(measured.shape)
+    spreads = np.empty(measured.shape)
     scales = np.empty(n)
     for i in range(n):
         others = np.arange(n) != i
-        base, _ = _session_baseline(measured[others], share[others], share_sigma[others], bounded)
+        base, _, spread = _session_baseline(measured[others], share[others], share_sigma[others], bounded)
         with np.errstate(invalid="ignore", divide="ignore"):
             scales[i] = np.nanmedian(measured[i] / (share[i] * base))
-        bases[i] = base
-    return bases, scales
+        bases[i], spreads[i] = base, spread
+    return bases, scales, spreads
 
 
 def _face_parts(shape: tuple[int, int]) -> np.ndarray:
@@ -336,8 +376,7 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
             with np.errstate(invalid="ignore", divide="ignore"):
                 scale = np.nanmedian((m / (s * base)).reshape(len(records), -1), axis=1)
         else:
-            base, scale = _baseline_without_each(m, s, g, physics)
-            ref_scatter = np.zeros(base.shape[1:])
+            base, scale, ref_scatter = _baseline_without_each(m, s, g, physics)
         exp = scale[:, None, None] * base * s
         with np.errstate(invalid="ignore", divide="ignore"):
             rel = np.where(_trusted(g), m / exp - 1.0, np.nan)
