@@ -157,6 +157,11 @@ class Pattern:
 
     share: np.ndarray  # (n, rows, cols) element forces over their mean over the elements pressing; NaN: none
     sigma: np.ndarray  # (n, rows, cols) relative uncertainty of ``share`` from the rebuilt geometry (0: exact)
+    # (n, modes, rows, cols): the parts of that uncertainty shared between elements, one standard deviation
+    # each (a surface under one element a little higher loads it more and its neighbours less; the tissue
+    # going on beyond the palpated extent unloads the elements near the end together); ``sigma`` holds them
+    # too, with what is independent per element
+    modes: np.ndarray | None = None
 
 
 class HomogeneousTissue(ABC):
@@ -228,24 +233,26 @@ class BlockResponse(HomogeneousTissue):
         shape = levels["pressure_pa"].shape
         if not measured_surface:
             flat = np.full(shape, np.nan)
-            sigma = np.full(shape, np.nan)
+            modes = [[] for _ in levels]
             for k, row in enumerate(levels):
                 flat[k] = self._share(row, None)
-                sigma[k] = np.sqrt(self._extent_variance(row, None, flat[k]))
-            return Pattern(flat, np.where(np.isfinite(flat), sigma, np.nan))
+                modes[k] = self._extent_modes(row, None, flat[k])
+            return _pattern(flat, np.zeros(shape), modes)
         # An onset is where an element first touched: the highest point under it, or where a neighbour's load
         # leaking through the sensor's cover first reached the threshold. Where the surface falls away within
         # an element (a bump's flank, the edge of a gap) the truth lies between that and the lowest of its
         # neighbours' surfaces, and an onset step to a neighbour beyond the onsets' scatter says by how much
         # it may fall within the element (the only clue at the array's edge). The pattern is taken on the
         # surface half-way; each uncertain element's half-range is propagated through the contact to every
-        # element's share (a raised element takes load off its neighbours), and the onsets' own scatter
-        # counts relative to how far each element is pressed in.
+        # element's share (a raised element takes load off its neighbours), one mode of the uncertainty
+        # shared between them, and the onsets' own scatter counts, per element, relative to how far each
+        # element is pressed in.
         upper = self._surfaces(levels)
         onset_noise = _onset_noise_m(levels)
         relief = _relief(levels, onset_noise)
         share = np.full(shape, np.nan)
-        sigma = np.full(shape, np.nan)
+        independent = np.full(shape, np.nan)
+        modes = [[] for _ in levels]
         for k, row in enumerate(levels):
             region = int(row["region"])
             high = upper[region]
@@ -254,24 +261,26 @@ class BlockResponse(HomogeneousTissue):
             half = np.nan_to_num(0.5 * (high - low))
             base = self._share(row, mid)
             pressed = np.maximum(mid - float(row["tsi_position_m"][2]), 1e-4)
-            variance = (onset_noise / pressed) ** 2
             for e in np.flatnonzero(half.ravel() > 2.0 * onset_noise):
                 raised = mid.copy()
                 raised.flat[e] += half.flat[e]
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    variance = variance + np.nan_to_num((self._share(row, raised) - base) / base) ** 2
+                    change = self._share(row, raised) / base
+                    # the flat field fits each record's scale itself: only the change of the pattern counts
+                    modes[k].append(np.nan_to_num(change / np.nanmedian(change) - 1.0))
             share[k] = base
-            sigma[k] = np.sqrt(variance + self._extent_variance(row, mid, base))
-        return Pattern(share, np.where(np.isfinite(share), sigma, np.nan))
+            independent[k] = (onset_noise / pressed) ** 2
+            modes[k] += self._extent_modes(row, mid, base)
+        return _pattern(share, independent, modes)
 
-    def _extent_variance(self, row, heights: np.ndarray | None, base: np.ndarray) -> np.ndarray:
-        """The share's relative variance from not knowing where the tissue ends. The block ends where the
+    def _extent_modes(self, row, heights: np.ndarray | None, base: np.ndarray) -> list[np.ndarray]:
+        """The share's relative changes from not knowing where the tissue ends. The block ends where the
         palpated areas end; the tissue may go on beyond that by up to ``EXTENT_SLACK_M``, and an element
         over a free end is loaded very differently from one a millimetre inside it (a face edge flush with
         the end rides on a free edge; one a little short of it presses a punch's edge into the tissue). Where
         the face reaches an end of the block, the change of every element's share if the tissue went on by
-        that much (the face that far inside the block) is counted as that element's uncertainty."""
-        variance = np.zeros(base.shape)
+        that much (the face that far inside the block) is one standard deviation of that uncertainty."""
+        modes = []
         rows, cols = self.shape
         reach = ((self.block.length_m, rows * self.pitch_m), (self.block.width_m, cols * self.pitch_m))
         lo = self._face_lo(row)
@@ -287,8 +296,8 @@ class BlockResponse(HomogeneousTissue):
                 with np.errstate(invalid="ignore", divide="ignore"):
                     change = self._share(moved, heights) / base
                     change = change / np.nanmedian(change)  # the flat field fits each record's scale itself
-                variance = variance + np.nan_to_num(change - 1.0) ** 2
-        return variance
+                modes.append(np.nan_to_num(change - 1.0))
+        return modes
 
     def _share(self, row, heights: np.ndarray | None) -> np.ndarray:
         """The normalised element forces of one record: the face on ``heights`` (undeformed surface height
@@ -388,6 +397,19 @@ class BlockResponse(HomogeneousTissue):
                 heights[e] = onset[e] + sink
             surfaces[int(region)] = heights.reshape(self.shape)
         return surfaces
+
+
+def _pattern(share: np.ndarray, independent_variance: np.ndarray, modes: list[list[np.ndarray]]) -> Pattern:
+    """A Pattern from each record's share, the variance independent per element, and its shared modes."""
+    count = max((len(m) for m in modes), default=0)
+    stacked = np.zeros((len(share), count) + share.shape[1:])
+    for k, record in enumerate(modes):
+        if record:
+            stacked[k, :len(record)] = record
+    inside = np.isfinite(share)
+    stacked = np.where(inside[:, None], stacked, 0.0)
+    sigma = np.sqrt(independent_variance + (stacked ** 2).sum(axis=1))
+    return Pattern(share, np.where(inside, sigma, np.nan), stacked)
 
 
 def _onset_noise_m(levels: np.ndarray) -> float:
@@ -519,7 +541,7 @@ class PhantomResponse(HomogeneousTissue):
         for k, row in enumerate(levels):
             x, y, z = (float(v) for v in row["tsi_position_m"])
             out[k] = self._finish(_at_force(self.tissue, x, y, z, float(row["force_measured_N"])))
-        return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan))
+        return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan), np.zeros((len(out), 0) + out.shape[1:]))
 
 
 def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None

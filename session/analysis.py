@@ -60,13 +60,13 @@ class SessionAnalysis:
         levels = session.levels
         contrasts = {}
         for source in SOURCES:
-            share = sigma = None
+            share = sigma = modes = None
             if physics is not None and len(levels):
                 # the stiffness map is compared with the measured surface, the force map with a flat one
                 pattern = physics.pattern(levels, measured_surface=source == "stiffness")
-                share, sigma = pattern.share, pattern.sigma
+                share, sigma, modes = pattern.share, pattern.sigma, pattern.modes
             contrasts[source] = contrast(levels, source, share, sigma, reference, params.detect.accuracy,
-                                         physics.description if physics is not None else "")
+                                         physics.description if physics is not None else "", modes)
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
         if depth_model is not None:
             # the stiffness contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it

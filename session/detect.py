@@ -7,7 +7,10 @@ contrasts are made by :mod:`session.flatfield`):
   uncertainty with a matched filter: for a blob of Gaussian profile of width ``w`` centred on element e,
   ``z(e) = sum_j K_ej c_j / s_j^2 / sqrt(sum_j K_ej^2 / s_j^2)``, the likelihood-ratio statistic of a blob
   of unknown height against none, over the elements in contact. Blobs of every width in
-  ``kernel_widths_m`` are tried and the largest statistic kept.
+  ``kernel_widths_m`` are tried and the largest statistic kept. Where the expected pattern's uncertainty
+  is partly shared between elements (``Contrast.modes``: the tissue going on beyond the palpated end, a
+  surface rebuilt a little too low under one element of a bump's flank), the blob's spread counts their
+  covariance where that makes it larger (:func:`evidence`).
 * **Threshold.** Healthy tissue gives independent standard normal ``c_j / s_j``; the threshold is the
   value the largest statistic over one area's face exceeds with probability ``false_alarm_per_area``
   (found once by simulating healthy faces), so each palpated area raises a false alarm that often.
@@ -119,8 +122,16 @@ def _kernels(shape: tuple[int, int], pitch_m: float, widths_m: tuple[float, ...]
     return np.stack([np.exp(-0.5 * d2 / (w * w)) for w in widths_m])
 
 
-def evidence(contrast: np.ndarray, sigma: np.ndarray, pitch_m: float, widths_m: tuple[float, ...]) -> np.ndarray:
-    """The matched-filter statistic centred on each element (see the module docstring); NaN off contact."""
+def evidence(contrast: np.ndarray, sigma: np.ndarray, pitch_m: float, widths_m: tuple[float, ...],
+             modes: np.ndarray | None = None) -> np.ndarray:
+    """The matched-filter statistic centred on each element (see the module docstring); NaN off contact.
+
+    ``modes`` (m, rows, cols): uncertainties of the expected pattern shared between elements, one standard
+    deviation each and included in ``sigma``. Where their parts under a blob add up (the face's end half
+    reading high together if the tissue goes on beyond the palpated end), the blob's sum varies by more
+    than independent errors would make it, and its statistic is divided by that larger spread. Where they
+    cancel (a surface a little higher under one element loads it more and its neighbours less) it is not
+    made surer: that would trust the model's shape of its own error more than its size."""
     shape = contrast.shape
     kernels = _kernels(shape, pitch_m, widths_m)
     used = np.isfinite(contrast.ravel()) & np.isfinite(sigma.ravel()) & (sigma.ravel() > 0)
@@ -129,9 +140,17 @@ def evidence(contrast: np.ndarray, sigma: np.ndarray, pitch_m: float, widths_m: 
         return np.full(shape, np.nan)
     precision = np.where(used, 1.0 / np.where(used, sigma.ravel(), 1.0) ** 2, 0.0)
     weighted = np.where(used, contrast.ravel(), 0.0) * precision
+    shared = None
+    if modes is not None and len(modes):
+        shared = np.where(used, modes.reshape(len(modes), -1), 0.0) * precision  # (m, n): each mode, weighted
+        own = (shared ** 2 / np.where(used, precision, 1.0)).sum(axis=0)  # their diagonal, in those weights
     for k in kernels:
         num = k @ weighted
-        den = np.sqrt((k * k) @ precision)
+        variance = (k * k) @ precision
+        if shared is not None:
+            # the weighted sum's variance with the modes' whole covariance instead of their diagonal alone
+            variance = np.maximum(variance, variance + ((shared @ k.T) ** 2).sum(axis=0) - (k * k) @ own)
+        den = np.sqrt(variance)
         out = np.maximum(out, np.divide(num, den, out=np.full(num.shape, -np.inf), where=den > 0))
     return np.where(used, out, np.nan).reshape(shape)
 
@@ -168,7 +187,7 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
     out = []
     for r in range(len(levels)):
         c, s = contrast.contrast[r], contrast.sigma[r]
-        z = evidence(c, s, pitch_m, params.kernel_widths_m)
+        z = evidence(c, s, pitch_m, params.kernel_widths_m, None if contrast.modes is None else contrast.modes[r])
         peaks = significant_peaks(z, limit)
         tsi = levels["tsi_position_m"][r]
         near = np.hypot(offsets[..., 0][None, None] - offsets[..., 0][..., None, None],

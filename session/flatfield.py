@@ -35,7 +35,8 @@ How (written down once, here):
     never less than ``accuracy``, the repeatability one element's reading can have from one loading to the
     next; with a reference, the reference's own scatter is added, and without, the baseline's own
     uncertainty where too few areas vouched for it;
-  - the geometry: how well the share is known where the surface had to be rebuilt (``share_sigma``).
+  - the geometry: how well the share is known where the surface had to be rebuilt (``share_sigma``), of
+    which the part shared between elements is kept apart (``Contrast.modes``) for the detection.
 
 * The **stiffness map** (Eq. 1, E = F L0 / (A dL)) is compared with the stiffness homogeneous tissue of the
   same measured geometry would show by Eq. 1: both use the element's own L0 and dL, so its contrast is
@@ -69,6 +70,7 @@ REFERENCE_FORMAT = "palpation-console-reference"
 class Pattern(Protocol):
     share: np.ndarray  # (records, rows, cols) expected element forces over their mean; NaN where none
     sigma: np.ndarray  # (records, rows, cols) their relative uncertainty
+    modes: np.ndarray | None  # (records, modes, rows, cols) the part of it shared between elements
 
 
 class Physics(Protocol):
@@ -187,6 +189,9 @@ class Contrast:
     share: np.ndarray  # the physics it was made with (see :func:`contrast`)
     share_sigma: np.ndarray
     physics: bool  # whether ``share`` came from physics (else it is one everywhere)
+    # (n, modes, rows, cols) the share's uncertainties shared between elements, one standard deviation each
+    # (``sigma`` holds them too); None: every element's uncertainty is its own
+    modes: np.ndarray | None = None
 
     @property
     def z(self) -> np.ndarray:
@@ -349,9 +354,11 @@ def _healthy_scatter(rel: np.ndarray, accuracy: float) -> np.ndarray:
 
 def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
              share_sigma: np.ndarray | None = None, reference: Reference | None = None,
-             accuracy: float = ACCURACY, description: str = "") -> Contrast:
+             accuracy: float = ACCURACY, description: str = "", share_modes: np.ndarray | None = None
+             ) -> Contrast:
     """The ``map_name`` contrast of every level record (see the module docstring). ``share``/``share_sigma``:
-    the physics (None: one everywhere, exactly known); ``reference``: the baseline to use instead of the
+    the physics (None: one everywhere, exactly known), and ``share_modes`` the part of ``share_sigma``
+    shared between elements (None: none); ``reference``: the baseline to use instead of the
     session's own estimate: one made without physics holds the face's whole pattern, so it stands in for
     the physics too; one made over the physics' share needs the same physics here (raises FlatFieldError)."""
     if map_name not in MAPS:
@@ -359,7 +366,7 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
     if reference is not None:
         reference.check_usable(with_physics=share is not None)
     if reference is not None and not reference.physics:
-        share = share_sigma = None
+        share = share_sigma = share_modes = None
         description = ""
     measured = _measured(levels)
     shape = measured.shape
@@ -392,5 +399,6 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
     else:
         source, how = "session", f"estimated from this session's {len(np.unique(levels['region']))} areas"
     what = f"{description}; baseline {how}" if description else f"no physics; baseline {how}"
+    modes = None if share_modes is None else np.where(np.isfinite(values)[:, None], share_modes, 0.0)
     return Contrast(map_name, values, np.where(np.isfinite(values), sigma, np.nan), expected, source, what, share,
-                    share_sigma, physics)
+                    share_sigma, physics, modes)

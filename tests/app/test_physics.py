@@ -61,3 +61,23 @@ def test_on_a_flat_surface_the_level_baseline_keeps_the_face_pattern_finite_stra
     nonlinear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), finite, 0.0)
     linear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
     np.testing.assert_allclose(nonlinear.pattern(levels).share, linear.pattern(levels).share, rtol=1e-9)
+
+
+def test_the_rebuilt_surfaces_uncertainty_is_kept_as_modes_shared_between_elements(tmp_path):
+    # the ridge's flanks: where the onsets step by 3 mm, the surface within those elements is unsure
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    pattern = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15)).pattern(levels)
+    modes = pattern.modes
+    assert modes.shape[0] == 2 and modes.shape[1] >= 8 and modes.shape[2:] == (4, 15)
+    # a surface a little higher under one flank element loads it more and its neighbours less
+    flank = np.abs(modes[:, :, :, [5, 6, 8, 9]]).max(axis=(1, 2, 3))
+    assert np.all(flank > 0.5)
+    # only the change of the pattern: the flat field fits each record's scale itself (the median)
+    pressing = np.isfinite(pattern.share)[:, None] & (np.abs(modes).sum(axis=(2, 3)) > 0)[..., None, None]
+    medians = np.nanmedian(np.where(pressing, modes, np.nan).reshape(*modes.shape[:2], -1), axis=2)
+    np.testing.assert_allclose(medians[np.isfinite(medians)], 0.0, atol=1e-9)
+    # and their part of each element's uncertainty is within it
+    own = pattern.sigma ** 2 - (modes ** 2).sum(axis=1)
+    assert np.all(own[np.isfinite(own)] >= -1e-12)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from session.analysis import SessionAnalysis
-from session.detect import DetectError, DetectParams, Tumour, detect, match_ground_truth, threshold
+from session.detect import DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth, threshold
 from session.flatfield import Reference, contrast
 from session.reader import open_session
 from session.stitch import element_offsets_m
@@ -194,6 +194,22 @@ def test_a_tumour_beside_the_palpated_tissue_is_placed_at_its_edge_not_beyond():
     x, y = _blob_centre(levels, seen, records, [(0.020, 0.029)], PITCH, DetectParams().fit_radius_m)
     assert abs(x - 0.020) < 0.5e-3
     assert 0.029 <= y <= 0.030
+
+
+def test_a_contrast_shaped_like_an_uncertainty_shared_between_elements_is_not_evidence():
+    # The tissue may go on beyond the palpated end: then the face's whole end half reads 5 % off together.
+    # Two standard deviations of that, counted as independent per element, pass the threshold.
+    shape, widths = (4, 15), DetectParams().kernel_widths_m
+    limit = threshold(0.01, shape, PITCH, widths)
+    mode = np.zeros(shape)
+    mode[:2] = 0.05
+    sigma = np.sqrt(0.02 ** 2 + mode ** 2)
+    assert np.nanmax(evidence(2 * mode, sigma, PITCH, widths)) > limit
+    assert np.nanmax(evidence(2 * mode, sigma, PITCH, widths, mode[None])) < 0.6 * limit
+    # a tumour's blob is still one (the shared part no longer dilutes the elements it covers)
+    offsets = element_offsets_m(*shape, PITCH)
+    blob = 0.08 * np.exp(-0.5 * (offsets ** 2).sum(axis=-1) / 2e-3 ** 2)
+    assert np.nanmax(evidence(blob, sigma, PITCH, widths, mode[None])) > limit
 
 
 def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_that_tumour():
