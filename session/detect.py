@@ -89,6 +89,8 @@ class Spot:
     contrast: float  # largest contrast among its elements
     elements: int
     at_edge: bool  # it reaches the face's edge: what raised it may lie beyond, under a neighbouring area
+    # where, of the contrast its statistic summed, the largest is (the widest blob may peak rows away from it)
+    strongest_xy_m: tuple[float, float] = (math.nan, math.nan)
 
 
 @dataclass(frozen=True)
@@ -205,8 +207,9 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
             summed = near[i, j] <= max(1.5 * pitch_m, max(params.kernel_widths_m))
             si, sj = np.unravel_index(np.nanargmax(np.where(summed, c, -np.inf)), shape)
             edge = bool({i, si} & {0, shape[0] - 1} or {j, sj} & {0, shape[1] - 1})
+            strongest = (float(tsi[0] + offsets[si, sj, 0]), float(tsi[1] + offsets[si, sj, 1]))
             out.append(Spot(r, int(level_of[r]), float(force_of[r]), x, y, float(z[i, j]), float(np.nanmax(c[around])),
-                            int(around.sum()), edge))
+                            int(around.sum()), edge, strongest))
     return out
 
 
@@ -239,12 +242,15 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
     # raised it, and its centroid falls short of it by up to the face's width: it joins a stronger spot of
     # a neighbouring area that far away, whichever spot of its cluster that is (a strong tumour at a seam
     # raised the edge of the area beyond the next one, 8 mm from the next one's spot, 12 mm from the
-    # cluster's strongest).
+    # cluster's strongest), measured from its centroid or from where its contrast is largest (a strong
+    # tumour 6 mm beyond the face's end raised its near edge, and the widest blob peaked at the far one).
     per_level: list[list[list[Spot]]] = [[] for _ in groups]
     for spot in sorted(found, key=lambda s: -s.score):
         clusters = per_level[spot.level_index]
         reach = params.merge_radius_m + (rows * pitch_m / 2 if spot.at_edge else 0.0)
-        near = [c for c in clusters if any(math.hypot(spot.x_m - o.x_m, spot.y_m - o.y_m) <= reach for o in c)]
+        places = [(spot.x_m, spot.y_m)] + ([spot.strongest_xy_m] if spot.at_edge else [])
+        near = [c for c in clusters
+                if any(math.hypot(px - o.x_m, py - o.y_m) <= reach for o in c for px, py in places)]
         if near:
             near[0].append(spot)
         else:

@@ -228,3 +228,22 @@ def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_t
     found = detect(levels, seen, PITCH)
     assert len(found) == 1
     assert math.hypot(found[0].x_m - 0.0324, found[0].y_m - 0.015) < 1e-3
+
+
+def test_a_far_field_is_placed_by_where_its_contrast_is_largest_not_where_the_widest_blob_peaks():
+    # A strong tumour 7 mm beyond the fourth area's face raises its near row most; that row is the least
+    # sure, so the widest blob's statistic peaks at the far rows, 11 mm from the tumour.
+    from types import SimpleNamespace
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    x = np.asarray(levels["tsi_position_m"][:, None, None, 0]) + element_offsets_m(4, 15, PITCH)[None][..., 0]
+    y = np.asarray(levels["tsi_position_m"][:, None, None, 1]) + element_offsets_m(4, 15, PITCH)[None][..., 1]
+    blob = 0.8 * np.exp(-0.5 * ((x - 0.026) ** 2 + (y - 0.015) ** 2) / 2.5e-3 ** 2)
+    fourth = (levels["region"] == 3)[:, None, None]
+    rows = np.array([0.10, 0.06, 0.05, 0.045])[:, None] * np.exp(-0.5 * ((y[0] - 0.015) / 4e-3) ** 2)
+    contrast = np.where(fourth, rows, blob)
+    sigma = np.where(fourth & (np.arange(4) == 0)[None, :, None], 0.3, 0.02) * np.ones(blob.shape)
+    seen = SimpleNamespace(map="stiffness", contrast=contrast, sigma=sigma, modes=None)
+    found = detect(levels, seen, PITCH)
+    assert len(found) == 1
+    assert math.hypot(found[0].x_m - 0.026, found[0].y_m - 0.015) < 1e-3
