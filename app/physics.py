@@ -264,10 +264,7 @@ class BlockResponse(HomogeneousTissue):
             for e in np.flatnonzero(half.ravel() > 2.0 * onset_noise):
                 raised = mid.copy()
                 raised.flat[e] += half.flat[e]
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    change = self._share(row, raised) / base
-                    # the flat field fits each record's scale itself: only the change of the pattern counts
-                    modes[k].append(np.nan_to_num(change / np.nanmedian(change) - 1.0))
+                modes[k].append(_change_of_pattern(self._share(row, raised), base))
             share[k] = base
             independent[k] = (onset_noise / pressed) ** 2
             modes[k] += self._extent_modes(row, mid, base)
@@ -293,10 +290,7 @@ class BlockResponse(HomogeneousTissue):
                     continue
                 moved = row.copy()
                 moved["tsi_position_m"][axis] += inward * EXTENT_SLACK_M
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    change = self._share(moved, heights) / base
-                    change = change / np.nanmedian(change)  # the flat field fits each record's scale itself
-                modes.append(np.nan_to_num(change - 1.0))
+                modes.append(_change_of_pattern(self._share(moved, heights), base))
         return modes
 
     def _share(self, row, heights: np.ndarray | None) -> np.ndarray:
@@ -397,6 +391,15 @@ class BlockResponse(HomogeneousTissue):
                 heights[e] = onset[e] + sink
             surfaces[int(region)] = heights.reshape(self.shape)
         return surfaces
+
+
+def _change_of_pattern(share: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Each element's relative change from ``base`` to ``share``, less the change of their median: the flat
+    field fits each record's scale itself, so only a change of the pattern is an error (0 where either has
+    none)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        change = share / base
+        return np.nan_to_num(change / np.nanmedian(change) - 1.0)
 
 
 def _pattern(share: np.ndarray, independent_variance: np.ndarray, modes: list[list[np.ndarray]]) -> Pattern:
