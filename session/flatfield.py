@@ -261,6 +261,11 @@ def _session_baseline(measured: np.ndarray, share: np.ndarray, share_sigma: np.n
     return base, scale, spread
 
 
+def _robust_spread(deviations: np.ndarray, floor: float) -> float:
+    """The standard deviation the median absolute deviation implies (NaNs ignored), never below ``floor``."""
+    return max(floor, 1.4826 * float(np.nanmedian(np.abs(deviations))))
+
+
 # a part of the face needs this many vouched elements to stand for its others (a median and a spread)
 MIN_PART_VOUCHED = 4
 
@@ -285,7 +290,7 @@ def _unvouched(base: np.ndarray, vouched: np.ndarray, unknown: float) -> tuple[n
             continue
         centre = float(np.median(known))
         out[missing] = centre
-        spread[missing] = max(ACCURACY, 1.4826 * float(np.median(np.abs(known - centre))))
+        spread[missing] = _robust_spread(known - centre, ACCURACY)
     return out, spread
 
 
@@ -334,12 +339,9 @@ def _healthy_scatter(rel: np.ndarray, accuracy: float) -> np.ndarray:
     where that is larger. The physics is least sure where the face ends: in the simulated sessions the side
     columns, where the face meets the tissue's free sides, scatter two to three times as much as the rest,
     and one spread for the whole face let them raise spots at several times the stated false-alarm rate."""
-    def spread(values: np.ndarray) -> float:
-        return max(accuracy, 1.4826 * float(np.nanmedian(np.abs(values))))
-
     if not np.isfinite(rel).any():
         return np.full(rel.shape[1:], accuracy)
-    whole = spread(rel)
+    whole = _robust_spread(rel, accuracy)
     parts = _face_parts(rel.shape[1:])
     out = np.full(rel.shape[1:], whole)
     for part in np.unique(parts):
@@ -348,7 +350,7 @@ def _healthy_scatter(rel: np.ndarray, accuracy: float) -> np.ndarray:
             # Never below the whole face's: a part that scattered less over a handful of areas is no surer
             # for it (the paper's flat phantom: its side columns' own spread, 0.02, let the load a shallow
             # tumour moves onto them, +0.1, read as two more tumours).
-            out[parts == part] = max(whole, spread(values))
+            out[parts == part] = max(whole, _robust_spread(values, accuracy))
     return out
 
 
