@@ -13,7 +13,9 @@ palpation-console[study]``) for studies of thousands of phantoms. Both run the s
 :func:`run_case`, on the same :class:`StudyCase`; only where it runs differs.
 
 Every case leaves its phantom file (TOML) and, with ``keep_sessions``, its session file in the output
-folder, so any result can be opened in the reviewer and replayed.
+folder, so any result can be opened in the reviewer and replayed, and the whole study analysed again with
+other analysis options without palpating again (``--reanalyse FOLDER``, :func:`reanalyse_study`): every
+option ``stitch`` takes applies to a study too (:func:`analysis_options`).
 """
 
 from __future__ import annotations
@@ -155,7 +157,6 @@ class StudyCase:
     force_max_N: float = 7.0  # the ramp runs from 1 N in 1 N steps to this
     paper: bool = False  # one of the paper's two phantoms
     tissue: str = "continuum"  # the simulator's tissue model (hardware.sim.settings.TISSUE_MODELS)
-    physics: str = "rebuilt"  # the flat field's physics (app.physics.PHYSICS)
 
 
 def ramp_for(phantom: dict[str, Any]) -> float:
@@ -188,11 +189,29 @@ def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution 
     return cases
 
 
+def analysis_options(**given) -> dict[str, Any]:
+    """The analysis options ``stitch`` and the reviewer take (``app.session_commands``), by their argument
+    names, defaults unless ``given``: what every case's session is analysed with (plain values, so any
+    executor can ship them)."""
+    import argparse
+
+    from app.session_commands import add_analysis_arguments
+
+    parser = argparse.ArgumentParser(add_help=False)
+    add_analysis_arguments(parser)
+    options = vars(parser.parse_args([]))
+    unknown = set(given) - set(options)
+    if unknown:
+        raise ValueError(f"unknown analysis options: {', '.join(sorted(unknown))}")
+    return {**options, **given}
+
+
 def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
-             settings: dict[str, Any] | None = None) -> dict[str, Any]:
+             settings: dict[str, Any] | None = None, analysis: dict[str, Any] | None = None) -> dict[str, Any]:
     """Palpate ``case`` on the simulated rig, analyse its session and score it; a JSON-able result, with
     ``error`` (one line) instead of the figures when the case could not be run. ``settings``: a
-    configuration's tables (``--config``) under the case's own phantom, seeds, tissue and top force.
+    configuration's tables (``--config``) under the case's own phantom, seeds, tissue and top force;
+    ``analysis``: :func:`analysis_options` (None: the defaults).
 
     A top-level function of plain arguments, so any executor can ship it to a worker."""
     from hardware.interfaces import DeviceError
@@ -200,20 +219,17 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
     from session.reader import SessionFileError
 
     try:
-        return _run_case(case, Path(out_dir), keep_session, settings or {})
+        return _run_case(case, Path(out_dir), keep_session, settings or {}, analysis or analysis_options())
     except (ConfigError, PhantomError, DeviceError, SessionFileError, ValueError, OSError) as err:
         return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
 
 
-def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[str, Any]) -> dict[str, Any]:
+def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[str, Any],
+              analysis: dict[str, Any]) -> dict[str, Any]:
     from app.config import load_config, merge_tables
-    from app.depth_model import DepthModel
-    from app.physics import physics_for
     from app.recording import record_simulation
     from hardware.sim.phantom import load_phantom
     from hardware.sim.rig import build_sim_rig, build_tissue
-    from session.analysis import SessionAnalysis
-    from session.reader import open_session
 
     folder.mkdir(parents=True, exist_ok=True)
     phantom_path = folder / f"{case.name}.toml"
@@ -232,10 +248,7 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     try:
         record_simulation(session_path, config, rig=rig)
         palpated = time.perf_counter()
-        with open_session(session_path) as session:
-            analysis = SessionAnalysis.run(session, physics=physics_for(session, case.physics),
-                                           depth_model=DepthModel.for_session(session))
-            result = _case_result(case, analysis)
+        result = _analysed(case.name, case.paper, case.phantom, session_path, analysis)
     finally:
         if not keep_session:
             session_path.unlink(missing_ok=True)
@@ -245,21 +258,76 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     return result
 
 
-def _case_result(case: StudyCase, analysis) -> dict[str, Any]:
-    session = analysis.session
-    tissue_pa = float(case.phantom["phantom"]["youngs_modulus_pa"])
-    truths = []
-    for t in session.ground_truth:
-        truths.append({"x_m": t["x_m"], "y_m": t["y_m"], "depth_m": t["depth_m"], "diameter_m": t["diameter_m"],
-                       "modulus_ratio": t["youngs_modulus_pa"] / tissue_pa})
-    matches = [asdict(m) for m in analysis.matches]
-    regions = session.regions()
-    return {
-        "name": case.name, "paper": case.paper, "surface": _surface_kind(case.phantom),
-        "regions": len(regions), "regions_done": sum(1 for r in regions if r.outcome == "done"),
-        "truths": truths, "matches": matches, "false_positives": analysis.false_positives,
-        "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
-    }
+def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Path,
+              options: dict[str, Any]) -> dict[str, Any]:
+    """The case's session analysed with ``options`` and scored against its phantom's ground truth."""
+    import argparse
+
+    from app.session_commands import analyse
+    from session.reader import open_session
+
+    with open_session(session_path) as session:
+        analysis = analyse(session, argparse.Namespace(**options))
+        tissue_pa = float(phantom["phantom"]["youngs_modulus_pa"])
+        truths = [{"x_m": t["x_m"], "y_m": t["y_m"], "depth_m": t["depth_m"], "diameter_m": t["diameter_m"],
+                   "modulus_ratio": t["youngs_modulus_pa"] / tissue_pa} for t in session.ground_truth]
+        regions = session.regions()
+        return {
+            "name": name, "paper": paper, "surface": _surface_kind(phantom),
+            "regions": len(regions), "regions_done": sum(1 for r in regions if r.outcome == "done"),
+            "truths": truths, "matches": [asdict(m) for m in analysis.matches],
+            "false_positives": analysis.false_positives,
+            "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
+        }
+
+
+@dataclass(frozen=True)
+class KeptCase:
+    """A case of an earlier study whose session was kept: its phantom file and session, side by side."""
+
+    name: str
+    phantom: dict[str, Any]
+    session: str
+    paper: bool
+
+
+def kept_cases(folder: Path) -> list[KeptCase]:
+    """The cases of a study's output folder (each ``NAME.h5`` beside its ``NAME.toml``), by name; raises
+    ConfigError naming what is missing or unreadable. One of the paper's phantoms is told by its content."""
+    from hardware.sim.phantom import PHANTOM_DIR
+
+    if not folder.is_dir():
+        raise ConfigError("--reanalyse", f"{folder} is not a folder")
+    paper = [tomllib.loads((PHANTOM_DIR / f"{n}.toml").read_text(encoding="utf-8")) for n in ("flat", "uneven")]
+    cases = []
+    for session in sorted(folder.glob("*.h5")):
+        toml = session.with_suffix(".toml")
+        try:
+            phantom = tomllib.loads(toml.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            continue  # not a case of a study (a session put there by hand)
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+            raise ConfigError("--reanalyse", f"cannot read the phantom {toml}: {err}") from None
+        cases.append(KeptCase(session.stem, phantom, str(session), phantom in paper))
+    if not cases:
+        raise ConfigError("--reanalyse", f"{folder} holds no kept study case (NAME.h5 beside NAME.toml); "
+                                         "a study keeps them unless run with --no-sessions")
+    return cases
+
+
+def reanalyse_case(case: KeptCase, analysis: dict[str, Any]) -> dict[str, Any]:
+    """A kept case analysed again with ``analysis`` (:func:`analysis_options`) and scored; as :func:`run_case`,
+    with ``error`` (one line) when it cannot be."""
+    from app.session_commands import AnalysisInputError
+    from session.reader import SessionFileError
+
+    started = time.perf_counter()
+    try:
+        result = _analysed(case.name, case.paper, case.phantom, Path(case.session), analysis)
+    except (ConfigError, AnalysisInputError, SessionFileError, ValueError, OSError) as err:
+        return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
+    result.update(analyse_s=time.perf_counter() - started, session=case.session)
+    return result
 
 
 def _surface_kind(phantom: dict[str, Any]) -> str:
@@ -326,17 +394,29 @@ class DaskExecutor:
 
 
 def run_study(cases: list[StudyCase], executor: Executor, out_dir: Path, keep_sessions: bool = True,
-              progress: Callable[[dict], None] | None = None,
-              settings: dict[str, Any] | None = None) -> tuple[list[dict], float]:
+              progress: Callable[[dict], None] | None = None, settings: dict[str, Any] | None = None,
+              analysis: dict[str, Any] | None = None) -> tuple[list[dict], float]:
     """Every case's result (in the order of ``cases``) and the study's wall time in seconds; ``settings``
-    as :func:`run_case` takes them (shipped to every worker: a Dask worker need not see the file)."""
+    and ``analysis`` as :func:`run_case` takes them (shipped to every worker: a Dask worker need not see
+    the file)."""
+    return _gathered(cases, executor.run(run_case, cases, str(out_dir), keep_sessions, settings or {},
+                                         analysis or analysis_options()), progress)
+
+
+def reanalyse_study(cases: list[KeptCase], executor: Executor, analysis: dict[str, Any] | None = None,
+                    progress: Callable[[dict], None] | None = None) -> tuple[list[dict], float]:
+    """As :func:`run_study` for the kept cases of an earlier study (:func:`kept_cases`), analysed again."""
+    return _gathered(cases, executor.run(reanalyse_case, cases, analysis or analysis_options()), progress)
+
+
+def _gathered(cases, results: Iterator[dict], progress) -> tuple[list[dict], float]:
     started = time.perf_counter()
-    results = {}
-    for result in executor.run(run_case, cases, str(out_dir), keep_sessions, settings or {}):
-        results[result["name"]] = result
+    by_name = {}
+    for result in results:
+        by_name[result["name"]] = result
         if progress is not None:
             progress(result)
-    return [results[c.name] for c in cases], time.perf_counter() - started
+    return [by_name[c.name] for c in cases], time.perf_counter() - started
 
 
 # ---- scoring -----------------------------------------------------------------------------------------------
@@ -468,27 +548,42 @@ ACCURACY_KEYS = ("sensitivity_pct", "sensitivity_le6mm_pct", "false_positives_pe
                  "paper_flat_found", "paper_uneven_found", "paper_false_positives")
 
 
-def study_document(cases: list[StudyCase], results: list[dict], wall_s: float, seed: int, workers: int,
-                   executor: str) -> dict[str, Any]:
+def study_document(cases: list, results: list[dict], wall_s: float, seed: int | None, workers: int,
+                   executor: str, analysis: dict[str, Any] | None = None) -> dict[str, Any]:
     figures = {source: score(results, source) for source in ("stiffness", "force")}
     doc: dict[str, Any] = {key: figures["stiffness"][key] for key in ACCURACY_KEYS}
     doc.update(study_wall_s=wall_s, phantoms=figures["stiffness"]["phantoms"], seed=seed, workers=workers,
-               executor=executor, distribution=asdict(StudyDistribution()), maps=figures, cases=results)
+               executor=executor, distribution=asdict(StudyDistribution()),
+               analysis={k: str(v) if isinstance(v, Path) else v for k, v in (analysis or analysis_options()).items()},
+               maps=figures, cases=results)
     return doc
+
+
+# what only palpating a study takes; re-analysing kept cases refuses them
+_PALPATION_OPTIONS = {"phantoms": "-n/--phantoms", "seed": "--seed", "paper": "--paper", "config": "--config",
+                      "no_sessions": "--no-sessions"}
 
 
 def study_parser():
     import argparse
 
+    from app.session_commands import add_analysis_arguments
+
     parser = argparse.ArgumentParser(
         prog="palpation-console study",
         description="Validate tumour detection and depth on simulated phantoms drawn from a documented, seeded "
-                    "distribution (app/study.py): palpate, analyse, score against the ground truth.")
-    parser.add_argument("-n", "--phantoms", type=int, default=12, help="phantoms to draw (default 12)")
-    parser.add_argument("--seed", type=int, default=1, help="the draw's seed: the same seed, the same study")
+                    "distribution (app/study.py): palpate, analyse, score against the ground truth. With "
+                    "--reanalyse, analyse the kept sessions of an earlier study again (other analysis options) "
+                    "without palpating.")
+    parser.add_argument("-n", "--phantoms", type=int, help="phantoms to draw (default 12)")
+    parser.add_argument("--seed", type=int, help="the draw's seed: the same seed, the same study (default 1)")
     parser.add_argument("--paper", action="store_true", help="add the paper's flat and uneven phantoms")
     parser.add_argument("--out", type=Path, default=Path("study"),
                         help="folder for every case's phantom file and session (default ./study)")
+    parser.add_argument("--reanalyse", type=Path, metavar="FOLDER",
+                        help="analyse and score again the cases an earlier study kept in FOLDER (its --out), "
+                             "with the analysis options given here; writes FOLDER/reanalysis.json and .png "
+                             "unless --json and --plot say otherwise")
     parser.add_argument("--json", type=Path, help="the figures and every case as JSON (default OUT/study.json)")
     parser.add_argument("--plot", type=Path, help="PNG of sensitivity against depth and the FROC "
                                                   "(default OUT/study.png)")
@@ -500,7 +595,36 @@ def study_parser():
     parser.add_argument("--config", type=Path, help="a TOML configuration whose [control] and [sim] settings "
                         "(ramp steps, gains, contact, safety; sensor noise, tissue model) every phantom is "
                         "palpated with; each case keeps its own phantom, seeds and top force")
+    add_analysis_arguments(parser)
     return parser
+
+
+def _problem(args) -> str:
+    """The first thing wrong with the command line, or ''."""
+    from app.session_commands import analysis_params
+    from session.detect import DetectError
+    from session.stitch import StitchError
+
+    if args.reanalyse is not None:
+        given = [flag for dest, flag in _PALPATION_OPTIONS.items() if getattr(args, dest) not in (None, False)]
+        if given:
+            return f"--reanalyse analyses kept sessions again: {', '.join(given)} only apply to palpating a study"
+    else:
+        if not 0 <= args.phantoms <= 100_000:
+            return f"--phantoms must be within 0..100000, got {args.phantoms}"
+        if args.seed < 0:
+            return f"--seed must be >= 0, got {args.seed}"
+        if not args.phantoms and not args.paper:
+            return "nothing to run: --phantoms 0 without --paper"
+    if args.workers is not None and args.workers < 1:
+        return f"--workers must be >= 1, got {args.workers}"
+    try:
+        analysis_params(args)
+    except (StitchError, DetectError) as err:
+        return str(err)
+    if args.reference is not None and not args.reference.is_file():
+        return f"--reference {args.reference}: no such file"
+    return ""
 
 
 def study_main(argv: list[str] | None = None) -> int:
@@ -513,14 +637,14 @@ def study_main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as stop:
         return int(stop.code or 0)
-    problems = [f"--phantoms must be within 0..100000, got {args.phantoms}" if not 0 <= args.phantoms <= 100_000
-                else "", f"--seed must be >= 0, got {args.seed}" if args.seed < 0 else "",
-                f"--workers must be >= 1, got {args.workers}" if args.workers is not None and args.workers < 1
-                else "", "nothing to run: --phantoms 0 without --paper" if not args.phantoms and not args.paper
-                else ""]
-    if any(problems):
-        print(f"error: {next(p for p in problems if p)}", file=sys.stderr)
+    if args.reanalyse is None:
+        args.phantoms = 12 if args.phantoms is None else args.phantoms
+        args.seed = 1 if args.seed is None else args.seed
+    problem = _problem(args)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
+    analysis = analysis_options(**{k: getattr(args, k) for k in analysis_options()})
     settings: dict[str, Any] = {}
     if args.config is not None:
         from app.config import load_config
@@ -530,10 +654,14 @@ def study_main(argv: list[str] | None = None) -> int:
         except ConfigError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
-    json_path = args.json or args.out / "study.json"
-    plot_path = args.plot or args.out / "study.png"
+    folder = args.reanalyse or args.out
+    stem = "reanalysis" if args.reanalyse else "study"
+    json_path = args.json or folder / f"{stem}.json"
+    plot_path = args.plot or folder / f"{stem}.png"
     try:
-        args.out.mkdir(parents=True, exist_ok=True)
+        cases = kept_cases(args.reanalyse) if args.reanalyse else study_cases(args.phantoms, args.seed, args.paper)
+        if not args.reanalyse:
+            args.out.mkdir(parents=True, exist_ok=True)
         executor = DaskExecutor(args.scheduler) if args.scheduler else LocalExecutor(args.workers)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -541,9 +669,12 @@ def study_main(argv: list[str] | None = None) -> int:
     except OSError as err:
         print(f"error: cannot use {args.out}: {err.strerror or err}", file=sys.stderr)
         return 2
-    cases = study_cases(args.phantoms, args.seed, args.paper)
-    print(f"study: {len(cases)} phantoms, {executor.workers} workers "
-          f"({'Dask at ' + args.scheduler if args.scheduler else 'local processes'}); cases in {args.out}")
+    where = 'Dask at ' + args.scheduler if args.scheduler else 'local processes'
+    if args.reanalyse:
+        print(f"study: re-analysing the {len(cases)} cases kept in {args.reanalyse}, {executor.workers} workers "
+              f"({where})")
+    else:
+        print(f"study: {len(cases)} phantoms, {executor.workers} workers ({where}); cases in {args.out}")
     done = [0]
 
     def progress(result: dict) -> None:
@@ -554,14 +685,19 @@ def study_main(argv: list[str] | None = None) -> int:
         print(f"  [{done[0]}/{len(cases)}] {result['name']}: {what}", flush=True)
 
     try:
-        results, wall_s = run_study(cases, executor, args.out, not args.no_sessions, progress, settings)
+        if args.reanalyse:
+            results, wall_s = reanalyse_study(cases, executor, analysis, progress)
+        else:
+            results, wall_s = run_study(cases, executor, args.out, not args.no_sessions, progress, settings, analysis)
     except KeyboardInterrupt:
         return 130
     finally:
         executor.close()
     doc = study_document(cases, results, wall_s, args.seed, executor.workers,
-                         "dask" if args.scheduler else "local")
+                         "dask" if args.scheduler else "local", analysis)
     doc["config"] = str(args.config) if args.config is not None else None  # what the phantoms were palpated with
+    if args.reanalyse:
+        doc["reanalysed"] = str(args.reanalyse)
     print_summary(doc["maps"], wall_s)
     try:
         json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -574,4 +710,3 @@ def study_main(argv: list[str] | None = None) -> int:
         return 1
     print(f"results: {json_path}\nplot: {plot_path}")
     return 0
-

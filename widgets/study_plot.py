@@ -31,8 +31,9 @@ def render_study_png(path: str | Path, doc: dict) -> None:
         _froc(painter, QtCore.QRectF(half + 70, 50, half - 110, _SIZE[1] - 130), maps)
         painter.setPen(QtGui.QColor("black"))
         stiffness = maps["stiffness"]
+        origin = (f"re-analysed from {doc['reanalysed']}" if doc.get("reanalysed") else f"seed {doc.get('seed')}")
         painter.drawText(QtCore.QPointF(20, 24), f"Validation study: {stiffness['phantoms']} phantoms, "
-                                                 f"{stiffness['tumours']} palpated tumours, seed {doc.get('seed')}")
+                                                 f"{stiffness['tumours']} palpated tumours, {origin}")
         x = 20.0
         for source, colour in _COLOURS.items():
             painter.fillRect(QtCore.QRectF(x, _SIZE[1] - 30, 14, 14), colour)

@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, draw_phantom, run_study,
-                       score, study_cases, study_document, study_main)
+from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, analysis_options,
+                       draw_phantom, kept_cases, reanalyse_study, run_study, score, study_cases, study_document,
+                       study_main)
 from hardware.sim.phantom import parse_phantom
 
 # small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
@@ -17,8 +18,11 @@ TINY = StudyDistribution(length_m=(0.024, 0.024), thickness_m=(0.025, 0.025), su
                          tumours=(1, 1), depth_m=(1e-3, 3e-3), diameter_m=(8e-3, 10e-3))
 
 
+NO_PHYSICS = analysis_options(physics="none")
+
+
 def tiny_cases(n: int, seed: int):
-    return study_cases(n, seed, dist=TINY, tissue="winkler", physics="none", force_max_N=2.0)
+    return study_cases(n, seed, dist=TINY, tissue="winkler", force_max_N=2.0)
 
 
 def test_the_same_seed_draws_the_same_valid_phantoms_and_another_seed_others():
@@ -49,14 +53,14 @@ def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
     cases = tiny_cases(2, seed=3)
     local = LocalExecutor(workers=2)
     try:
-        local_results, _ = run_study(cases, local, tmp_path / "local", keep_sessions=False)
+        local_results, _ = run_study(cases, local, tmp_path / "local", keep_sessions=False, analysis=NO_PHYSICS)
     finally:
         local.close()
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         dask = DaskExecutor(client)
         try:
-            dask_results, _ = run_study(cases, dask, tmp_path / "dask", keep_sessions=True)
+            dask_results, _ = run_study(cases, dask, tmp_path / "dask", keep_sessions=True, analysis=NO_PHYSICS)
         finally:
             dask.close()
     assert [r["name"] for r in local_results] == [c.name for c in cases]
@@ -105,10 +109,10 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
 
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
     case = tiny_cases(1, seed=4)[0]
-    broken = type(case)(case.name, {"phantom": {"name": "x"}}, 0, 0, tissue="winkler", physics="none")
+    broken = type(case)(case.name, {"phantom": {"name": "x"}}, 0, 0, tissue="winkler")
     local = LocalExecutor(workers=1)
     try:
-        [result], _ = run_study([broken], local, tmp_path)
+        [result], _ = run_study([broken], local, tmp_path, analysis=NO_PHYSICS)
     finally:
         local.close()
     assert result["error"].startswith("PhantomError") and "\n" not in result["error"]
@@ -122,7 +126,8 @@ def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys,
     assert "--phantoms must be within" in capsys.readouterr().err
     monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper: tiny_cases(n, seed))
     out = tmp_path / "s"
-    assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--no-sessions"]) == 0
+    assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--no-sessions",
+                       "--physics", "none"]) == 0
     printed = capsys.readouterr().out
     assert "stiffness map: 1 tumours in 1 phantoms" in printed and "[1/1] s2-0000" in printed
     doc = json.loads((out / "study.json").read_text())
@@ -140,7 +145,7 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
     config.write_text("[control.ramp]\nforce_min_N = 0.5\nforce_step_N = 0.5\n")
     out = tmp_path / "s"
     assert main(["--config", str(config), "study", "-n", "1", "--seed", "2", "--workers", "1",
-                 "--out", str(out)]) == 0
+                 "--out", str(out), "--physics", "none"]) == 0
     doc = json.loads((out / "study.json").read_text())
     assert doc["config"] == str(config)
     with open_session(doc["cases"][0]["session"]) as session:
@@ -150,3 +155,38 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
     assert study_main(["-n", "1", "--out", str(out), "--config", str(config)]) == 2
     err = capsys.readouterr().err
     assert "control.ramp.force_step_N" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_kept_study_is_analysed_again_with_other_options_without_palpating(tmp_path, capsys, monkeypatch, qapp):
+    from session.detect import threshold
+
+    cases = tiny_cases(2, seed=6)
+    local = LocalExecutor(workers=1)
+    try:
+        palpated, _ = run_study(cases, local, tmp_path, analysis=NO_PHYSICS)
+        kept = kept_cases(tmp_path)
+        again, _ = reanalyse_study(kept, local, NO_PHYSICS)
+        strict, _ = reanalyse_study(kept, local, analysis_options(physics="none", false_alarm=1e-6))
+    finally:
+        local.close()
+    assert [k.name for k in kept] == [c.name for c in cases] and not any(k.paper for k in kept)
+    assert _without_timings(again) == _without_timings(palpated)  # the same options, the same findings
+    limit = threshold(1e-6, (4, 15), 2e-3, (2e-3, 4e-3))
+    assert all(t["score"] > limit for r in strict for t in r["tumours"])
+    assert sum(len(r["tumours"]) for r in strict) <= sum(len(r["tumours"]) for r in again)
+
+    # the command: analysis options recorded, palpation options refused, nothing kept refused
+    monkeypatch.setattr("app.study.LocalExecutor", lambda workers=None: LocalExecutor(1))
+    assert study_main(["--reanalyse", str(tmp_path), "--physics", "none", "--false-alarm", "0.001"]) == 0
+    assert "re-analysing the 2 cases kept in" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "reanalysis.json").read_text())
+    assert doc["reanalysed"] == str(tmp_path) and doc["analysis"]["false_alarm"] == 0.001
+    assert (tmp_path / "reanalysis.png").read_bytes().startswith(b"\x89PNG")
+    assert study_main(["--reanalyse", str(tmp_path), "--seed", "3"]) == 2
+    assert "--seed only apply to palpating" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert study_main(["--reanalyse", str(empty)]) == 2
+    assert "holds no kept study case" in capsys.readouterr().err
+    assert study_main(["--reanalyse", str(tmp_path), "--false-alarm", "2"]) == 2
+    assert "false-alarm rate" in capsys.readouterr().err
