@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY_PATH = Path(__file__).resolve().parents[1] / "resources" / "depth_library.npz"
+GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
 LIBRARY_FORMAT = "palpation-console-depth-library"
 LIBRARY_VERSION = 1
 NU = 0.49  # as app.physics: nearly incompressible tissue and silicone
@@ -340,9 +341,12 @@ class DepthModel:
             centre = levels["tsi_position_m"][rows[-1]]
             off_x = float(centre[0]) - tumour.x_m
             y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
-            if (abs(off_x) > self.library.offset_x_m[-1] + 1e-9
+            # Areas laid to cover a tissue leave gaps of a few tenths of a millimetre between them: a tumour
+            # fitted in one is read as lying at the library's farthest offset, the face's edge.
+            if (abs(off_x) > self.library.offset_x_m[-1] + GAP_M
                     or not 0.0 <= y_from_edge <= self.shape[1] * self.pitch_m):
                 continue
+            off_x = float(np.clip(off_x, -self.library.offset_x_m[-1], self.library.offset_x_m[-1]))
             element_y = offsets[..., 1] + float(centre[1])
             near = ((np.hypot(offsets[..., 0] + float(centre[0]) - tumour.x_m, element_y - tumour.y_m) <= self.reach_m)
                     & (element_y > sides[0] + self.pitch_m / 2) & (element_y < sides[1] - self.pitch_m / 2))

@@ -213,16 +213,22 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
     return out
 
 
-def _footprint_holds(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float) -> np.ndarray:
-    """Which of ``records`` had the point (x, y) under the TSI's face."""
+def _footprint_holds(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float,
+                     margin_m: float = 0.0) -> np.ndarray:
+    """Which of ``records`` had the point (x, y) under the TSI's face (grown by ``margin_m``)."""
     rows, cols = levels.dtype["pressure_pa"].shape
     pos = levels["tsi_position_m"][records]
-    return (np.abs(x_m - pos[:, 0]) <= rows * pitch_m / 2) & (np.abs(y_m - pos[:, 1]) <= cols * pitch_m / 2)
+    return ((np.abs(x_m - pos[:, 0]) <= rows * pitch_m / 2 + margin_m)
+            & (np.abs(y_m - pos[:, 1]) <= cols * pitch_m / 2 + margin_m))
 
 
 def _depth_at(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float) -> float:
-    """Indentation of the record (among ``records``) whose TSI footprint holds (x, y), nearest centre first."""
+    """Indentation of the record (among ``records``) whose TSI footprint holds (x, y), nearest centre first;
+    else of the nearest whose footprint reaches within half a pitch of it (areas laid to cover a tissue
+    leave gaps of a few tenths of a millimetre between them, and a tumour under one is fitted there)."""
     inside = _footprint_holds(levels, records, x_m, y_m, pitch_m)
+    if not inside.any():
+        inside = _footprint_holds(levels, records, x_m, y_m, pitch_m, margin_m=pitch_m / 2)
     if not inside.any():
         return math.nan
     candidates = np.flatnonzero(inside)
@@ -370,10 +376,11 @@ def _blob_centre(levels: np.ndarray, contrast: Contrast, records: np.ndarray, st
     return best
 
 
-def _highest_level_at(levels: np.ndarray, groups, x_m: float, y_m: float, pitch_m: float) -> int | None:
-    """Index of the highest force level palpated with (x, y) under the face, if any."""
+def _highest_level_at(levels: np.ndarray, groups, x_m: float, y_m: float, pitch_m: float,
+                      margin_m: float = 0.0) -> int | None:
+    """Index of the highest force level palpated with (x, y) under the face (grown by ``margin_m``), if any."""
     for index in range(len(groups) - 1, -1, -1):
-        if _footprint_holds(levels, groups[index][1], x_m, y_m, pitch_m).any():
+        if _footprint_holds(levels, groups[index][1], x_m, y_m, pitch_m, margin_m).any():
             return index
     return None
 
@@ -428,7 +435,8 @@ def match_ground_truth(tumours: list[Tumour], ground_truth: list[dict], levels: 
         for i, truth in enumerate(ground_truth):
             tx, ty = float(truth["x_m"]), float(truth["y_m"])
             depth = float(truth.get("depth_m", math.nan))
-            palpated = groups is None or _highest_level_at(levels, groups, tx, ty, pitch_m) is not None
+            # a tumour centred in the gap between two areas lies under both
+            palpated = groups is None or _highest_level_at(levels, groups, tx, ty, pitch_m, pitch_m / 2) is not None
             if i not in assigned:
                 matches.append(TruthMatch(i, tx, ty, depth, source, False, math.nan, math.nan, math.nan, -1, palpated))
                 continue

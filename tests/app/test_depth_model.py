@@ -153,3 +153,17 @@ def test_the_library_builder_writes_what_the_loader_reads(tmp_path):
     lib = load_library(build_library(tmp_path / "small.npz", grid))
     assert lib.inclusion.shape[:5] == (2, 2, 2, 2, 2)
     assert np.isfinite(lib.inclusion[1, 0, 0, 0]).all()
+
+
+def test_a_tumour_in_the_gap_between_two_areas_is_read_from_the_nearer_one(library):
+    """Areas laid evenly along a tissue leave gaps of a few tenths of a millimetre: a tumour fitted 4.2 mm
+    from the nearest face's centre (0.2 mm outside it) is read at the library's farthest offset, 4 mm,
+    rather than left without an estimate; 1 mm outside it, it is not read at all."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2
+    seen = model.predict(thickness, 4e-3, y)[2, 1, 1]  # 4 mm deep, 8.5 mm across, 6 times stiffer
+    rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.0342)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= library.depth_m[2] <= high and low <= estimate <= high
+    rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.035)
+    assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))

@@ -247,3 +247,23 @@ def test_a_far_field_is_placed_by_where_its_contrast_is_largest_not_where_the_wi
     found = detect(levels, seen, PITCH)
     assert len(found) == 1
     assert math.hypot(found[0].x_m - 0.026, found[0].y_m - 0.015) < 1e-3
+
+
+def test_a_tumour_in_the_gap_between_two_areas_gets_the_rule_depth_and_counts_as_palpated():
+    # Areas laid evenly along a tissue whose length is not a multiple of the face's width leave gaps of a
+    # few tenths of a millimetre; a tumour there lies under both faces, and its fit may put it in the gap.
+    from session.detect import _depth_at
+
+    gap_tumour = (0.0084, 0.015)
+    records = [level_record(r, k, f, (0.0042 + 0.0084 * r, 0.015), tumours_xy_m=(gap_tumour,), tumour_factor=1.6,
+                            noise=0.02, seed=10 * r + k) for r in range(6) for k, f in enumerate(FORCES)]
+    levels = levels_of(*records)
+    first = np.flatnonzero(levels["level"] == 0)
+    nearer = first[levels["region"][first] == 0][0]  # the gap is 0.2 mm from area 0, 0.2 mm from area 1
+    assert _depth_at(levels, first, 0.0083, 0.015, PITCH) == levels["indentation_m"][nearer]
+    assert math.isnan(_depth_at(levels, first, 0.0084, 0.032, PITCH))  # beyond the tissue's side: nobody
+    found = found_in(levels)
+    assert len(found) == 1 and abs(found[0].x_m - gap_tumour[0]) < 1e-3 and math.isfinite(found[0].depth_m)
+    matches, _ = match_ground_truth(found, [{"x_m": gap_tumour[0], "y_m": gap_tumour[1], "depth_m": 2e-3}],
+                                    levels, PITCH)
+    assert all(m.palpated for m in matches) and matches[0].found
