@@ -294,27 +294,58 @@ def _unvouched(base: np.ndarray, vouched: np.ndarray, unknown: float) -> tuple[n
     return out, spread
 
 
-def _baseline_without_each(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _baseline_without_each(measured: np.ndarray, share: np.ndarray, share_sigma: np.ndarray, bounded: bool,
+                           voters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(baseline per record and element, scale per record, the baseline's uncertainty per record and
-    element), each record's baseline estimated from the other records of its level: a record must not
-    vouch for itself (the median of five would then return one of its own readings exactly, and the
-    scatter of healthy tissue measured on those residuals would come out too small), nor can a tumour
-    under it lift its own baseline."""
+    element), each record's baseline estimated from the other records of its level that may vote
+    (``voters``, all if None): a record must not vouch for itself (the median of five would then return
+    one of its own readings exactly, and the scatter of healthy tissue measured on those residuals would
+    come out too small), nor can a tumour under it lift its own baseline."""
     n = len(measured)
-    if n <= MIN_VOUCHING:  # too few others to vouch: everything is left to the shared estimate
-        base, scale, spread = _session_baseline(measured, share, share_sigma, bounded)
+    voters = np.ones(n, bool) if voters is None else voters
+    if voters.sum() <= MIN_VOUCHING:  # too few others to vouch: everything is left to the shared estimate
+        base, scale, spread = _session_baseline(measured[voters], share[voters], share_sigma[voters], bounded)
+        if not voters.all():
+            with np.errstate(invalid="ignore", divide="ignore"):
+                scale = np.nanmedian((measured / (share * base)).reshape(n, -1), axis=1)
         return np.broadcast_to(base, measured.shape).copy(), scale, np.broadcast_to(spread, measured.shape).copy()
     bases = np.empty(measured.shape)
     spreads = np.empty(measured.shape)
     scales = np.empty(n)
     for i in range(n):
-        others = np.arange(n) != i
+        others = voters & (np.arange(n) != i)
         base, _, spread = _session_baseline(measured[others], share[others], share_sigma[others], bounded)
         with np.errstate(invalid="ignore", divide="ignore"):
             scales[i] = np.nanmedian(measured[i] / (share[i] * base))
         bases[i], spreads[i] = base, spread
     return bases, scales, spreads
+
+
+# A record whose contrasts' mean square over its face, in their standard deviations, passes this is not
+# homogeneous tissue (healthy areas of the validation study give 0.1-1.4, areas over a tumour 1.2-400),
+# nor does one that passes three times its level's median: it does not vote on its level's baseline.
+DEPARTURE_LIMIT = 2.0
+
+
+def _departures(rel: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Each record's mean square contrast over its face, in standard deviations (NaN: no element)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z2 = (rel / sigma) ** 2
+    counted = np.isfinite(z2).sum(axis=(1, 2))
+    return np.where(counted > 0, np.nansum(z2, axis=(1, 2)) / np.maximum(counted, 1), np.nan)
+
+
+def _voters(departure: np.ndarray) -> np.ndarray:
+    """The records that may vote on their level's baseline: all but those that depart from homogeneous
+    tissue (``DEPARTURE_LIMIT``), keeping at least ``MIN_VOUCHING`` + 1, the least departing."""
+    d = np.nan_to_num(departure, nan=np.inf)
+    typical = float(np.median(d)) if len(d) else 0.0
+    voters = ~((d > DEPARTURE_LIMIT) & (d > 3.0 * typical))
+    keep = min(len(d), MIN_VOUCHING + 1)
+    if voters.sum() < keep:
+        voters = np.zeros(len(d), bool)
+        voters[np.argsort(d, kind="stable")[:keep]] = True
+    return voters
 
 
 def _face_parts(shape: tuple[int, int]) -> np.ndarray:
@@ -378,21 +409,36 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
     noise = levels["pressure_std_pa"] / np.sqrt(np.maximum(levels["window_frames"], 1))[:, None, None]
     expected = np.full(shape, np.nan)
     sigma = np.full(shape, np.nan)
+    set_aside = set()
     for force, records in level_groups(levels):
         m, s, g = measured[records], share[records], share_sigma[records]
-        if reference is not None:
-            base, ref_scatter = reference.at(force)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                scale = np.nanmedian((m / (s * base)).reshape(len(records), -1), axis=1)
-        else:
-            base, scale, ref_scatter = _baseline_without_each(m, s, g, physics)
-        exp = scale[:, None, None] * base * s
         with np.errstate(invalid="ignore", divide="ignore"):
-            rel = np.where(_trusted(g), m / exp - 1.0, np.nan)
             sensor = np.nan_to_num(noise[records] / m, nan=0.0)
-        healthy = _healthy_scatter(rel, accuracy)
+        voters = None
+        # Twice without a reference: the median over areas outvotes one area over a tumour, not three (a
+        # large or deep tumour changes the load of the whole face in the areas either side of it too, and
+        # their median then paints its mirror image on every healthy area); the second time the areas whose
+        # contrast departs from homogeneous tissue do not vote.
+        for _ in range(2):
+            if reference is not None:
+                base, ref_scatter = reference.at(force)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    scale = np.nanmedian((m / (s * base)).reshape(len(records), -1), axis=1)
+            else:
+                base, scale, ref_scatter = _baseline_without_each(m, s, g, physics, voters)
+            exp = scale[:, None, None] * base * s
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rel = np.where(_trusted(g), m / exp - 1.0, np.nan)
+            healthy = _healthy_scatter(rel, accuracy)
+            sig = np.sqrt(sensor ** 2 + healthy ** 2 + np.nan_to_num(ref_scatter, nan=0.0) ** 2 + g ** 2)
+            if reference is not None or voters is not None:
+                break
+            voters = _voters(_departures(rel, sig))
+            if voters.all():
+                break
+            set_aside.update(int(r) for r in levels["region"][records[~voters]])
         expected[records] = exp
-        sigma[records] = np.sqrt(sensor ** 2 + healthy ** 2 + np.nan_to_num(ref_scatter, nan=0.0) ** 2 + g ** 2)
+        sigma[records] = sig
     with np.errstate(invalid="ignore", divide="ignore"):
         values = measured / expected - 1.0
     values = np.where(np.isfinite(values) & np.isfinite(sigma), values, np.nan)
@@ -400,6 +446,9 @@ def contrast(levels: np.ndarray, map_name: str, share: np.ndarray | None = None,
         source, how = "reference", f"reference palpation ({reference.description})"
     else:
         source, how = "session", f"estimated from this session's {len(np.unique(levels['region']))} areas"
+        if set_aside:
+            how += (f" ({len(set_aside)} of them not homogeneous tissue at some level and left out of "
+                    "its estimate there)")
     what = f"{description}; baseline {how}" if description else f"no physics; baseline {how}"
     modes = None if share_modes is None else np.where(np.isfinite(values)[:, None], share_modes, 0.0)
     return Contrast(map_name, values, np.where(np.isfinite(values), sigma, np.nan), expected, source, what, share,

@@ -150,3 +150,29 @@ def test_an_element_too_few_areas_vouch_for_takes_its_part_of_the_face_not_one()
     with_tumour = areas(tumour_area=1)
     found = detect(with_tumour, analysed(with_tumour), PITCH)
     assert len(found) == 1 and abs(found[0].x_m - EIGHT_AREAS_X[1]) < 1e-3
+
+
+def test_three_areas_over_one_large_tumour_do_not_paint_its_mirror_image_on_the_healthy_ones():
+    # A large or deep tumour changes the load of the whole face in the areas either side of it too: their
+    # middle columns carry more, their side columns less. The median of the other seven areas, three of them
+    # over it, then expects too much in the middle of every healthy area and too little at its sides.
+    records = []
+    for r, x in enumerate(EIGHT_AREAS_X):
+        for k, f in enumerate(FORCES):
+            levels = levels_of(level_record(r, k, f, (x, 0.015), noise=0.02, seed=31 * r + k))
+            if r in (2, 3, 4):
+                change = np.ones((4, 15))
+                change[:, 4:11] = 1.25 if r == 3 else 1.12
+                change[:, :4] = change[:, 11:] = 0.92
+                for name in ("pressure_pa", "element_force_N", "stiffness_pa"):
+                    levels[name][0] *= change
+            records.append(levels)
+    levels = np.concatenate(records)
+    c = contrast(levels, "force")
+    healthy = np.isin(levels["region"], (0, 1, 5, 6, 7))
+    middle, sides = c.contrast[healthy][:, :, 4:11], c.contrast[healthy][:, :, np.r_[0:4, 11:15]]
+    assert abs(np.nanmean(middle)) < 0.01 and abs(np.nanmean(sides)) < 0.01
+    found = detect(levels, c, PITCH)
+    assert found and all(EIGHT_AREAS_X[2] - 0.004 <= t.x_m <= EIGHT_AREAS_X[4] + 0.004 for t in found)
+    assert any(abs(t.x_m - EIGHT_AREAS_X[3]) < 1e-3 for t in found)
+    assert "3 of them not homogeneous tissue at some level" in c.description
