@@ -162,8 +162,8 @@ def test_three_areas_over_one_large_tumour_do_not_paint_its_mirror_image_on_the_
             levels = levels_of(level_record(r, k, f, (x, 0.015), noise=0.02, seed=31 * r + k))
             if r in (2, 3, 4):
                 change = np.ones((4, 15))
-                change[:, 4:11] = 1.25 if r == 3 else 1.12
-                change[:, :4] = change[:, 11:] = 0.92
+                change[:, 4:11] = 1.25 if r == 3 else 1.15
+                change[:, :4] = change[:, 11:] = 0.90
                 for name in ("pressure_pa", "element_force_N", "stiffness_pa"):
                     levels[name][0] *= change
             records.append(levels)
@@ -176,3 +176,15 @@ def test_three_areas_over_one_large_tumour_do_not_paint_its_mirror_image_on_the_
     assert found and all(EIGHT_AREAS_X[2] - 0.004 <= t.x_m <= EIGHT_AREAS_X[4] + 0.004 for t in found)
     assert any(abs(t.x_m - EIGHT_AREAS_X[3]) < 1e-3 for t in found)
     assert "3 of them not homogeneous tissue at some level" in c.description
+
+
+def test_areas_on_a_bump_keep_voting_for_each_other_and_a_tumours_do_not():
+    from session.flatfield import MIN_VOUCHING, _voters
+
+    # the physics' error on a bump (departures 1-4) is shared by the other areas on it, whose votes correct it
+    assert _voters(np.array([0.4, 3.5, 2.8, 0.5, 0.3, 3.9, 0.6, 0.4])).all()
+    assert list(_voters(np.array([0.4, 0.5, 9.0, 40.0, 0.3, 0.6, 0.4, 0.5]))) == [1, 1, 0, 0, 1, 1, 1, 1]
+    # a level where every area departs alike (the physics off everywhere) sets none aside
+    assert _voters(np.array([9.0, 12.0, 10.0, 11.0, 9.5])).all()
+    # and at least MIN_VOUCHING + 1 always vote, the least departing
+    assert list(_voters(np.array([50.0, 0.5, 0.4, 60.0, 0.6]))) == [1, 1, 1, 0, 1] and MIN_VOUCHING + 1 == 4
