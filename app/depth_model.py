@@ -59,6 +59,7 @@ import numpy as np
 
 LIBRARY_PATH = Path(__file__).resolve().parents[1] / "resources" / "depth_library.npz"
 GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
+SIGNATURE_REACH_M = 12e-3  # a face whose centre lies farther along x from a sphere is taken not to feel it
 LIBRARY_FORMAT = "palpation-console-depth-library"
 LIBRARY_VERSION = 1
 NU = 0.49  # as app.physics: nearly incompressible tissue and silicone
@@ -329,6 +330,21 @@ class DepthModel:
     def estimate(self, tumour, levels: np.ndarray, contrast) -> tuple[float, float, float]:
         """(depth, 5th percentile, 95th percentile) of the tumour's depth in m (module docstring); NaNs when
         no area pressed it near enough its face's centre or the library cannot explain what it showed."""
+        posterior = self._posterior(tumour, levels, contrast)
+        if posterior is None:
+            return math.nan, math.nan, math.nan
+        log_post, _ = posterior
+        post = np.exp(log_post - log_post.max()).sum(axis=(1, 2))
+        cdf = np.cumsum(post) / post.sum()
+        # each grid depth stands for the bin around it: read the percentiles off the bins' edges
+        edges = np.concatenate([[self.depths[0] - self.depth_step_m / 2], self.depths + self.depth_step_m / 2])
+        cdf = np.concatenate([[0.0], cdf])
+        low, median, high = np.interp([0.05, 0.5, 0.95], cdf, edges)
+        return float(median), float(max(low, self.depths[0])), float(min(high, self.depths[-1]))
+
+    def _posterior(self, tumour, levels: np.ndarray, contrast) -> tuple[np.ndarray, float] | None:
+        """(log posterior on the fine (depth, diameter, ratio) grid, -inf where the sphere does not fit;
+        the layer's thickness in m), or None when nothing can be said."""
         from session.stitch import element_offsets_m
 
         offsets = element_offsets_m(self.shape[0], self.shape[1], self.pitch_m)
@@ -364,20 +380,71 @@ class DepthModel:
             term = -0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
             log_like = term if log_like is None else log_like + term
         if log_like is None:
-            return math.nan, math.nan, math.nan
+            return None
         h = float(np.median(thickness))
         d, a = np.meshgrid(self.depths, self.diameters, indexing="ij")
         fits = (h - d - a >= CLEARANCE_M)[:, :, None] & np.isfinite(log_like)
         if not fits.any():
-            return math.nan, math.nan, math.nan
-        log_post = np.where(fits, log_like, -np.inf)
-        post = np.exp(log_post - log_post.max()).sum(axis=(1, 2))
-        cdf = np.cumsum(post) / post.sum()
-        # each grid depth stands for the bin around it: read the percentiles off the bins' edges
-        edges = np.concatenate([[self.depths[0] - self.depth_step_m / 2], self.depths + self.depth_step_m / 2])
-        cdf = np.concatenate([[0.0], cdf])
-        low, median, high = np.interp([0.05, 0.5, 0.95], cdf, edges)
-        return float(median), float(max(low, self.depths[0])), float(min(high, self.depths[-1]))
+            return None
+        return np.where(fits, log_like, -np.inf), h
+
+    # ---- what a tumour does to the rest of the face ----
+
+    def signature(self, tumour, levels: np.ndarray, contrast, records: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(contrast, its uncertainty), each (len(records), rows, cols): what the sphere that best explains
+        the tumour (the posterior's mode) does to every element of each of ``records``' faces, solved where
+        it lies across the tissue (the library's mid-array signature shifted sideways knows no side: a
+        stiff sphere 11 mm from one side of the tissue raises the far side's elements by +0.05 and lowers
+        the near side's by 0.09, which the shifted signature puts at 0), at the depth each record's strain
+        carries it to, through the sensor's cover; the uncertainty is the model's relative error. None when
+        the tumour has no fit. A finite-element solve of the block per depth and offset, cached."""
+        posterior = self._posterior(tumour, levels, contrast)
+        if posterior is None:
+            return None
+        log_post, h = posterior
+        i, j, k = np.unravel_index(int(np.argmax(log_post)), log_post.shape)
+        depth, diameter, ratio = float(self.depths[i]), float(self.diameters[j]), float(self.ratios[k])
+        out = np.zeros((len(records), *self.shape))
+        for n, r in enumerate(records):
+            centre = levels["tsi_position_m"][r]
+            off_x = float(centre[0]) - tumour.x_m
+            y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
+            strain = float(np.nan_to_num(np.nanmedian(levels["dL_m"][r]) / h))
+            pressed = max(depth * (1.0 - strain) - 0.5 * diameter * strain, self.depths[0])
+            out[n] = self._solved(h, pressed, diameter, ratio, off_x, y_from_edge)
+        return out, self.model_error * np.abs(out)
+
+    def _solved(self, thickness_m: float, depth_m: float, diameter_m: float, ratio: float, offset_x_m: float,
+                tumour_y_m: float) -> np.ndarray:
+        """The contrast one sphere makes on a face ``offset_x_m`` from it (face centre minus tumour) whose
+        first column's edge lies ``tumour_y_m`` from it across, the layer as wide as the face is long; none
+        beyond ``SIGNATURE_REACH_M``."""
+        from dataclasses import replace
+
+        if abs(offset_x_m) > SIGNATURE_REACH_M:
+            return np.zeros(self.shape)
+        snap = 0.25e-3  # spheres within a quarter of a millimetre of each other are one
+        key = tuple(round(v / snap) for v in (thickness_m, depth_m, diameter_m, tumour_y_m)) + (round(ratio, 1),)
+        cache = self.__dict__.setdefault("_solves", {})
+        if key not in cache:
+            t, d, a, y = (v * snap for v in key[:4])
+            a = min(a, max(t - d - CLEARANCE_M, 0.5e-3))
+            y = min(max(y, a / 2), self.shape[1] * self.pitch_m - a / 2)
+            # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
+            grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
+            q = self._elements(_block_solve(grid, t, (d, a, ratio), tumour_y_m=y)) / self._elements(
+                self._homogeneous_solve(t, grid))
+            cache[key] = q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0
+        out = _lerp_axis(cache[key], np.arange(len(cache[key])) * 1e-3, np.array([abs(offset_x_m)]), 0)[0]
+        return out[::-1] if offset_x_m < 0 else out
+
+    def _homogeneous_solve(self, thickness_m: float, grid: LibraryGrid) -> np.ndarray:
+        cache = self.__dict__.setdefault("_homogeneous", {})
+        key = round(thickness_m, 6)
+        if key not in cache:
+            cache[key] = _block_solve(grid, thickness_m, None)
+        return cache[key]
 
 
 def _shift_y(ratio: np.ndarray, nodes: int) -> np.ndarray:

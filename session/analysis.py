@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect, match_ground_truth
+from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect, explained_away, match_ground_truth
 from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
@@ -30,6 +30,10 @@ class DepthModel(Protocol):
     percentiles) in m from the level records and the stiffness contrast, NaNs when it cannot say."""
 
     def estimate(self, tumour: Tumour, levels: np.ndarray, contrast: Contrast) -> tuple[float, float, float]: ...
+
+    def signature(self, tumour: Tumour, levels: np.ndarray, contrast: Contrast, records: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(contrast, its uncertainty) the tumour's best-fitting sphere makes on each of ``records``' faces."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,13 @@ class SessionAnalysis:
         if depth_model is not None:
             # the stiffness contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
             tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
+
+            def signature(tumour, records):
+                return depth_model.signature(tumour, levels, contrasts["stiffness"], records)
+
+            tumours = [t for source in SOURCES
+                       for t in explained_away([t for t in tumours if t.source == source], levels, contrasts[source],
+                                               session.pitch_m, params.detect, signature)]
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)

@@ -28,6 +28,9 @@ contrasts are made by :mod:`session.flatfield`):
   Gaussian blob fitted (weighted by precision) to the contrast of every element of every area within
   ``fit_radius_m`` of that spot, at that level, peaks: the areas on both sides of a seam each see part of
   a tumour under it, and only together do they show where it is.
+* **Explained away** (:func:`explained_away`, when a forward model is given): a weaker tumour that
+  shared a record with a stronger one is kept only if it still passes the threshold over what the
+  stronger one's own mechanics makes of that face (its far field reaches the tissue's far side).
 * **Depth**, by the paper's rule (Section IV-B): the TSI indentation depth of the record, at the first
   level, whose footprint holds the tumour (the nearest TSI centre if several do). The model-based estimate
   with its interval is added by :mod:`session.depth`.
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -211,6 +215,61 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
             out.append(Spot(r, int(level_of[r]), float(force_of[r]), x, y, float(z[i, j]), float(np.nanmax(c[around])),
                             int(around.sum()), edge, strongest))
     return out
+
+
+# What a tumour's own mechanics does to the rest of its faces: (records) -> (contrast, its uncertainty), each
+# (len(records), rows, cols), or None when it cannot be said
+Signature = Callable[[Tumour, np.ndarray], "tuple[np.ndarray, np.ndarray] | None"]
+
+
+def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast, pitch_m: float,
+                   params: DetectParams, signature: Signature) -> list[Tumour]:
+    """The tumours of one map less those a stronger one explains: a stiff sphere under a rigid face moves
+    load across the whole face (a shallow one 11 mm from one side of the tissue lowers the near side's
+    elements by 0.1 and raises the far side's by 0.07, where the flat field expects homogeneous tissue), and
+    that far field passes the threshold as a spot of its own. Strongest first, a tumour that shared a
+    record with a stronger one is tested again at its highest level: its contrast there over what the
+    stronger ones' best-fitting spheres make of those faces (``signature``), the model's error added to its
+    uncertainty. It stays if a spot of it still passes the threshold there, or if a stronger one has no
+    signature to explain it with."""
+    limit = threshold(params.false_alarm_per_area, tuple(levels.dtype["pressure_pa"].shape), pitch_m,
+                      params.kernel_widths_m)
+    offsets = element_offsets_m(*levels.dtype["pressure_pa"].shape, pitch_m)
+    signatures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
+    kept: list[Tumour] = []
+    for t in sorted(tumours, key=lambda t: -t.score):
+        top = [spot for spot in t.spots if spot.force_N == t.levels_N[-1]]
+        records = {spot.record for spot in top}
+        stronger = [k for k, other in enumerate(kept) if records & {spot.record for spot in other.spots}]
+        if not stronger:
+            kept.append(t)
+            continue
+        for k in stronger:
+            wanted = sorted(r for r in records if (k, r) not in signatures)
+            if wanted:
+                said = signature(kept[k], np.array(wanted))
+                for n, r in enumerate(wanted):
+                    signatures[(k, r)] = None if said is None else (said[0][n], said[1][n])
+        survives = False
+        for spot in top:
+            r = spot.record
+            said = [signatures[(k, r)] for k in stronger if r in {s.record for s in kept[k].spots}]
+            if any(s is None for s in said):
+                survives = True
+                break
+            made = np.prod([1.0 + c for c, _ in said], axis=0)
+            residual = (1.0 + contrast.contrast[r]) / made - 1.0
+            sigma = np.sqrt(contrast.sigma[r] ** 2 + sum(e ** 2 for _, e in said))
+            z = evidence(residual, sigma, pitch_m, params.kernel_widths_m,
+                         None if contrast.modes is None else contrast.modes[r])
+            tsi = levels["tsi_position_m"][r]
+            around = np.hypot(tsi[0] + offsets[..., 0] - spot.x_m, tsi[1] + offsets[..., 1] - spot.y_m) <= 1.5 * pitch_m
+            if np.nanmax(np.where(around, z, -np.inf)) > limit:
+                survives = True
+                break
+        if survives:
+            kept.append(t)
+    return sorted(kept, key=lambda t: (t.x_m, t.y_m))
 
 
 def _footprint_holds(levels: np.ndarray, records: np.ndarray, x_m: float, y_m: float, pitch_m: float,

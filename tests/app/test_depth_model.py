@@ -167,3 +167,24 @@ def test_a_tumour_in_the_gap_between_two_areas_is_read_from_the_nearer_one(libra
     assert low <= library.depth_m[2] <= high and low <= estimate <= high
     rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.035)
     assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))
+
+
+def test_the_signature_carries_a_spheres_far_field_to_the_tissues_far_side(library):
+    """A stiff sphere 11 mm from one side of a 27 mm layer, 1.5 mm deep, 9 mm across, 5 times stiffer (an
+    independent solve of the face over it): it lowers the near side's elements and raises the far side's
+    (by 0.03 here, without a cover).
+    The library's mid-array signature shifted sideways knows no side and puts both at about zero; the
+    signature solved where the sphere lies gives them within 0.02."""
+    thickness, tumour_y = 0.027, 11e-3
+    grid = replace(LibraryGrid(), offset_x_m=(0.0,))
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(_block_solve(grid, thickness, (1.5e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]) / model._elements(
+        _block_solve(grid, thickness, None)[0])
+    truth = q / np.median(q) - 1.0
+    assert truth[:, -1].mean() > 0.02 and truth[:, 0].mean() < -0.02
+    rows, measured, tumour = _one_area(truth, 0.01, thickness, 0.030, tumour_y, 0.030)
+    made, error = model.signature(tumour, rows, measured, np.array([0]))
+    np.testing.assert_allclose(made[0][:, [0, -1]], truth[:, [0, -1]], atol=0.02)
+    assert np.all(error >= 0) and error[0].max() > 0.1  # the model's error, largest over the sphere
+    shifted = model.predict(thickness, 0.0, tumour_y)[1, 1, 1]  # 2.5 mm, 8.5 mm, 6x: the nearest library entry
+    assert abs(shifted[:, -1].mean()) < 0.02

@@ -267,3 +267,52 @@ def test_a_tumour_in_the_gap_between_two_areas_gets_the_rule_depth_and_counts_as
     matches, _ = match_ground_truth(found, [{"x_m": gap_tumour[0], "y_m": gap_tumour[1], "depth_m": 2e-3}],
                                     levels, PITCH)
     assert all(m.palpated for m in matches) and matches[0].found
+
+
+def _strong_with_far_side(second_factor=1.0):
+    """Six areas; the third over a strong tumour at y 11 mm whose far field raises the far side's last
+    three columns by 8 % (as a shallow stiff sphere does under a rigid face), and over a second tumour at
+    the far side stiffer by ``second_factor``."""
+    far = np.ones((4, 15))
+    far[:, 12:] = 1.08
+    records = []
+    for r in range(6):
+        for k, f in enumerate(FORCES):
+            x = 0.004 + 0.008 * r
+            tumours = ((x, 0.011),) if r == 2 else ()
+            record = levels_of(level_record(r, k, f, (x, 0.015), tumours_xy_m=tumours, tumour_factor=3.0,
+                                            tumour_radius_m=3e-3, noise=0.01, seed=7 * r + k))
+            if r == 2:
+                bump = np.where(np.hypot(element_offsets_m(4, 15, PITCH)[..., 1] + 0.015 - 0.027,
+                                         element_offsets_m(4, 15, PITCH)[..., 0]) <= 3e-3, second_factor, 1.0)
+                for name in ("pressure_pa", "element_force_N", "stiffness_pa"):
+                    record[name][0] *= far * bump
+            records.append(record)
+    return np.concatenate(records), far - 1.0
+
+
+def test_a_strong_tumours_far_field_in_its_own_face_is_explained_away_and_a_second_tumour_is_not():
+    from session.detect import explained_away
+
+    params = DetectParams()
+    levels, far_field = _strong_with_far_side()
+    c = contrast(levels, "stiffness")
+    found = detect(levels, c, PITCH, params)
+    ys = sorted(t.y_m for t in found)
+    assert len(found) == 2 and abs(ys[0] - 0.011) < 1e-3 and ys[1] > 0.026  # the far side reads as one
+
+    def signature(tumour, records):  # the strong sphere's own mechanics: its far field, its core as measured
+        made = np.broadcast_to(far_field, (len(records), 4, 15)).copy()
+        core = np.abs(element_offsets_m(4, 15, PITCH)[..., 1] + 0.015 - tumour.y_m) <= 3e-3
+        made[:, core] = c.contrast[records][:, core]
+        return made, 0.25 * np.abs(made)
+
+    kept = explained_away(found, levels, c, PITCH, params, signature)
+    assert len(kept) == 1 and abs(kept[0].y_m - 0.011) < 1e-3
+    # a second tumour under the far side stands out of the far field, and is kept
+    levels, _ = _strong_with_far_side(second_factor=1.5)
+    c = contrast(levels, "stiffness")
+    found = detect(levels, c, PITCH, params)
+    assert len(explained_away(found, levels, c, PITCH, params, signature)) == 2
+    # nothing to explain it with: kept
+    assert len(explained_away(found, levels, c, PITCH, params, lambda t, records: None)) == 2
