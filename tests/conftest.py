@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+import app  # noqa: F401  (its BLAS thread setting must come before any test module loads numpy)
+
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 # Tissue models are precomputed once per machine (seconds to a minute per phantom) and shared by every

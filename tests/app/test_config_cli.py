@@ -110,6 +110,20 @@ def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
     assert out.strip() == "[]"
 
 
+@pytest.mark.parametrize("given, kept", [(None, "1"), ("2", "2")])
+def test_the_application_runs_blas_on_one_thread_unless_the_user_says_otherwise(given, kept):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    probe = "import os, app.cli; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True, env=env)
+    assert out.stdout.strip() == kept
+
+
 def test_the_parser_names_exactly_the_backends_the_rig_builder_knows():
     from app.cli import BACKEND_NAMES
     from app.rigs import BACKENDS
