@@ -30,7 +30,7 @@ layer's thickness) carried the tumour to: the library's forces at the
 tumour's offset from the face and along the array (shifted to its position, the rest of the face as in
 homogeneous tissue), seen through the sensor's cover, each element's force over the homogeneous block's,
 over the median of that ratio (the flat-field's own scale). The misfit counts each element's measured
-uncertainty, a model error of :attr:`DepthModel.model_error` of the predicted contrast, and a floor.
+uncertainty, a model error of the predicted contrast (``DepthParams.model_error``), and a floor.
 Elements on a side of the tissue (the outermost column of the palpated extent across the array, where
 the tissue is taken to end, as the flat field takes it) are left out of it: the library's mid-array
 signature shifted sideways knows no free side, which a stiff sphere near it unloads the more the face
@@ -48,6 +48,7 @@ rather than a wrong one.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 import zipfile
@@ -56,6 +57,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from session.detect import DepthParams
 
 LIBRARY_PATH = Path(__file__).resolve().parents[1] / "resources" / "depth_library.npz"
 GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
@@ -220,7 +223,6 @@ class DepthModel:
     """The inversion of one session's tumours (module docstring): the library, and what the session says of
     its array (pitch, shape, the cover that spreads each element's load) and its table."""
 
-    model_error = 0.25  # relative: mesh, tumour off the array's middle, gain spread the flat-field left
     contrast_floor = 0.02  # absolute, per element
     reach_m = 6e-3  # elements nearer the tumour than this carry its signature
     depth_step_m = 0.25e-3
@@ -228,7 +230,7 @@ class DepthModel:
     fine_ratios = 7
 
     def __init__(self, library: _Library, shape: tuple[int, int], pitch_m: float, table_height_m: float,
-                 cover: Callable[[np.ndarray], np.ndarray] | None = None):
+                 cover: Callable[[np.ndarray], np.ndarray] | None = None, params: DepthParams = DepthParams()):
         if (library.rows, library.cols) != tuple(shape) or abs(library.pitch_m - pitch_m) > 1e-9:
             raise DepthModelError(f"the depth model was built for a {library.rows} x {library.cols} array at "
                                   f"{library.pitch_m * 1e3:g} mm, this session's is {shape[0]} x {shape[1]} at "
@@ -240,6 +242,10 @@ class DepthModel:
         self.pitch_m = pitch_m
         self.table_height_m = table_height_m
         self.cover = cover
+        self.model_error = params.model_error
+        # the finite-element solves of :meth:`signature`, shared with every copy :meth:`with_params` makes
+        self._solves: dict = {}
+        self._homogeneous: dict = {}
         nx, ny = library.homogeneous.shape[-2:]
         xs, ys = np.meshgrid(np.arange(nx) * library.grid_m, np.arange(ny) * library.grid_m, indexing="ij")
         self._weights = tributary_weights(xs.ravel(), ys.ravel(), (0.0, xs.max(), 0.0, ys.max()), (0.0, 0.0),
@@ -249,6 +255,12 @@ class DepthModel:
         self.diameters = np.linspace(lib.diameter_m[0], lib.diameter_m[-1], self.fine_diameters)
         self.ratios = np.exp(np.linspace(math.log(lib.modulus_ratio[0]), math.log(lib.modulus_ratio[-1]),
                                          self.fine_ratios))
+
+    def with_params(self, params: DepthParams) -> DepthModel:
+        """This model with ``params`` (the library and the solves made so far shared)."""
+        out = copy.copy(self)
+        out.model_error = params.model_error
+        return out
 
     @classmethod
     def for_session(cls, session, path: Path = LIBRARY_PATH) -> DepthModel:
@@ -426,7 +438,7 @@ class DepthModel:
             return np.zeros(self.shape)
         snap = 0.25e-3  # spheres within a quarter of a millimetre of each other are one
         key = tuple(round(v / snap) for v in (thickness_m, depth_m, diameter_m, tumour_y_m)) + (round(ratio, 1),)
-        cache = self.__dict__.setdefault("_solves", {})
+        cache = self._solves
         if key not in cache:
             t, d, a, y = (v * snap for v in key[:4])
             a = min(a, max(t - d - CLEARANCE_M, 0.5e-3))
@@ -440,7 +452,7 @@ class DepthModel:
         return out[::-1] if offset_x_m < 0 else out
 
     def _homogeneous_solve(self, thickness_m: float, grid: LibraryGrid) -> np.ndarray:
-        cache = self.__dict__.setdefault("_homogeneous", {})
+        cache = self._homogeneous
         key = round(thickness_m, 6)
         if key not in cache:
             cache[key] = _block_solve(grid, thickness_m, None)

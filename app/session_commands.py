@@ -16,7 +16,7 @@ from app.depth_model import DepthModel, DepthModelError
 from app.physics import PHYSICS, physics_for
 from session.analysis import AnalysisParams, SessionAnalysis
 from session import export
-from session.detect import MATCH_RADIUS_M, DetectError, DetectParams
+from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams
 from session.flatfield import FlatFieldError, Reference
 from session.info import sessions_dir
 from session.reader import Session, SessionFileError, open_session
@@ -34,6 +34,20 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--accuracy", type=float, default=DetectParams.accuracy,
                        help="the least relative scatter of healthy tissue from one loading to the next (default "
                             f"{DetectParams.accuracy:g} = {DetectParams.accuracy * 100:g} %%)")
+    group.add_argument("--merge-radius-mm", type=float, default=DetectParams.merge_radius_m * 1e3,
+                       help="spots this close are one tumour, across areas and levels (default "
+                            f"{DetectParams.merge_radius_m * 1e3:g})")
+    group.add_argument("--fit-radius-mm", type=float, default=DetectParams.fit_radius_m * 1e3,
+                       help="the contrast this close to a tumour's strongest spot places it (default "
+                            f"{DetectParams.fit_radius_m * 1e3:g})")
+    group.add_argument("--blob-widths-mm", type=_widths_mm,
+                       default=tuple(w * 1e3 for w in DetectParams.kernel_widths_m),
+                       metavar="W[,W...]",
+                       help="the widths (Gaussian sigma) of the blobs the detector looks for (default "
+                            f"{','.join(f'{w * 1e3:g}' for w in DetectParams.kernel_widths_m)})")
+    group.add_argument("--depth-model-error", type=float, default=DepthParams.model_error,
+                       help="the depth model's error in a tumour's predicted contrast, relative (default "
+                            f"{DepthParams.model_error:g}); larger widens the depth intervals")
     group.add_argument("--physics", choices=list(PHYSICS), default="rebuilt",
                        help="the probe's expected pattern on homogeneous tissue: " + "; ".join(
                            f"{k} = {v}" for k, v in PHYSICS.items()) + " (default rebuilt)")
@@ -48,14 +62,25 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--l0-mm", type=float, help="the thickness for --l0 fixed, in mm")
 
 
+def _widths_mm(text: str) -> tuple[float, ...]:
+    """``--blob-widths-mm``: widths in mm, comma-separated (their range is DetectParams' to check)."""
+    try:
+        widths = tuple(float(w) for w in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of widths in mm") from None
+    return widths
+
+
 def analysis_params(args) -> AnalysisParams:
     """Raises StitchError / DetectError naming the bad option."""
     if args.l0 == L0Source.FIXED.value and args.l0_mm is None:
         raise StitchError("--l0 fixed needs --l0-mm, the tissue thickness in mm")
     stitch = StitchParams(cell_m=args.cell_mm * 1e-3, l0_source=args.l0,
                           l0_fixed_m=None if args.l0_mm is None else args.l0_mm * 1e-3)
-    detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy)
-    return AnalysisParams(stitch, detect)
+    detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy,
+                          merge_radius_m=args.merge_radius_mm * 1e-3, fit_radius_m=args.fit_radius_mm * 1e-3,
+                          kernel_widths_m=tuple(w * 1e-3 for w in args.blob_widths_mm))
+    return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error))
 
 
 def analyse(session: Session, args) -> SessionAnalysis:

@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from session.detect import SOURCES, DetectParams, Tumour, TruthMatch, detect, explained_away, match_ground_truth
+from session.detect import SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away, match_ground_truth
 from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
@@ -35,11 +35,15 @@ class DepthModel(Protocol):
                   ) -> tuple[np.ndarray, np.ndarray] | None:
         """(contrast, its uncertainty) the tumour's best-fitting sphere makes on each of ``records``' faces."""
 
+    def with_params(self, params: DepthParams) -> DepthModel:
+        """The same model with ``params``."""
+
 
 @dataclass(frozen=True)
 class AnalysisParams:
     stitch: StitchParams = field(default_factory=StitchParams)
     detect: DetectParams = field(default_factory=DetectParams)
+    depth: DepthParams = field(default_factory=DepthParams)
 
 
 @dataclass
@@ -73,6 +77,7 @@ class SessionAnalysis:
                                          physics.description if physics is not None else "", modes)
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
         if depth_model is not None:
+            depth_model = depth_model.with_params(params.depth)
             # the stiffness contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
             tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
 

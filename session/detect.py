@@ -73,13 +73,28 @@ class DetectParams:
                 and 0.001 <= self.accuracy <= 0.5):
             raise DetectError(f"accuracy must be a relative scatter within [0.001, 0.5], got {self.accuracy!r}")
         if not (math.isfinite(self.merge_radius_m) and 0.0 < self.merge_radius_m <= 0.05):
-            raise DetectError(f"merge radius must be within (0, 50] mm, got {self.merge_radius_m!r} m")
+            raise DetectError(f"merge radius must be within (0, 50] mm, got {self.merge_radius_m * 1e3:g} mm")
         if not (math.isfinite(self.fit_radius_m) and 2e-3 <= self.fit_radius_m <= 0.05):
-            raise DetectError(f"fit radius must be within [2, 50] mm, got {self.fit_radius_m!r} m")
+            raise DetectError(f"fit radius must be within [2, 50] mm, got {self.fit_radius_m * 1e3:g} mm")
         widths = tuple(float(w) for w in self.kernel_widths_m)
         if not widths or not all(math.isfinite(w) and 0.5e-3 <= w <= 20e-3 for w in widths):
-            raise DetectError(f"kernel widths must be within [0.5, 20] mm, got {self.kernel_widths_m!r}")
+            given = ", ".join(f"{w * 1e3:g}" for w in widths) or "none"
+            raise DetectError(f"blob widths must be one or more within [0.5, 20] mm, got {given}")
         object.__setattr__(self, "kernel_widths_m", widths)
+
+
+@dataclass(frozen=True)
+class DepthParams:
+    """The model-based depth's own parameter (``app.depth_model``)."""
+
+    # The forward model's error in a tumour's predicted contrast, relative: the mesh, a tumour off the
+    # array's middle, the gain spread the flat field left. It sets how wide the depth's interval is.
+    model_error: float = 0.25
+
+    def __post_init__(self):
+        e = self.model_error
+        if not (isinstance(e, (int, float)) and math.isfinite(e) and 0.01 <= e <= 2.0):
+            raise DetectError(f"depth model error must be a relative error within [0.01, 2], got {e!r}")
 
 
 @dataclass(frozen=True)

@@ -77,7 +77,8 @@ def tumours_document(analysis: SessionAnalysis) -> dict:
     session = analysis.session
     doc: dict[str, Any] = {
         "format": TUMOURS_FORMAT, "version": 1, "session": _session_block(session),
-        "params": _params_block(analysis.params.stitch, analysis.params.detect),
+        "params": {**_params_block(analysis.params.stitch, analysis.params.detect),
+                   "depth_model_error": analysis.params.depth.model_error},
         "flat_field": analysis.flat_field,
         "tumours": [t.to_json() for t in analysis.tumours],
     }

@@ -91,7 +91,8 @@ def test_two_tumours_under_one_face_stay_two():
     ({"false_alarm_per_area": float("nan")}, "false-alarm rate"),
     ({"accuracy": 0.9}, "accuracy must be a relative scatter within [0.001, 0.5]"),
     ({"merge_radius_m": 0.0}, "merge radius must be within (0, 50] mm"),
-    ({"kernel_widths_m": ()}, "kernel widths"),
+    ({"kernel_widths_m": ()}, "blob widths must be one or more within [0.5, 20] mm, got none"),
+    ({"fit_radius_m": 1e-3}, "fit radius must be within [2, 50] mm, got 1 mm"),
 ])
 def test_bad_parameters_are_named(kwargs, message):
     with pytest.raises(DetectError) as info:

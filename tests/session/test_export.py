@@ -25,7 +25,8 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
     analysis = ["--physics", "none", "--reference", str(out["reference.json"])]
     code = stitch_main([str(path), "-o", str(out["maps.png"]), "--csv", str(out["maps.csv"]),
                         "--json", str(out["maps.json"]), "--tumours", str(out["tumours.json"]),
-                        "--report", str(out["report.pdf"]), "--cell-mm", "2", *analysis])
+                        "--report", str(out["report.pdf"]), "--cell-mm", "2", "--fit-radius-mm", "5",
+                        "--blob-widths-mm", "2,4", "--depth-model-error", "0.3", *analysis])
     assert code == 0
     printed = capsys.readouterr().out
     assert "3 regions, 9 recorded levels (forces 0.5, 1, 1.5 N)" in printed
@@ -67,6 +68,10 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
                           "depth_low_m", "depth_high_m"}
         assert t["first_level_N"] == 0.5 and 1e-3 < t["depth_m"] < 5e-3
     assert len(tumours["comparison"]) == 6 and tumours["false_positives"] == {"stiffness": 0, "force": 0}
+    params = tumours["params"]
+    assert pytest.approx([params[k] for k in ("cell_m", "false_alarm_per_area", "accuracy", "merge_radius_m",
+                                               "fit_radius_m", "depth_model_error")]) == [2e-3, 0.01, 0.02, 4e-3, 5e-3, 0.3]
+    assert params["kernel_widths_m"] == pytest.approx([2e-3, 4e-3]) and params["l0_source"] == "element"
 
 
 def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, capsys):
@@ -86,6 +91,13 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert "--false-alarm" in capsys.readouterr().out
     assert stitch_main([str(recorded[0]), "--false-alarm", "2"]) == 2
     assert "false-alarm rate per area must be within [1e-6, 0.5]" in capsys.readouterr().err
+    for option, value, said in (("--merge-radius-mm", "0", "merge radius must be within (0, 50] mm, got 0 mm"),
+                                ("--blob-widths-mm", "30", "blob widths must be one or more within [0.5, 20] mm, got 30"),
+                                ("--depth-model-error", "nan", "depth model error must be a relative error"),
+                                ("--blob-widths-mm", "2,x", "'2,x' is not a comma-separated list of widths in mm")):
+        assert stitch_main([str(recorded[0]), option, value]) == 2
+        err = capsys.readouterr().err
+        assert said in err.strip().splitlines()[-1] and "Traceback" not in err  # argparse's usage may come first
     (tmp_path / "ref.json").write_text("{}")
     assert stitch_main([str(recorded[0]), "--reference", str(tmp_path / "ref.json")]) == 2
     assert "not a Palpation Console reference palpation" in capsys.readouterr().err

@@ -9,18 +9,24 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from app.depth_model import DepthModel
-from session.analysis import SessionAnalysis
+from session.analysis import AnalysisParams, SessionAnalysis
+from session.detect import DepthParams, DetectParams
 from session.flatfield import Reference
 from session.info import SessionInfo
 from session.reader import open_session
 
 
-def test_a_recorded_session_gets_model_depths_with_intervals(recorded, reference_recorded):
+def _reference(reference_recorded) -> Reference:
     with open_session(reference_recorded) as ref:
         share = np.ones(ref.levels["pressure_pa"].shape)
-        reference = Reference.from_levels(ref.levels, share, np.zeros(share.shape), "tumour-free", physics=False)
+        return Reference.from_levels(ref.levels, share, np.zeros(share.shape), "tumour-free", physics=False)
+
+
+def test_a_recorded_session_gets_model_depths_with_intervals(recorded, reference_recorded):
+    reference = _reference(reference_recorded)
     with open_session(recorded[0]) as session:
         analysis = SessionAnalysis.run(session, reference=reference, depth_model=DepthModel.for_session(session))
     assert len(analysis.tumours) == 4  # two tumours, each in both maps
@@ -31,9 +37,7 @@ def test_a_recorded_session_gets_model_depths_with_intervals(recorded, reference
 
 
 def test_the_live_console_gets_the_same_model_as_the_reviewer_of_its_session(recorded, reference_recorded):
-    with open_session(reference_recorded) as ref:
-        share = np.ones(ref.levels["pressure_pa"].shape)
-        reference = Reference.from_levels(ref.levels, share, np.zeros(share.shape), "tumour-free", physics=False)
+    reference = _reference(reference_recorded)
     with open_session(recorded[0]) as session:
         # what the recording was told before its first row (the live console builds its model from this)
         info = SessionInfo(config=session.config, calibration=session.calibration, rig=session.rig)
@@ -45,3 +49,66 @@ def test_the_live_console_gets_the_same_model_as_the_reviewer_of_its_session(rec
             b = offline.estimate(t, session.levels, analysis.contrasts["stiffness"])
             assert np.isfinite(a).all() and a == b
     assert live.cover is not None and live.table_height_m == offline.table_height_m
+
+
+def _widths(analysis) -> list[float]:
+    return [t.depth_high_m - t.depth_low_m for t in analysis.tumours]
+
+
+def test_the_depth_models_error_is_an_analysis_parameter_that_sets_the_intervals_width(recorded, reference_recorded):
+    reference = _reference(reference_recorded)
+    with open_session(recorded[0]) as session:
+        model = DepthModel.for_session(session)
+        narrow, wide = (SessionAnalysis.run(session, AnalysisParams(depth=DepthParams(e)), reference=reference,
+                                            depth_model=model) for e in (0.1, 0.8))
+    assert len(narrow.tumours) == len(wide.tumours) > 0
+    assert all(w >= n for n, w in zip(_widths(narrow), _widths(wide)))
+    assert sum(_widths(wide)) > 1.2 * sum(_widths(narrow))
+    assert model.model_error == DepthParams().model_error  # the caller's model is left as it was
+
+
+def test_the_reviewer_re_analyses_with_the_detectors_and_the_depth_models_parameters(qtbot, recorded,
+                                                                                      reference_recorded, tmp_path):
+    from PySide6 import QtCore, QtWidgets
+
+    from widgets.review import ReviewWindow
+
+    settings = QtCore.QSettings(str(tmp_path / "review.ini"), QtCore.QSettings.Format.IniFormat)
+    window = ReviewWindow(settings=settings, depth_model=DepthModel.for_session)
+    qtbot.addWidget(window)
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        assert window.open_file(recorded[0])
+    _reference(reference_recorded).save(tmp_path / "reference.json")
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        assert window.set_reference(tmp_path / "reference.json")
+    assert window.analysis.tumours
+    before = _widths(window.analysis)
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        window.findChild(QtWidgets.QDoubleSpinBox, "depthErrorSpin").setValue(80.0)
+    assert window.analysis.params.depth.model_error == pytest.approx(0.8)
+    assert sum(_widths(window.analysis)) > sum(before)
+
+    widths = window.findChild(QtWidgets.QLineEdit, "blobWidthsEdit")
+    assert widths.text() == "2, 4"
+    widths.setText("3")
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        widths.editingFinished.emit()
+    assert window.analysis.params.detect.kernel_widths_m == (3e-3,)
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        window.findChild(QtWidgets.QDoubleSpinBox, "mergeRadiusSpin").setValue(6.0)
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        window.findChild(QtWidgets.QDoubleSpinBox, "fitRadiusSpin").setValue(8.0)
+    assert (window.analysis.params.detect.merge_radius_m, window.analysis.params.detect.fit_radius_m) == \
+        pytest.approx((6e-3, 8e-3))
+
+    analysed = window.analysis
+    widths.setText("3, x")
+    widths.editingFinished.emit()
+    qtbot.waitUntil(lambda: "Not applied" in window.findChild(QtWidgets.QLabel, "analysisSummary").text())
+    assert "blob widths: '3, x' is not a comma-separated list of widths in mm" in \
+        window.findChild(QtWidgets.QLabel, "analysisSummary").text()
+    assert window.analysis is analysed  # the last analysis stands
+
+    window.set_analysis(analysed.params.stitch, DetectParams(), DepthParams())
+    assert widths.text() == "2, 4" and window.analysis.params == AnalysisParams(analysed.params.stitch)
+    window.close_session()

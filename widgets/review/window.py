@@ -7,7 +7,8 @@ Top, the timeline over the whole stream. Below, two tabs:
 * **Whole tissue**: the stitched map of the chosen force level and quantity, with the tumours found and,
   for a simulated session, the phantom's real ones, beside the same map's contrast (the probe's own pattern
   divided out, :mod:`session.flatfield`); the analysis parameters (cell size, false-alarm rate, accuracy, the
-  physics and reference of the flat field, source of L0), applied as they are edited, without touching the
+  detector's blob widths and radii, the physics and reference of the flat field, source of L0, the depth
+  model's error), applied as they are edited, without touching the
   recording; the tumour table with each tumour's score and both depths.
 
 Read-only: the file is opened read-only and never written (exports go to other files).
@@ -23,7 +24,7 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from session.analysis import CONTRAST_MAPS, AnalysisParams, DepthModel, SessionAnalysis
-from session.detect import SOURCES, DetectError, DetectParams, Tumour
+from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumour
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Physics, Reference
 from session.reader import Session, SessionFileError, open_session
@@ -51,6 +52,10 @@ _BANNER_STYLE = {"error": "background: #c01c28; color: white; padding: 6px; font
 
 def _mm(value: float, decimals: int = 1) -> str:
     return f"{value * 1e3:.{decimals}f}" if math.isfinite(value) else "—"
+
+
+def _mm_list(values_m: tuple[float, ...]) -> str:
+    return ", ".join(f"{v * 1e3:g}" for v in values_m)
 
 
 class ReviewWindow(QtWidgets.QMainWindow):
@@ -191,6 +196,16 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._false_alarm_spin.setToolTip("Chance that a palpated area of healthy tissue raises a spot")
         self._accuracy_spin = spin("accuracySpin", 0.1, 50.0, DetectParams.accuracy * 100, 0.5, " %", 1)
         self._accuracy_spin.setToolTip("The least relative scatter of healthy tissue from one loading to the next")
+        self._widths_edit = QtWidgets.QLineEdit(_mm_list(DetectParams.kernel_widths_m), objectName="blobWidthsEdit")
+        self._widths_edit.setToolTip("Widths (Gaussian sigma, mm, comma-separated) of the blobs the detector looks for")
+        self._widths_edit.editingFinished.connect(self._analysis_timer.start)
+        self._merge_spin = spin("mergeRadiusSpin", 0.5, 50.0, DetectParams.merge_radius_m * 1e3, 0.5, " mm", 1)
+        self._merge_spin.setToolTip("Spots this close are one tumour, across areas and levels")
+        self._fit_spin = spin("fitRadiusSpin", 2.0, 50.0, DetectParams.fit_radius_m * 1e3, 0.5, " mm", 1)
+        self._fit_spin.setToolTip("The contrast this close to a tumour's strongest spot places it")
+        self._depth_error_spin = spin("depthErrorSpin", 1.0, 200.0, DepthParams.model_error * 100, 5.0, " %", 0)
+        self._depth_error_spin.setToolTip("The depth model's error in a tumour's predicted contrast: larger widens "
+                                          "the depth intervals")
         self._physics_combo = QtWidgets.QComboBox(objectName="physicsCombo")
         for label in self._physics_factories:
             self._physics_combo.addItem(label)
@@ -213,6 +228,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         form.addRow("Grid cell", self._cell_spin)
         form.addRow("False alarms", self._false_alarm_spin)
         form.addRow("Accuracy", self._accuracy_spin)
+        form.addRow("Blob widths (mm)", self._widths_edit)
+        form.addRow("Merge radius", self._merge_spin)
+        form.addRow("Fit radius", self._fit_spin)
+        form.addRow("Depth model error", self._depth_error_spin)
         form.addRow("Flat-field physics", self._physics_combo)
         form.addRow(self._reference_button, self._reference_label)
         form.addRow("L0 (Eq. 1) from", self._l0_combo)
@@ -384,17 +403,29 @@ class ReviewWindow(QtWidgets.QMainWindow):
         source = L0Source(self._l0_combo.currentData())
         stitch = StitchParams(cell_m=self._cell_spin.value() * 1e-3, l0_source=source,
                               l0_fixed_m=self._l0_fixed_spin.value() * 1e-3 if source is L0Source.FIXED else None)
+        text = self._widths_edit.text()
+        try:
+            widths = tuple(float(w) * 1e-3 for w in text.split(","))
+        except ValueError:
+            raise DetectError(f"blob widths: {text!r} is not a comma-separated list of widths in mm") from None
         detect = DetectParams(false_alarm_per_area=self._false_alarm_spin.value() / 100.0,
-                              accuracy=self._accuracy_spin.value() / 100.0)
-        return AnalysisParams(stitch, detect)
+                              accuracy=self._accuracy_spin.value() / 100.0,
+                              merge_radius_m=self._merge_spin.value() * 1e-3, fit_radius_m=self._fit_spin.value() * 1e-3,
+                              kernel_widths_m=widths)
+        return AnalysisParams(stitch, detect, DepthParams(self._depth_error_spin.value() / 100.0))
 
-    def set_analysis(self, stitch: StitchParams, detect: DetectParams) -> None:
+    def set_analysis(self, stitch: StitchParams, detect: DetectParams, depth: DepthParams = DepthParams()) -> None:
         """Put parameters into the panel and re-analyse now."""
-        widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin)
+        widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin,
+                   self._widths_edit, self._merge_spin, self._fit_spin, self._depth_error_spin)
         blocked = [w.blockSignals(True) for w in widgets]
         self._cell_spin.setValue(stitch.cell_m * 1e3)
         self._false_alarm_spin.setValue(detect.false_alarm_per_area * 100)
         self._accuracy_spin.setValue(detect.accuracy * 100)
+        self._widths_edit.setText(_mm_list(detect.kernel_widths_m))
+        self._merge_spin.setValue(detect.merge_radius_m * 1e3)
+        self._fit_spin.setValue(detect.fit_radius_m * 1e3)
+        self._depth_error_spin.setValue(depth.model_error * 100)
         self._l0_combo.setCurrentIndex(self._l0_combo.findData(stitch.l0_source.value))
         if stitch.l0_fixed_m is not None:
             self._l0_fixed_spin.setValue(stitch.l0_fixed_m * 1e3)
