@@ -1,14 +1,18 @@
 """On-disk cache of precomputed tissue tables, keyed by what they were computed from.
 
-One file per key. The file is a short JSON header line (format, key, payload length and SHA-256)
-followed by an ``.npz`` payload; it is written to a temporary file in the same directory and renamed
-into place, so a reader never sees a half-written file. A file that is truncated, corrupt, from
-another key or another format version is reported as a miss (and the caller recomputes and
-overwrites it): cached numbers are never trusted without their checksum.
+One file per key. The file is a short JSON header line (format, key, the digest of the mechanics' source
+that computed it, payload length and SHA-256) followed by an ``.npz`` payload; it is written to a
+temporary file in the same directory and renamed into place, so a reader never sees a half-written file.
+A file that is truncated, corrupt, from another key, another format version or other mechanics code is
+reported as a miss (and the caller recomputes and overwrites it): cached numbers are never trusted
+without their checksum, nor once the code that made them has changed (a version number bumped by hand
+was missed, and an analysis then read a solve of code that no longer existed: a tumour's score moved
+from 38.2 to 37.2 depending on what the machine had cached before).
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -32,6 +36,15 @@ def default_cache_dir() -> Path:
     return Path(user_cache_dir("palpation-console"))
 
 
+@functools.cache
+def code_digest() -> str:
+    """The digest of this package's source: the code every cached table comes from."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def cache_path(cache_dir: Path, key: str) -> Path:
     return Path(cache_dir) / f"tissue-{key}.bin"
 
@@ -47,7 +60,8 @@ def load(path: Path, key: str) -> dict[str, np.ndarray] | None:
         return None
     try:
         header = json.loads(head.decode("utf-8"))
-        if (header.get("format") != FORMAT or header.get("key") != key or header.get("length") != len(body)
+        if (header.get("format") != FORMAT or header.get("key") != key or header.get("code") != code_digest()
+                or header.get("length") != len(body)
                 or header.get("sha256") != hashlib.sha256(body).hexdigest()):
             return None
         with np.load(io.BytesIO(body), allow_pickle=False) as npz:
@@ -63,7 +77,8 @@ def store(path: Path, key: str, arrays: dict[str, np.ndarray]) -> None:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     body = buf.getvalue()
-    header = {"format": FORMAT, "key": key, "length": len(body), "sha256": hashlib.sha256(body).hexdigest()}
+    header = {"format": FORMAT, "key": key, "code": code_digest(), "length": len(body),
+              "sha256": hashlib.sha256(body).hexdigest()}
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:

@@ -68,9 +68,6 @@ from hardware.sim.phantom import Phantom
 
 log = logging.getLogger(__name__)
 
-# Bump whenever a change alters the tables computed for the same phantom and settings.
-MODEL_VERSION = 2
-
 
 @dataclass(frozen=True)
 class MeshSettings:
@@ -137,7 +134,6 @@ def cache_key(phantom: Phantom, settings: MeshSettings, sensor: TactileConstrain
     blob = json.dumps({
         "what": what,
         "phantom": phantom.content_hash(),
-        "model_version": MODEL_VERSION,
         "mesh": mesh if what.startswith("tables") else None,
         "sensor": [sensor.rows, sensor.cols, sensor.pitch_m],
     }, sort_keys=True).encode()

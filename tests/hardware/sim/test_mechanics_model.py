@@ -170,6 +170,11 @@ def test_the_cache_is_reused_keyed_by_content_and_never_trusted_when_damaged(cac
     assert model_mod.cache_key(moved, COARSE, SENSOR) != key
     assert model_mod.cache_key(phantom, MeshSettings(), SENSOR) != key
     assert cache_mod.load(path, "another-key") is None
+    monkeypatch.setattr(cache_mod, "code_digest", lambda: "other-mechanics")  # the solver's code changed
+    assert cache_mod.load(path, key) is None
+    ContinuumTissue.load(phantom, cache_dir, settings=COARSE)
+    assert len(calls) == 6 and cache_mod.load(path, key) is not None  # recomputed, and stored as that code's
+    monkeypatch.undo()
 
     not_a_dir = cache_dir / "a-file"
     not_a_dir.write_text("x")
