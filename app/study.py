@@ -348,6 +348,19 @@ class Executor(Protocol):
     def close(self) -> None: ...
 
 
+def _end_with(parent_pid: int) -> None:
+    """A local worker's start: it ends when the study that started it is gone. A study killed outright
+    cannot close its pool, and its workers, orphaned, went on with their cases for minutes."""
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="study-parent-watch", daemon=True).start()
+
+
 class LocalExecutor:
     """Worker processes on this machine (spawned, so the simulator's native libraries start clean)."""
 
@@ -355,7 +368,8 @@ class LocalExecutor:
         import multiprocessing
 
         self.workers = workers or os.cpu_count() or 1
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_end_with, initargs=(os.getpid(),))
 
     def run(self, fn: Callable, items: Iterable, *args) -> Iterator[Any]:
         futures = [self._pool.submit(fn, item, *args) for item in items]

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -190,3 +193,35 @@ def test_a_kept_study_is_analysed_again_with_other_options_without_palpating(tmp
     assert "holds no kept study case" in capsys.readouterr().err
     assert study_main(["--reanalyse", str(tmp_path), "--false-alarm", "2"]) == 2
     assert "false-alarm rate" in capsys.readouterr().err
+
+
+def _alive(pid: int) -> bool:
+    """Whether the process runs (a zombie nobody has reaped yet has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_study_killed_outright_leaves_no_worker_running(qtbot, tmp_path):
+    """A study killed (not closed) cannot shut its pool down: its workers end by themselves."""
+    script = ("import sys\n"
+              "from app.study import LocalExecutor\n"
+              "pool = LocalExecutor(workers=2)\n"
+              "print(sorted(pool.run(abs, [-1, -2])), flush=True)\n"
+              "sys.stdin.read()\n")
+    study = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True, cwd=Path(__file__).resolve().parents[2])
+    try:
+        assert study.stdout.readline().strip() == "[1, 2]"
+        children = Path(f"/proc/{study.pid}/task/{study.pid}/children").read_text().split()
+        workers = [int(pid) for pid in children]
+        assert len(workers) >= 2 and all(_alive(pid) for pid in workers)
+    finally:
+        study.kill()
+        study.wait()
+        study.stdin.close()
+        study.stdout.close()
+    qtbot.waitUntil(lambda: not any(_alive(pid) for pid in workers), timeout=10000)
