@@ -410,7 +410,10 @@ class DepthModel:
         stiff sphere 11 mm from one side of the tissue raises the far side's elements by +0.05 and lowers
         the near side's by 0.09, which the shifted signature puts at 0), at the depth each record's strain
         carries it to, through the sensor's cover; the uncertainty is the model's relative error. None when
-        the tumour has no fit. A finite-element solve of the block per depth and offset, cached."""
+        the tumour has no fit; zero, fit or none, for a face beyond ``SIGNATURE_REACH_M``. A
+        finite-element solve of the block per depth and offset, cached."""
+        if all(abs(float(levels["tsi_position_m"][r][0]) - tumour.x_m) > SIGNATURE_REACH_M for r in records):
+            return np.zeros((len(records), *self.shape)), np.zeros((len(records), *self.shape))
         posterior = self._posterior(tumour, levels, contrast)
         if posterior is None:
             return None

@@ -28,9 +28,9 @@ contrasts are made by :mod:`session.flatfield`):
   Gaussian blob fitted (weighted by precision) to the contrast of every element of every area within
   ``fit_radius_m`` of that spot, at that level, peaks: the areas on both sides of a seam each see part of
   a tumour under it, and only together do they show where it is.
-* **Explained away** (:func:`explained_away`, when a forward model is given): a weaker tumour that
-  shared a record with a stronger one is kept only if it still passes the threshold over what the
-  stronger one's own mechanics makes of that face (its far field reaches the tissue's far side).
+* **Explained away** (:func:`explained_away`, when a forward model is given): a weaker tumour within a
+  stronger one's reach is kept only if it still passes the threshold over what the stronger one's own
+  mechanics makes of its face (its far field reaches the tissue's far side, and the faces beside it).
 * **Depth**, by the paper's rule (Section IV-B): the TSI indentation depth of the record, at the first
   level, whose footprint holds the tumour (the nearest TSI centre if several do). The model-based estimate
   with its interval is added by :mod:`session.depth`.
@@ -242,11 +242,12 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
     """The tumours of one map less those a stronger one explains: a stiff sphere under a rigid face moves
     load across the whole face (a shallow one 11 mm from one side of the tissue lowers the near side's
     elements by 0.1 and raises the far side's by 0.07, where the flat field expects homogeneous tissue), and
-    that far field passes the threshold as a spot of its own. Strongest first, a tumour that shared a
-    record with a stronger one is tested again at its highest level: its contrast there over what the
-    stronger ones' best-fitting spheres make of those faces (``signature``), the model's error added to its
-    uncertainty. It stays if a spot of it still passes the threshold there, or if a stronger one has no
-    signature to explain it with."""
+    that far field passes the threshold as a spot of its own, in the tumour's own faces and in the faces
+    beside them (where the stronger one raised no spot of its own). Strongest first, each tumour is tested
+    again at its highest level: its contrast there over what the stronger ones' best-fitting spheres make
+    of those faces (``signature``: zero where a face lies beyond a sphere's reach), the model's error added
+    to its uncertainty. It stays if a spot of it still passes the threshold there, or if a stronger one
+    that reaches it has no signature to explain it with."""
     limit = threshold(params.false_alarm_per_area, tuple(levels.dtype["pressure_pa"].shape), pitch_m,
                       params.kernel_widths_m)
     offsets = element_offsets_m(*levels.dtype["pressure_pa"].shape, pitch_m)
@@ -255,20 +256,16 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
     for t in sorted(tumours, key=lambda t: -t.score):
         top = [spot for spot in t.spots if spot.force_N == t.levels_N[-1]]
         records = {spot.record for spot in top}
-        stronger = [k for k, other in enumerate(kept) if records & {spot.record for spot in other.spots}]
-        if not stronger:
-            kept.append(t)
-            continue
-        for k in stronger:
+        for k in range(len(kept)):
             wanted = sorted(r for r in records if (k, r) not in signatures)
             if wanted:
                 said = signature(kept[k], np.array(wanted))
                 for n, r in enumerate(wanted):
                     signatures[(k, r)] = None if said is None else (said[0][n], said[1][n])
-        survives = False
+        survives = not kept
         for spot in top:
             r = spot.record
-            said = [signatures[(k, r)] for k in stronger if r in {s.record for s in kept[k].spots}]
+            said = [signatures[(k, r)] for k in range(len(kept))]
             if any(s is None for s in said):
                 survives = True
                 break

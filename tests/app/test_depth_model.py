@@ -188,3 +188,8 @@ def test_the_signature_carries_a_spheres_far_field_to_the_tissues_far_side(libra
     assert np.all(error >= 0) and error[0].max() > 0.1  # the model's error, largest over the sphere
     shifted = model.predict(thickness, 0.0, tumour_y)[1, 1, 1]  # 2.5 mm, 8.5 mm, 6x: the nearest library entry
     assert abs(shifted[:, -1].mean()) < 0.02
+    # a face beyond the sphere's reach feels nothing of it, whether or not the tumour has a fit
+    far = SimpleNamespace(x_m=0.030 + 13e-3, y_m=tumour_y)
+    made, error = model.signature(far, rows, SimpleNamespace(contrast=np.full_like(measured.contrast, np.nan),
+                                                             sigma=measured.sigma), np.array([0]))
+    assert not made.any() and not error.any()

@@ -270,10 +270,10 @@ def test_a_tumour_in_the_gap_between_two_areas_gets_the_rule_depth_and_counts_as
     assert all(m.palpated for m in matches) and matches[0].found
 
 
-def _strong_with_far_side(second_factor=1.0):
+def _strong_with_far_side(second_factor=1.0, far_area=2):
     """Six areas; the third over a strong tumour at y 11 mm whose far field raises the far side's last
-    three columns by 8 % (as a shallow stiff sphere does under a rigid face), and over a second tumour at
-    the far side stiffer by ``second_factor``."""
+    three columns by 8 % (as a shallow stiff sphere does under a rigid face) in area ``far_area``, and
+    over a second tumour at that far side stiffer by ``second_factor``."""
     far = np.ones((4, 15))
     far[:, 12:] = 1.08
     records = []
@@ -283,7 +283,7 @@ def _strong_with_far_side(second_factor=1.0):
             tumours = ((x, 0.011),) if r == 2 else ()
             record = levels_of(level_record(r, k, f, (x, 0.015), tumours_xy_m=tumours, tumour_factor=3.0,
                                             tumour_radius_m=3e-3, noise=0.01, seed=7 * r + k))
-            if r == 2:
+            if r == far_area:
                 bump = np.where(np.hypot(element_offsets_m(4, 15, PITCH)[..., 1] + 0.015 - 0.027,
                                          element_offsets_m(4, 15, PITCH)[..., 0]) <= 3e-3, second_factor, 1.0)
                 for name in ("pressure_pa", "element_force_N", "stiffness_pa"):
@@ -317,3 +317,27 @@ def test_a_strong_tumours_far_field_in_its_own_face_is_explained_away_and_a_seco
     assert len(explained_away(found, levels, c, PITCH, params, signature)) == 2
     # nothing to explain it with: kept
     assert len(explained_away(found, levels, c, PITCH, params, lambda t, records: None)) == 2
+
+
+def test_a_strong_tumours_far_field_in_the_face_beside_it_is_explained_away_too():
+    """The far field raises the far side of the next area, where the strong tumour itself raised no spot."""
+    from session.detect import explained_away
+
+    params = DetectParams()
+    levels, far_field = _strong_with_far_side(far_area=3)
+    c = contrast(levels, "stiffness")
+    found = detect(levels, c, PITCH, params)
+    strong, far = sorted(found, key=lambda t: -t.score)
+    assert abs(strong.y_m - 0.011) < 1e-3 and far.y_m > 0.026 and abs(far.x_m - 0.028) < 2e-3
+    assert not {s.record for s in strong.spots} & {s.record for s in far.spots}
+    asked = []
+
+    def signature(tumour, records):
+        asked.append((round(tumour.y_m, 3), sorted(levels["region"][records])))
+        near = np.abs(levels["tsi_position_m"][records, 0] - tumour.x_m) <= 12e-3
+        made = np.where(near[:, None, None] & (levels["region"][records] == 3)[:, None, None], far_field, 0.0)
+        return made, 0.25 * np.abs(made)
+
+    kept = explained_away(found, levels, c, PITCH, params, signature)
+    assert kept == [strong] and asked == [(0.011, [3])]
+
