@@ -17,7 +17,8 @@ from typing import Protocol
 
 import numpy as np
 
-from session.detect import SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away, match_ground_truth
+from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
+                            match_ground_truth)
 from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session

@@ -69,8 +69,8 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
         assert t["first_level_N"] == 0.5 and 1e-3 < t["depth_m"] < 5e-3
     assert len(tumours["comparison"]) == 6 and tumours["false_positives"] == {"stiffness": 0, "force": 0}
     params = tumours["params"]
-    assert pytest.approx([params[k] for k in ("cell_m", "false_alarm_per_area", "accuracy", "merge_radius_m",
-                                               "fit_radius_m", "depth_model_error")]) == [2e-3, 0.01, 0.02, 4e-3, 5e-3, 0.3]
+    keys = ("cell_m", "false_alarm_per_area", "accuracy", "merge_radius_m", "fit_radius_m", "depth_model_error")
+    assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.01, 0.02, 4e-3, 5e-3, 0.3]
     assert params["kernel_widths_m"] == pytest.approx([2e-3, 4e-3]) and params["l0_source"] == "element"
 
 
@@ -92,7 +92,8 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert stitch_main([str(recorded[0]), "--false-alarm", "2"]) == 2
     assert "false-alarm rate per area must be within [1e-6, 0.5]" in capsys.readouterr().err
     for option, value, said in (("--merge-radius-mm", "0", "merge radius must be within (0, 50] mm, got 0 mm"),
-                                ("--blob-widths-mm", "30", "blob widths must be one or more within [0.5, 20] mm, got 30"),
+                                ("--blob-widths-mm", "30", "blob widths must be one or more within [0.5, 20] mm, "
+                                                           "got 30"),
                                 ("--depth-model-error", "nan", "depth model error must be a relative error"),
                                 ("--blob-widths-mm", "2,x", "'2,x' is not a comma-separated list of widths in mm")):
         assert stitch_main([str(recorded[0]), option, value]) == 2

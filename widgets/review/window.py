@@ -410,7 +410,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
             raise DetectError(f"blob widths: {text!r} is not a comma-separated list of widths in mm") from None
         detect = DetectParams(false_alarm_per_area=self._false_alarm_spin.value() / 100.0,
                               accuracy=self._accuracy_spin.value() / 100.0,
-                              merge_radius_m=self._merge_spin.value() * 1e-3, fit_radius_m=self._fit_spin.value() * 1e-3,
+                              merge_radius_m=self._merge_spin.value() * 1e-3,
+                              fit_radius_m=self._fit_spin.value() * 1e-3,
                               kernel_widths_m=widths)
         return AnalysisParams(stitch, detect, DepthParams(self._depth_error_spin.value() / 100.0))
 
