@@ -527,6 +527,23 @@ def _found_count(result: dict | None, source: str) -> int | None:
     return sum(1 for m in result["matches"] if m["source"] == source and m["found"])
 
 
+def case_failures(result: dict, source: str = "stiffness") -> list[str]:
+    """What one case got wrong in one map, a line each: every palpated tumour it missed and every false
+    positive, where they are (a study's figures say how often, these say where to look)."""
+    lines = []
+    for m in result.get("matches", ()):
+        if m["source"] == source and not m["found"] and m["palpated"]:
+            t = result["truths"][m["truth_index"]]
+            lines.append(f"missed ({t['x_m'] * 1e3:.1f}, {t['y_m'] * 1e3:.1f}) mm: {t['depth_m'] * 1e3:.1f} mm deep, "
+                         f"{t['diameter_m'] * 1e3:.1f} mm across, {t['modulus_ratio']:.1f}x stiffer")
+    matched = {m["detection"] for m in result.get("matches", ()) if m["source"] == source and m["found"]}
+    for k, t in enumerate(result.get("tumours", ())):
+        if t["source"] == source and k not in matched:
+            lines.append(f"false positive ({t['x_m'] * 1e3:.1f}, {t['y_m'] * 1e3:.1f}) mm: z {t['score']:.1f}, "
+                         f"contrast {t['contrast'] * 100:+.0f} %, first at {t['first_level_N']:g} N")
+    return lines
+
+
 # ---- the command ---------------------------------------------------------------------------------------------
 
 
@@ -697,6 +714,8 @@ def study_main(argv: list[str] | None = None) -> int:
         what = result.get("error") or (f"{found} of {len(result['truths'])} found, false positives "
                                        f"{result['false_positives'].get('stiffness', 0)}")
         print(f"  [{done[0]}/{len(cases)}] {result['name']}: {what}", flush=True)
+        for line in case_failures(result):
+            print(f"        {line}", flush=True)
 
     try:
         if args.reanalyse:

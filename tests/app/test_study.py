@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, analysis_options,
-                       draw_phantom, kept_cases, reanalyse_study, run_study, score, study_cases, study_document,
-                       study_main)
+                       case_failures, draw_phantom, kept_cases, reanalyse_study, run_study, score, study_cases,
+                       study_document, study_main)
 from hardware.sim.phantom import parse_phantom
 
 # small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
@@ -108,6 +108,22 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
     assert f["depth_err_model_median_mm"] == pytest.approx(0.6)  # 0.2 and 1.0 mm
     assert f["depth_interval_coverage_pct"] == 50.0  # the second interval misses the truth
     assert f["paper_flat_found"] == 1 and f["paper_uneven_found"] is None and f["paper_false_positives"] == 2
+
+
+def test_each_case_says_where_it_missed_and_where_it_raised_a_false_positive():
+    truth = {"x_m": 0.012, "y_m": 0.015, "depth_m": 8.4e-3, "diameter_m": 7e-3, "modulus_ratio": 3.6}
+    found = {"source": "stiffness", "x_m": 0.0361, "y_m": 0.015, "score": 30.0, "contrast": 0.4, "first_level_N": 1.0}
+    spurious = {**found, "x_m": 0.0475, "y_m": 0.0172, "score": 5.9, "contrast": 0.13, "first_level_N": 4.0}
+    result = _result("c", [truth, {**truth, "x_m": 0.036}, {**truth, "x_m": 0.070}],
+                     [{**_match(0, 8.4e-3, False), "detection": -1},
+                      {**_match(1, 8.4e-3, True), "detection": 0},
+                      {**_match(2, 8.4e-3, False, palpated=False), "detection": -1}], fps=1)
+    result["tumours"] = [found, {**found, "source": "force"}, spurious]
+    assert case_failures(result) == ["missed (12.0, 15.0) mm: 8.4 mm deep, 7.0 mm across, 3.6x stiffer",
+                                     "false positive (47.5, 17.2) mm: z 5.9, contrast +13 %, first at 4 N"]
+    # the force map's own matches (none here) decide its false positives
+    assert case_failures(result, "force") == ["false positive (36.1, 15.0) mm: z 30.0, contrast +40 %, first at 1 N"]
+    assert case_failures({"name": "d", "error": "PhantomError: bad"}) == []
 
 
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
