@@ -16,7 +16,7 @@ from app.depth_model import DepthModel, DepthModelError
 from app.physics import PHYSICS, physics_for
 from session.analysis import AnalysisParams, SessionAnalysis
 from session import export
-from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams
+from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams, widths_from_mm, widths_text_mm
 from session.flatfield import FlatFieldError, Reference
 from session.info import sessions_dir
 from session.reader import Session, SessionFileError, open_session
@@ -40,11 +40,10 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fit-radius-mm", type=float, default=DetectParams.fit_radius_m * 1e3,
                        help="the contrast this close to a tumour's strongest spot places it (default "
                             f"{DetectParams.fit_radius_m * 1e3:g})")
-    group.add_argument("--blob-widths-mm", type=_widths_mm,
-                       default=tuple(w * 1e3 for w in DetectParams.kernel_widths_m),
+    group.add_argument("--blob-widths-mm", type=_widths, dest="blob_widths_m", default=DetectParams.kernel_widths_m,
                        metavar="W[,W...]",
                        help="the widths (Gaussian sigma) of the blobs the detector looks for (default "
-                            f"{','.join(f'{w * 1e3:g}' for w in DetectParams.kernel_widths_m)})")
+                            f"{widths_text_mm(DetectParams.kernel_widths_m)})")
     group.add_argument("--depth-model-error", type=float, default=DepthParams.model_error,
                        help="the depth model's error in a tumour's predicted contrast, relative (default "
                             f"{DepthParams.model_error:g}); larger widens the depth intervals")
@@ -62,13 +61,12 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--l0-mm", type=float, help="the thickness for --l0 fixed, in mm")
 
 
-def _widths_mm(text: str) -> tuple[float, ...]:
-    """``--blob-widths-mm``: widths in mm, comma-separated (their range is DetectParams' to check)."""
+def _widths(text: str) -> tuple[float, ...]:
+    """``--blob-widths-mm``, in m."""
     try:
-        widths = tuple(float(w) for w in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of widths in mm") from None
-    return widths
+        return widths_from_mm(text)
+    except DetectError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def analysis_params(args) -> AnalysisParams:
@@ -79,7 +77,7 @@ def analysis_params(args) -> AnalysisParams:
                           l0_fixed_m=None if args.l0_mm is None else args.l0_mm * 1e-3)
     detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy,
                           merge_radius_m=args.merge_radius_mm * 1e-3, fit_radius_m=args.fit_radius_mm * 1e-3,
-                          kernel_widths_m=tuple(w * 1e-3 for w in args.blob_widths_mm))
+                          kernel_widths_m=args.blob_widths_m)
     return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error))
 
 

@@ -78,9 +78,23 @@ class DetectParams:
             raise DetectError(f"fit radius must be within [2, 50] mm, got {self.fit_radius_m * 1e3:g} mm")
         widths = tuple(float(w) for w in self.kernel_widths_m)
         if not widths or not all(math.isfinite(w) and 0.5e-3 <= w <= 20e-3 for w in widths):
-            given = ", ".join(f"{w * 1e3:g}" for w in widths) or "none"
+            given = widths_text_mm(widths) or "none"
             raise DetectError(f"blob widths must be one or more within [0.5, 20] mm, got {given}")
         object.__setattr__(self, "kernel_widths_m", widths)
+
+
+def widths_text_mm(widths_m: tuple[float, ...]) -> str:
+    """Blob widths as the command line and the reviewer write them: mm, comma-separated."""
+    return ", ".join(f"{w * 1e3:g}" for w in widths_m)
+
+
+def widths_from_mm(text: str) -> tuple[float, ...]:
+    """Blob widths in m from their text in mm, comma-separated (their range is DetectParams' to check);
+    raises DetectError."""
+    try:
+        return tuple(float(w) * 1e-3 for w in text.split(","))
+    except ValueError:
+        raise DetectError(f"{text!r} is not a comma-separated list of widths in mm") from None
 
 
 @dataclass(frozen=True)
@@ -256,13 +270,16 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
     for t in sorted(tumours, key=lambda t: -t.score):
         top = [spot for spot in t.spots if spot.force_N == t.levels_N[-1]]
         records = {spot.record for spot in top}
+        if not kept:
+            kept.append(t)
+            continue
         for k in range(len(kept)):
             wanted = sorted(r for r in records if (k, r) not in signatures)
             if wanted:
                 said = signature(kept[k], np.array(wanted))
                 for n, r in enumerate(wanted):
                     signatures[(k, r)] = None if said is None else (said[0][n], said[1][n])
-        survives = not kept
+        survives = False
         for spot in top:
             r = spot.record
             said = [signatures[(k, r)] for k in range(len(kept))]

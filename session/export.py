@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from session.analysis import SessionAnalysis
-from session.detect import MATCH_RADIUS_M, DetectParams
+from session.detect import MATCH_RADIUS_M, DepthParams, DetectParams
 from session.stitch import StitchParams, StitchResult
 
 MAPS_FORMAT = "palpation-console-maps"
@@ -47,13 +47,16 @@ def _session_block(session) -> dict:
             "simulated": session.simulated, "phantom": session.phantom_name}
 
 
-def _params_block(stitch_params: StitchParams, detect_params: DetectParams | None) -> dict:
+def _params_block(stitch_params: StitchParams, detect_params: DetectParams | None = None,
+                  depth_params: DepthParams | None = None) -> dict:
     out = {"cell_m": stitch_params.cell_m, "l0_source": stitch_params.l0_source.value,
            "l0_fixed_m": stitch_params.l0_fixed_m, "min_indentation_m": stitch_params.min_indentation_m}
     if detect_params is not None:
         out.update(false_alarm_per_area=detect_params.false_alarm_per_area, accuracy=detect_params.accuracy,
                    merge_radius_m=detect_params.merge_radius_m, fit_radius_m=detect_params.fit_radius_m,
                    kernel_widths_m=list(detect_params.kernel_widths_m))
+    if depth_params is not None:
+        out["depth_model_error"] = depth_params.model_error
     return out
 
 
@@ -62,7 +65,7 @@ def maps_document(analysis: SessionAnalysis) -> dict:
     g = stitched.grid
     return json_ready({
         "format": MAPS_FORMAT, "version": 1, "session": _session_block(analysis.session),
-        "params": _params_block(stitched.params, None),
+        "params": _params_block(stitched.params),
         "grid": {"x0_m": g.x0_m, "y0_m": g.y0_m, "cell_m": g.cell_m, "nx": g.nx, "ny": g.ny,
                  "index_order": "[ix][iy]; cell centres at x0_m + (ix + 0.5) * cell_m, likewise y"},
         "levels": [{"force_N": lm.force_N, "tsi_indentation_m": lm.tsi_indentation_m,
@@ -77,8 +80,7 @@ def tumours_document(analysis: SessionAnalysis) -> dict:
     session = analysis.session
     doc: dict[str, Any] = {
         "format": TUMOURS_FORMAT, "version": 1, "session": _session_block(session),
-        "params": {**_params_block(analysis.params.stitch, analysis.params.detect),
-                   "depth_model_error": analysis.params.depth.model_error},
+        "params": _params_block(analysis.params.stitch, analysis.params.detect, analysis.params.depth),
         "flat_field": analysis.flat_field,
         "tumours": [t.to_json() for t in analysis.tumours],
     }

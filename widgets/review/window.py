@@ -24,7 +24,7 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from session.analysis import CONTRAST_MAPS, AnalysisParams, DepthModel, SessionAnalysis
-from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumour
+from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumour, widths_from_mm, widths_text_mm
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Physics, Reference
 from session.reader import Session, SessionFileError, open_session
@@ -52,10 +52,6 @@ _BANNER_STYLE = {"error": "background: #c01c28; color: white; padding: 6px; font
 
 def _mm(value: float, decimals: int = 1) -> str:
     return f"{value * 1e3:.{decimals}f}" if math.isfinite(value) else "—"
-
-
-def _mm_list(values_m: tuple[float, ...]) -> str:
-    return ", ".join(f"{v * 1e3:g}" for v in values_m)
 
 
 class ReviewWindow(QtWidgets.QMainWindow):
@@ -196,7 +192,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._false_alarm_spin.setToolTip("Chance that a palpated area of healthy tissue raises a spot")
         self._accuracy_spin = spin("accuracySpin", 0.1, 50.0, DetectParams.accuracy * 100, 0.5, " %", 1)
         self._accuracy_spin.setToolTip("The least relative scatter of healthy tissue from one loading to the next")
-        self._widths_edit = QtWidgets.QLineEdit(_mm_list(DetectParams.kernel_widths_m), objectName="blobWidthsEdit")
+        self._widths_edit = QtWidgets.QLineEdit(widths_text_mm(DetectParams.kernel_widths_m),
+                                                objectName="blobWidthsEdit")
         self._widths_edit.setToolTip("Widths (Gaussian sigma, mm, comma-separated) of the blobs the detector looks for")
         self._widths_edit.editingFinished.connect(self._analysis_timer.start)
         self._merge_spin = spin("mergeRadiusSpin", 0.5, 50.0, DetectParams.merge_radius_m * 1e3, 0.5, " mm", 1)
@@ -403,11 +400,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         source = L0Source(self._l0_combo.currentData())
         stitch = StitchParams(cell_m=self._cell_spin.value() * 1e-3, l0_source=source,
                               l0_fixed_m=self._l0_fixed_spin.value() * 1e-3 if source is L0Source.FIXED else None)
-        text = self._widths_edit.text()
         try:
-            widths = tuple(float(w) * 1e-3 for w in text.split(","))
-        except ValueError:
-            raise DetectError(f"blob widths: {text!r} is not a comma-separated list of widths in mm") from None
+            widths = widths_from_mm(self._widths_edit.text())
+        except DetectError as err:
+            raise DetectError(f"blob widths: {err}") from None
         detect = DetectParams(false_alarm_per_area=self._false_alarm_spin.value() / 100.0,
                               accuracy=self._accuracy_spin.value() / 100.0,
                               merge_radius_m=self._merge_spin.value() * 1e-3,
@@ -423,7 +419,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._cell_spin.setValue(stitch.cell_m * 1e3)
         self._false_alarm_spin.setValue(detect.false_alarm_per_area * 100)
         self._accuracy_spin.setValue(detect.accuracy * 100)
-        self._widths_edit.setText(_mm_list(detect.kernel_widths_m))
+        self._widths_edit.setText(widths_text_mm(detect.kernel_widths_m))
         self._merge_spin.setValue(detect.merge_radius_m * 1e3)
         self._fit_spin.setValue(detect.fit_radius_m * 1e3)
         self._depth_error_spin.setValue(depth.model_error * 100)
