@@ -48,7 +48,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -165,8 +165,11 @@ class Phantom:
         return tuple(((k + 0.5) * pitch, self.width_m / 2.0) for k in range(n))
 
     def content_hash(self) -> str:
-        """Stable hash of everything that affects the mechanics (cache key)."""
-        blob = json.dumps(self.source, sort_keys=True, default=str).encode()
+        """Stable hash of everything that affects the mechanics (cache key): what the phantom is, not the file
+        it came from. A phantom built in code has no file: hashed by its file, every block the analysis
+        rebuilds shared one cached finite-strain solve, whichever a machine had made first."""
+        content = {k: v for k, v in asdict(self).items() if k != "source"}
+        blob = json.dumps(content, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
     def ground_truth(self) -> list[dict[str, float]]:

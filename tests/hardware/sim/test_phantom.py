@@ -1,10 +1,11 @@
 """Phantom files: the paper's two phantoms as shipped, and a clear message for every kind of bad file."""
 
 import copy
+from dataclasses import replace
 
 import pytest
 
-from hardware.sim.phantom import PHANTOM_DIR, PhantomError, load_phantom, parse_phantom
+from hardware.sim.phantom import PHANTOM_DIR, Phantom, PhantomError, load_phantom, parse_phantom
 
 
 def base(**extra):
@@ -69,6 +70,10 @@ def test_the_content_hash_follows_the_content_only():
     c = parse_phantom(base(inclusions=[sphere(depth_m=0.006)]))
     assert a.content_hash() == b.content_hash() != c.content_hash()
     assert load_phantom("flat").content_hash() == load_phantom(PHANTOM_DIR / "flat.toml").content_hash()
+    # a phantom built in code (the analysis's rebuilt block) is told apart by its content too
+    built = Phantom("rebuilt", "a block", 0.07, 0.03, 0.025, youngs_modulus_pa=20e3, poisson_ratio=0.49)
+    assert built.content_hash() != replace(built, thickness_m=0.031).content_hash()
+    assert built.content_hash() == replace(built).content_hash()
 
 
 @pytest.mark.parametrize("data, key, words", [
