@@ -121,9 +121,15 @@ class Spot:
     score: float  # largest matched-filter statistic
     contrast: float  # largest contrast among its elements
     elements: int
-    at_edge: bool  # it reaches the face's edge: what raised it may lie beyond, under a neighbouring area
+    # the edges of its face it reaches, as outward directions (x, y): what raised it may lie beyond them,
+    # under a neighbouring area
+    outward: tuple[tuple[int, int], ...]
     # where, of the contrast its statistic summed, the largest is (the widest blob may peak rows away from it)
     strongest_xy_m: tuple[float, float] = (math.nan, math.nan)
+
+    @property
+    def at_edge(self) -> bool:
+        return bool(self.outward)
 
 
 @dataclass(frozen=True)
@@ -239,11 +245,22 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
             # the widest blob tried may peak a row or two inside it).
             summed = near[i, j] <= max(1.5 * pitch_m, max(params.kernel_widths_m))
             si, sj = np.unravel_index(np.nanargmax(np.where(summed, c, -np.inf)), shape)
-            edge = bool({i, si} & {0, shape[0] - 1} or {j, sj} & {0, shape[1] - 1})
+            outward = _edges_reached((i, si), (j, sj), shape)
             strongest = (float(tsi[0] + offsets[si, sj, 0]), float(tsi[1] + offsets[si, sj, 1]))
             out.append(Spot(r, int(level_of[r]), float(force_of[r]), x, y, float(z[i, j]), float(np.nanmax(c[around])),
-                            int(around.sum()), edge, strongest))
+                            int(around.sum()), outward, strongest))
     return out
+
+
+def _edges_reached(rows: tuple[int, ...], cols: tuple[int, ...], shape: tuple[int, int]) -> tuple[tuple[int, int], ...]:
+    """The edges of the face (outward directions along x and y) that the elements at ``rows`` and ``cols``
+    (indices along each axis) lie on."""
+    edges = set()
+    for axis, (indices, last) in enumerate(((rows, shape[0] - 1), (cols, shape[1] - 1))):
+        for index, outward in ((0, -1), (last, 1)):
+            if index in indices:
+                edges.add((outward, 0) if axis == 0 else (0, outward))
+    return tuple(sorted(edges))
 
 
 # What a tumour's own mechanics does to the rest of its faces: (records) -> (contrast, its uncertainty), each
@@ -334,17 +351,20 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
     rows = levels.dtype["pressure_pa"].shape[0]
     # One cluster per tumour and level. A spot that reaches its face's edge sees only the near side of what
     # raised it, and its centroid falls short of it by up to the face's width: it joins a stronger spot of
-    # a neighbouring area that far away, whichever spot of its cluster that is (a strong tumour at a seam
-    # raised the edge of the area beyond the next one, 8 mm from the next one's spot, 12 mm from the
-    # cluster's strongest), measured from its centroid or from where its contrast is largest (a strong
+    # a neighbouring area that far beyond that edge, whichever spot of its cluster that is (a strong tumour
+    # at a seam raised the edge of the area beyond the next one, 8 mm from the next one's spot, 12 mm from
+    # the cluster's strongest), measured from its centroid or from where its contrast is largest (a strong
     # tumour 6 mm beyond the face's end raised its near edge, and the widest blob peaked at the far one).
+    # Not one on its face's other side: a tumour at one edge of an area stays a tumour when a stronger spot
+    # rises 8 mm away beyond the other (on a bumpy phantom, a tumour beside a bump's flank, whose
+    # uncertainty drowned its score, was joined to a weak rise at the next area's edge and lost).
     per_level: list[list[list[Spot]]] = [[] for _ in groups]
+    beyond_edge = rows * pitch_m / 2
     for spot in sorted(found, key=lambda s: -s.score):
         clusters = per_level[spot.level_index]
-        reach = params.merge_radius_m + (rows * pitch_m / 2 if spot.at_edge else 0.0)
         places = [(spot.x_m, spot.y_m)] + ([spot.strongest_xy_m] if spot.at_edge else [])
-        near = [c for c in clusters
-                if any(math.hypot(px - o.x_m, py - o.y_m) <= reach for o in c for px, py in places)]
+        near = [c for c in clusters if any(_joins(spot, px, py, o, params.merge_radius_m, beyond_edge)
+                                           for o in c for px, py in places)]
         if near:
             near[0].append(spot)
         else:
@@ -386,6 +406,15 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
                               levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
                               spots=tuple(s for cluster in run for s in cluster)))
     return sorted(_merged(tumours, params, levels, contrast, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
+
+
+def _joins(spot: Spot, x_m: float, y_m: float, other: Spot, radius_m: float, beyond_edge_m: float) -> bool:
+    """Whether ``spot``, seen from (x, y), is one with ``other``: within ``radius_m``, or within
+    ``radius_m + beyond_edge_m`` where ``other`` lies beyond an edge of the face ``spot`` reaches."""
+    dx, dy = other.x_m - x_m, other.y_m - y_m
+    distance = math.hypot(dx, dy)
+    return distance <= radius_m or (distance <= radius_m + beyond_edge_m
+                                    and any(dx * ox + dy * oy > 0 for ox, oy in spot.outward))
 
 
 def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, contrast: Contrast, groups,

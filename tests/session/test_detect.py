@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from session.analysis import SessionAnalysis
-from session.detect import DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth, threshold
+from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth, spots,
+                            threshold)
 from session.flatfield import Reference, contrast
 from session.reader import open_session
 from session.stitch import element_offsets_m
@@ -229,6 +230,27 @@ def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_t
     found = detect(levels, seen, PITCH)
     assert len(found) == 1
     assert math.hypot(found[0].x_m - 0.0324, found[0].y_m - 0.015) < 1e-3
+
+
+def test_a_tumour_at_one_edge_of_its_face_is_not_joined_to_a_stronger_spot_beyond_the_other():
+    # A tumour just inside the fourth area's low edge, its elements unsure (beside a bump's flank), and a
+    # weak but sure rise at the fifth area's low edge, 8 mm away: the tumour's spot reaches its face's edge
+    # on the side away from that rise, so what raised it cannot lie there.
+    from types import SimpleNamespace
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    x = np.asarray(levels["tsi_position_m"][:, None, None, 0]) + element_offsets_m(4, 15, PITCH)[None][..., 0]
+    y = np.asarray(levels["tsi_position_m"][:, None, None, 1]) + element_offsets_m(4, 15, PITCH)[None][..., 1]
+    fourth, fifth = ((levels["region"] == r)[:, None, None] for r in (3, 4))
+    tumour = np.where(fourth, 0.6 * np.exp(-0.5 * ((x - 0.033) ** 2 + (y - 0.015) ** 2) / 2e-3 ** 2), 0.0)
+    rise = np.where(fifth, 0.1 * np.exp(-0.5 * ((x - 0.041) ** 2 + (y - 0.015) ** 2) / 2e-3 ** 2), 0.0)
+    sigma = np.where(fourth, 0.15, 0.02) * np.ones(x.shape)
+    seen = SimpleNamespace(map="stiffness", contrast=tumour + rise, sigma=sigma, modes=None)
+    score = {int(levels["region"][s.record]): s.score for s in spots(levels, seen, PITCH, DetectParams())
+             if s.force_N == 1.0}
+    assert score[4] > score[3] > threshold(0.01, (4, 15), PITCH, DetectParams().kernel_widths_m)
+    found = detect(levels, seen, PITCH)
+    assert any(math.hypot(t.x_m - 0.033, t.y_m - 0.015) < 1.5e-3 for t in found)  # not 8 mm off, at the rise
 
 
 def test_a_far_field_is_placed_by_where_its_contrast_is_largest_not_where_the_widest_blob_peaks():
