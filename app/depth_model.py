@@ -11,26 +11,32 @@ elements of a block bonded to its table, condensed onto its surface). A library 
 without and with one spherical inclusion under the middle of the TSI, for every combination of
 
 * layer thickness 20 and 32 mm (interpolated between, held outside),
-* depth of the sphere's top 1-12 mm, diameter 5-12 mm, modulus ratio 3-12 (:class:`LibraryGrid`),
+* depth of the sphere's top 0-12 mm, diameter 5-12 mm, modulus ratio 3-12 (:class:`LibraryGrid`): a tumour
+  lies 1-12 mm deep at rest (``LEAST_DEPTH_M``), and the press carries a shallow one nearer the surface,
 * the face's centre 0-4 mm along x from the tumour (an area's strip is 8 mm: every tumour lies within 4 mm
   of the centre of the area that covers it).
 
 Linear elasticity makes the pattern independent of the tissue's modulus, so one solve per combination
-serves every tissue. How far the face is pressed matters at finite strain: the tissue over a tumour thins,
-and a level pressed to the nominal strain s sees the tumour whose top lies d deep at rest as the library's
-tumour d (1 - s) - a s / 2 deep (a its diameter), the reduced finite-strain model of the simulated rig
+serves every tissue. How far the face is pressed matters at finite strain: the tissue over a tumour thins.
+The estimate takes that from the project's reduced finite-strain model, the simulated rig's
 (hardware.sim.mechanics.model; against a full nonlinear solve it explains most, not all, of how a
-tumour's contrast grows with the press, so on real tissue the estimate can still read somewhat shallow).
+tumour's contrast grows with the press, so on real tissue the estimate can still read somewhat shallow):
+a layer compressed by S = ``COMPRESSED_STRAIN`` carries a sphere of diameter a whose top lies d deep at
+rest to d (1 - S) - a S / 2 (never out of the surface), and a level pressed to the nominal strain s sees
+the contrast at rest and that one's mixed in proportion min(s, S) / S.
 
 **The inversion** (:meth:`DepthModel.estimate`) takes the tumour's contrast in every area whose face
-centre lay within 4 mm of it, averaged over the levels that pressed every element near it (inverse
-variance), and compares it with the model's contrast of the same elements, averaged over the same levels
-with the same weights, each level's at the depth its strain (the near elements' median dL over the
-layer's thickness) carried the tumour to: the library's forces at the
+centre lay within 4 mm of it, averaged (inverse variance) over the levels that pressed every element near
+it in ``STRAIN_BINS`` groups (the levels pressed least and those pressed most), and compares each with the
+model's contrast of the same elements, averaged over the same levels with the same weights, each level's
+as its strain (the near elements' median dL over the layer's thickness) mixes the states at rest and
+compressed: the library's forces at the
 tumour's offset from the face and along the array (shifted to its position, the rest of the face as in
 homogeneous tissue), seen through the sensor's cover, each element's force over the homogeneous block's,
 over the median of that ratio (the flat-field's own scale). The misfit counts each element's measured
-uncertainty, a model error of the predicted contrast (``DepthParams.model_error``), and a floor.
+uncertainty, a model error of the predicted contrast (``DepthParams.model_error``), and a floor; those
+two are one and the same error in every group, so each group counts them as many times over as there are
+groups.
 Elements on a side of the tissue (the outermost column of the palpated extent across the array, where
 the tissue is taken to end, as the flat field takes it) are left out of it: the library's mid-array
 signature shifted sideways knows no free side, which a stiff sphere near it unloads the more the face
@@ -67,6 +73,12 @@ LIBRARY_FORMAT = "palpation-console-depth-library"
 LIBRARY_VERSION = 1
 NU = 0.49  # as app.physics: nearly incompressible tissue and silicone
 CLEARANCE_M = 1e-3  # tissue kept between the sphere and the table
+STRAIN_BINS = 2  # the levels of an area are compared with the model in this many groups, by how far they pressed
+# The shallowest a tumour's top is taken to lie at rest (the prior's, the validation study's). The library
+# reaches shallower: a level pressed to 30 % strain carries a tumour 2 mm deep at rest to 0.5 mm, and a
+# library that stopped at 1 mm under-predicted what it showed there, which read tumours 2-3 mm deep about
+# a millimetre too shallow, their intervals short of the truth.
+LEAST_DEPTH_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -75,8 +87,11 @@ class LibraryGrid:
     distribution (app.study.StudyDistribution), which is what the console is meant to find."""
 
     thickness_m: tuple[float, ...] = (0.020, 0.032)
-    depth_m: tuple[float, ...] = (1e-3, 2.5e-3, 4e-3, 6e-3, 8e-3, 10e-3, 12e-3)
-    diameter_m: tuple[float, ...] = (5e-3, 8.5e-3, 12e-3)
+    # finer near the surface, where a sphere's contrast grows ever faster as it rises and its footprint
+    # sharpens with its diameter: interpolated linearly between 1 and 2.5 mm, a 2 mm deep sphere read 1.1 mm
+    depth_m: tuple[float, ...] = (0.0, 0.5e-3, 1e-3, 1.5e-3, 2e-3, 2.5e-3, 3.25e-3, 4e-3, 5e-3, 6e-3, 8e-3, 10e-3,
+                                  12e-3)
+    diameter_m: tuple[float, ...] = (5e-3, 6.75e-3, 8.5e-3, 10.25e-3, 12e-3)
     modulus_ratio: tuple[float, ...] = (3.0, 6.0, 12.0)
     offset_x_m: tuple[float, ...] = (0.0, 1e-3, 2e-3, 3e-3, 4e-3)
     length_m: float = 0.040
@@ -134,8 +149,8 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
 
 def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
                   progress: Callable[[str], None] | None = None) -> Path:
-    """Solve every configuration of ``grid`` and write the library to ``path`` (a few minutes per
-    thickness on two cores); configurations whose sphere would not fit in the layer are NaN."""
+    """Solve every configuration of ``grid`` and write the library to ``path`` (about six minutes of
+    one core per thickness); configurations whose sphere would not fit in the layer are NaN."""
     shape = (len(grid.thickness_m), len(grid.depth_m), len(grid.diameter_m), len(grid.modulus_ratio))
     face = (len(grid.offset_x_m), int(round(grid.rows * grid.pitch_m / grid.grid_m)) + 1,
             int(round(grid.width_m / grid.grid_m)) + 1)
@@ -236,6 +251,7 @@ class DepthModel:
                                   f"{library.pitch_m * 1e3:g} mm, this session's is {shape[0]} x {shape[1]} at "
                                   f"{pitch_m * 1e3:g} mm")
         from hardware.sim.mechanics.contact import tributary_weights
+        from hardware.sim.mechanics.model import COMPRESSED_STRAIN
 
         self.library = library
         self.shape = tuple(shape)
@@ -252,6 +268,8 @@ class DepthModel:
                                           pitch_m, self.shape)
         lib = library
         self.depths = np.arange(lib.depth_m[0], lib.depth_m[-1] + 1e-9, self.depth_step_m)
+        self.least_depth_m = max(LEAST_DEPTH_M, float(lib.depth_m[0]))
+        self.compressed_strain = COMPRESSED_STRAIN
         self.diameters = np.linspace(lib.diameter_m[0], lib.diameter_m[-1], self.fine_diameters)
         self.ratios = np.exp(np.linspace(math.log(lib.modulus_ratio[0]), math.log(lib.modulus_ratio[-1]),
                                          self.fine_ratios))
@@ -322,19 +340,29 @@ class DepthModel:
         fine = _lerp_axis(fine, lib.diameter_m, self.diameters, 1)
         return _lerp_axis(fine, np.log(lib.modulus_ratio), np.log(self.ratios), 2)
 
+    def _moved_m(self, depth_m, diameter_m: float):
+        """Where the layer compressed by ``COMPRESSED_STRAIN`` carries the top of a sphere ``depth_m`` deep at
+        rest (hardware.sim.mechanics.model.compressed_material), within the library."""
+        strain = self.compressed_strain
+        return np.clip(np.asarray(depth_m) * (1.0 - strain) - 0.5 * diameter_m * strain, self.depths[0],
+                       self.depths[-1])
+
+    def _mix(self, strain):
+        """How much of the compressed state's contrast a level pressed to the nominal ``strain`` sees."""
+        return np.clip(strain, 0.0, self.compressed_strain) / self.compressed_strain
+
     def _pressed(self, fine: np.ndarray, strain: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The contrast ``fine`` (depth, diameter, ratio, elements) as the levels saw it, averaged with the
-        levels' ``weights`` (level, element): at finite strain a level pressed to the nominal strain s sees
-        the tumour where the compressed layer carries it, its top at d (1 - s) - a s / 2 for a sphere of
-        diameter a whose top lies d deep at rest (hardware.sim.mechanics.model.compressed_material)."""
-        out = np.zeros_like(fine)
-        for s, w in zip(strain, weights):
-            for j, diameter in enumerate(self.diameters):
-                pressed = np.clip(self.depths * (1.0 - s) - 0.5 * diameter * s, self.depths[0], self.depths[-1])
-                at = (pressed - self.depths[0]) / self.depth_step_m
-                lo = np.minimum(np.floor(at).astype(int), len(self.depths) - 2)
-                frac = (at - lo)[:, None, None]
-                out[:, j] += w * ((1.0 - frac) * fine[lo, j] + frac * fine[lo + 1, j])
+        """The contrast ``fine`` (depth, diameter, ratio, elements) as the levels pressed to ``strain`` saw
+        it (the module docstring), averaged with the levels' ``weights`` (level, element)."""
+        mix = self._mix(np.asarray(strain))[:, None]
+        at_rest, compressed = ((1.0 - mix) * weights).sum(axis=0), (mix * weights).sum(axis=0)
+        out = np.empty_like(fine)
+        for j, diameter in enumerate(self.diameters):
+            at = (self._moved_m(self.depths, diameter) - self.depths[0]) / self.depth_step_m
+            lo = np.minimum(np.floor(at).astype(int), len(self.depths) - 2)
+            frac = (at - lo)[:, None, None]
+            moved = (1.0 - frac) * fine[lo, j] + frac * fine[lo + 1, j]
+            out[:, j] = at_rest * fine[:, j] + compressed * moved
         return out
 
     # ---- the inversion ----
@@ -352,7 +380,7 @@ class DepthModel:
         edges = np.concatenate([[self.depths[0] - self.depth_step_m / 2], self.depths + self.depth_step_m / 2])
         cdf = np.concatenate([[0.0], cdf])
         low, median, high = np.interp([0.05, 0.5, 0.95], cdf, edges)
-        return float(median), float(max(low, self.depths[0])), float(min(high, self.depths[-1]))
+        return float(median), float(max(low, self.least_depth_m)), float(min(high, self.depths[-1]))
 
     def _posterior(self, tumour, levels: np.ndarray, contrast) -> tuple[np.ndarray, float] | None:
         """(log posterior on the fine (depth, diameter, ratio) grid, -inf where the sphere does not fit;
@@ -378,24 +406,32 @@ class DepthModel:
             element_y = offsets[..., 1] + float(centre[1])
             near = ((np.hypot(offsets[..., 0] + float(centre[0]) - tumour.x_m, element_y - tumour.y_m) <= self.reach_m)
                     & (element_y > sides[0] + self.pitch_m / 2) & (element_y < sides[1] - self.pitch_m / 2))
-            measured, sigma, used, weights = _level_mean(contrast.contrast[rows], contrast.sigma[rows], near)
-            if measured is None:
-                continue
+            c, s = contrast.contrast[rows][:, near], contrast.sigma[rows][:, near]
+            whole = np.flatnonzero(np.all(np.isfinite(c) & np.isfinite(s) & (s > 0), axis=1))
             onset = levels["onset_height_m"][rows[-1]][near] - self.table_height_m
-            if not np.isfinite(onset).any():
+            if not len(whole) or not np.isfinite(onset).any():
                 continue
             h = float(np.nanmedian(onset))
             thickness.append(h)
-            strain = np.nan_to_num(np.nanmedian(levels["dL_m"][rows[used]][:, near], axis=1) / h)
-            predicted = self._pressed(self._fine(self.predict(h, off_x, y_from_edge))[..., near], strain, weights)
-            variance = sigma**2 + (self.model_error * predicted) ** 2 + self.contrast_floor**2
-            term = -0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
-            log_like = term if log_like is None else log_like + term
+            strain = np.nan_to_num(np.nanmedian(levels["dL_m"][rows][:, near], axis=1) / h)
+            fine = self._fine(self.predict(h, off_x, y_from_edge))[..., near]
+            # The levels pressed least and most, each averaged: how a tumour's contrast grows with the press
+            # tells its depth apart from its size and stiffness, which one average of every level blurs (a
+            # sphere 2 mm deep read 1.7 mm, 1.4-1.9). The model's error is one and the same in each, so each
+            # counts it that many times over, and together they are as sure of it as one average is.
+            by_strain = whole[np.argsort(strain[whole], kind="stable")]
+            bins = [b for b in np.array_split(by_strain, STRAIN_BINS) if len(b)]
+            for b in bins:
+                measured, sigma, weights = _level_mean(c[b], s[b])
+                predicted = self._pressed(fine, strain[b], weights)
+                variance = sigma**2 + len(bins) * ((self.model_error * predicted) ** 2 + self.contrast_floor**2)
+                term = -0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
+                log_like = term if log_like is None else log_like + term
         if log_like is None:
             return None
         h = float(np.median(thickness))
         d, a = np.meshgrid(self.depths, self.diameters, indexing="ij")
-        fits = (h - d - a >= CLEARANCE_M)[:, :, None] & np.isfinite(log_like)
+        fits = ((h - d - a >= CLEARANCE_M) & (d >= self.least_depth_m - 1e-12))[:, :, None] & np.isfinite(log_like)
         if not fits.any():
             return None
         return np.where(fits, log_like, -np.inf), h
@@ -408,10 +444,10 @@ class DepthModel:
         the tumour (the posterior's mode) does to every element of each of ``records``' faces, solved where
         it lies across the tissue (the library's mid-array signature shifted sideways knows no side: a
         stiff sphere 11 mm from one side of the tissue raises the far side's elements by +0.05 and lowers
-        the near side's by 0.09, which the shifted signature puts at 0), at the depth each record's strain
-        carries it to, through the sensor's cover; the uncertainty is the model's relative error. None when
-        the tumour has no fit; zero, fit or none, for a face beyond ``SIGNATURE_REACH_M``. A
-        finite-element solve of the block per depth and offset, cached."""
+        the near side's by 0.09, which the shifted signature puts at 0), as each record's strain mixes
+        its states at rest and compressed (the module docstring), through the sensor's cover; the
+        uncertainty is the model's relative error. None when the tumour has no fit; zero, fit or none, for a
+        face beyond ``SIGNATURE_REACH_M``. A finite-element solve of the block per depth and offset, cached."""
         if all(abs(float(levels["tsi_position_m"][r][0]) - tumour.x_m) > SIGNATURE_REACH_M for r in records):
             return np.zeros((len(records), *self.shape)), np.zeros((len(records), *self.shape))
         posterior = self._posterior(tumour, levels, contrast)
@@ -425,9 +461,10 @@ class DepthModel:
             centre = levels["tsi_position_m"][r]
             off_x = float(centre[0]) - tumour.x_m
             y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
-            strain = float(np.nan_to_num(np.nanmedian(levels["dL_m"][r]) / h))
-            pressed = max(depth * (1.0 - strain) - 0.5 * diameter * strain, self.depths[0])
-            out[n] = self._solved(h, pressed, diameter, ratio, off_x, y_from_edge)
+            mix = float(self._mix(np.nan_to_num(np.nanmedian(levels["dL_m"][r]) / h)))
+            moved = float(self._moved_m(depth, diameter))
+            out[n] = ((1.0 - mix) * self._solved(h, depth, diameter, ratio, off_x, y_from_edge)
+                      + mix * self._solved(h, moved, diameter, ratio, off_x, y_from_edge))
         return out, self.model_error * np.abs(out)
 
     def _solved(self, thickness_m: float, depth_m: float, diameter_m: float, ratio: float, offset_x_m: float,
@@ -475,18 +512,12 @@ def _shift_y(ratio: np.ndarray, nodes: int) -> np.ndarray:
     return out
 
 
-def _level_mean(contrast: np.ndarray, sigma: np.ndarray, near: np.ndarray):
-    """The inverse-variance mean over an area's levels of the contrast of the ``near`` elements, from the
-    levels that pressed every one of them, its sigma, which levels those were (indices) and each one's
-    weight per element; Nones if no level did."""
-    c, s = contrast[:, near], sigma[:, near]
-    whole = np.all(np.isfinite(c) & np.isfinite(s) & (s > 0), axis=1)
-    if not whole.any():
-        return None, None, None, None
-    precision = 1.0 / s[whole] ** 2
+def _level_mean(contrast: np.ndarray, sigma: np.ndarray):
+    """The inverse-variance mean over levels (first axis) of each element's contrast, its sigma, and each
+    level's weight per element."""
+    precision = 1.0 / sigma**2
     total = precision.sum(axis=0)
-    return ((c[whole] * precision).sum(axis=0) / total, 1.0 / np.sqrt(total), np.flatnonzero(whole),
-            precision / total)
+    return (contrast * precision).sum(axis=0) / total, 1.0 / np.sqrt(total), precision / total
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,7 +24,7 @@ def library():
 
 def test_the_shipped_library_is_what_the_mechanics_gives(library):
     grid = LibraryGrid()
-    t, d, a, r = 0, 1, 0, 1  # 20 mm layer, top 2.5 mm deep, 5 mm across, 6 times stiffer
+    t, d, a, r = 0, grid.depth_m.index(2.5e-3), 0, 1  # 20 mm layer, top 2.5 mm deep, 5 mm across, 6 times stiffer
     solved = _block_solve(grid, grid.thickness_m[t], (grid.depth_m[d], grid.diameter_m[a], grid.modulus_ratio[r]))
     np.testing.assert_allclose(library.inclusion[t, d, a, r], solved, rtol=1e-5)
     np.testing.assert_allclose(library.homogeneous[t], _block_solve(grid, grid.thickness_m[t], None), rtol=1e-5)
@@ -50,16 +50,19 @@ def test_an_array_the_library_was_not_built_for_is_refused(library):
 
 
 def _one_area(contrast: np.ndarray, sigma: float, thickness_m: float, tumour_x: float, tumour_y: float,
-              face_x: float, levels: int = 3, pressed_m: float = 0.0):
+              face_x: float, levels: int = 3, pressed_m=0.0):
     """Level records of one area, its face centred at (face_x, mid-array), flat surface at ``thickness_m``,
-    every element pressed ``pressed_m`` (0: the small-strain limit, where the contrast is the library's)."""
+    every element pressed ``pressed_m`` (0: the small-strain limit, where the contrast is the library's; or
+    one per level, with ``contrast`` one per level)."""
     rows = np.zeros(levels, dtype=[("region", "i4"), ("tsi_position_m", "f8", 3), ("onset_height_m", "f8", SHAPE),
                                    ("dL_m", "f8", SHAPE)])
-    rows["tsi_position_m"] = (face_x, SHAPE[1] * PITCH / 2, thickness_m - pressed_m)
+    pressed_m = np.broadcast_to(pressed_m, (levels,))
+    rows["tsi_position_m"] = np.stack([np.full(levels, face_x), np.full(levels, SHAPE[1] * PITCH / 2),
+                                       thickness_m - pressed_m], axis=1)
     rows["onset_height_m"] = thickness_m
-    rows["dL_m"] = pressed_m
+    rows["dL_m"] = pressed_m[:, None, None]
     rng = np.random.default_rng(7)
-    noisy = contrast[None] + rng.normal(0.0, sigma, (levels, *SHAPE))
+    noisy = np.broadcast_to(contrast, (levels, *SHAPE)) + rng.normal(0.0, sigma, (levels, *SHAPE))
     measured = SimpleNamespace(contrast=noisy, sigma=np.full_like(noisy, sigma))
     return rows, measured, SimpleNamespace(x_m=tumour_x, y_m=tumour_y)
 
@@ -85,14 +88,14 @@ def test_the_interval_covers_a_tumour_the_library_never_held(library):
 
 def test_the_tissues_side_does_not_draw_the_depth(library):
     """A sphere 1 mm from a free side of the tissue (the face spans the tissue's width, as in the paper's
-    protocol), 3 mm deep at rest, 9 mm across, 5 times stiffer, in a 25 mm layer pressed to 20 %: it shows
-    as one 3 (1 - 0.2) - 4.5 x 0.2 = 1.5 mm deep does at rest (an independent solve of that, with the
+    protocol), 3 mm deep at rest, 9 mm across, 5 times stiffer, in a 25 mm layer pressed to 30 %: it shows
+    as one 3 (1 - 0.3) - 4.5 x 0.3 = 0.75 mm deep does at rest (an independent solve of that, with the
     side). The library shifts a mid-array signature sideways and knows no side, so the elements on the side
     are left out: what they read (the simulated sessions of the validation study read down to -0.2 there
     beside a shallow tumour) does not move the estimate, which covers the truth."""
-    thickness, depth, pressed, tumour_y = 0.025, 3e-3, 5e-3, 24.5e-3
+    thickness, depth, pressed, tumour_y = 0.025, 3e-3, 7.5e-3, 24.5e-3
     grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
-    nodal_with = _block_solve(grid, thickness, (1.5e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]
+    nodal_with = _block_solve(grid, thickness, (0.75e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]
     nodal_without = _block_solve(grid, thickness, None)[0]
     model = DepthModel(library, SHAPE, PITCH, 0.0)
     q = model._elements(nodal_with) / model._elements(nodal_without)
@@ -109,12 +112,12 @@ def test_the_tissues_side_does_not_draw_the_depth(library):
 
 
 def test_a_tumour_seen_pressed_deep_is_read_at_its_depth_at_rest(library):
-    """At finite strain the tissue over a tumour thins: pressed to 20 % the 6 mm deep, 7 mm sphere shows as
-    one 6 (1 - 0.2) - 3.5 x 0.2 = 4.1 mm deep does at rest (an independent solve of that). The estimate
+    """At finite strain the tissue over a tumour thins: pressed to 30 % the 6 mm deep, 7 mm sphere shows as
+    one 6 (1 - 0.3) - 3.5 x 0.3 = 3.15 mm deep does at rest (an independent solve of that). The estimate
     is the depth at rest, and without the strain it would have been the shallower one."""
-    thickness, depth, pressed = 0.025, 6e-3, 5e-3
+    thickness, depth, pressed = 0.025, 6e-3, 7.5e-3
     grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
-    nodal_with = _block_solve(grid, thickness, (4.1e-3, 7e-3, 8.0))[0]
+    nodal_with = _block_solve(grid, thickness, (3.15e-3, 7e-3, 8.0))[0]
     nodal_without = _block_solve(grid, thickness, None)[0]
     model = DepthModel(library, SHAPE, PITCH, 0.0)
     q = model._elements(nodal_with) / model._elements(nodal_without)
@@ -125,19 +128,64 @@ def test_a_tumour_seen_pressed_deep_is_read_at_its_depth_at_rest(library):
     assert low <= depth <= high and abs(estimate - depth) < 1e-3
     rows, measured, tumour = _one_area(*args)
     at_rest, *_ = model.estimate(tumour, rows, measured)
-    assert abs(at_rest - 4.1e-3) < 1e-3
+    assert abs(at_rest - 3.15e-3) < 1e-3
+
+
+def test_the_forward_model_shows_a_pressed_tumour_as_the_rigs_reduced_model_does(library):
+    """The simulated rig tabulates each inclusion at rest and where a layer compressed by COMPRESSED_STRAIN
+    carries it, and an element pressed part-way sees the two mixed in proportion to its strain
+    (hardware.sim.mechanics.model). At half that strain a sphere 3 mm deep, 8 mm across, 6 times stiffer
+    shows half as at rest and half as one 3 (1 - 0.3) - 4 x 0.3 = 0.9 mm deep does, which is more than the
+    sphere half-way between (2.0 mm) shows: a tumour's contrast grows ever faster as it nears the surface."""
+    from hardware.sim.mechanics.model import COMPRESSED_STRAIN
+
+    assert COMPRESSED_STRAIN == 0.3
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    fine = model._fine(model.predict(0.025, 2e-3, SHAPE[1] * PITCH / 2)).reshape(*model.depths.shape, 8, 7, -1)
+    d, a, r = (int(np.argmin(np.abs(axis - v))) for axis, v in ((model.depths, 3e-3), (model.diameters, 8e-3),
+                                                                  (model.ratios, 6.0)))
+    at = {v: fine[int(np.argmin(np.abs(model.depths - v))), a, r] for v in (3e-3, 2e-3, 1e-3, 0.75e-3)}
+    moved = 0.4 * at[0.75e-3] + 0.6 * at[1e-3]  # 0.9 mm, between the fine grid's depths
+    shown = model._pressed(fine, np.array([0.15]), np.ones((1, fine.shape[-1])))[d, a, r]
+    np.testing.assert_allclose(shown, 0.5 * (at[3e-3] + moved), atol=1e-9)
+    assert shown.max() > 1.05 * at[2e-3].max()
+
+
+def test_a_shallow_tumour_is_read_at_its_depth_at_rest_from_levels_pressed_ever_deeper(library):
+    """Levels pressed to 10, 20 and 30 %: a sphere 2 mm deep at rest, 6 mm across, 8 times stiffer shows as
+    the simulated rig's reduced model says, its contrast at rest and where a layer compressed by 30 % carries
+    it, 2 (1 - 0.3) - 3 x 0.3 = 0.5 mm deep (two independent solves), mixed in proportion 1/3, 2/3 and 1.
+    That is nearer the surface than any tumour is taken to lie at rest but not than the library reaches,
+    and not the sphere at the depth each level's strain alone would carry it to (a tumour's contrast grows
+    ever faster as it nears the surface). The estimate is the depth at rest and its interval covers it."""
+    thickness, depth, strains = 0.025, 2e-3, np.array([0.1, 0.2, 0.3])
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    states = []
+    for at in (depth, 0.5e-3):
+        q = model._elements(_block_solve(grid, thickness, (at, 6e-3, 8.0))[0]) / model._elements(nodal_without)
+        states.append(q / np.median(q) - 1.0)
+    mix = (strains / 0.3)[:, None, None]
+    rows, measured, tumour = _one_area((1 - mix) * states[0] + mix * states[1], 0.02, thickness, 0.030,
+                                       SHAPE[1] * PITCH / 2, 0.032, pressed_m=strains * thickness)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 0.5e-3
 
 
 def test_deeper_tumours_read_deeper(library):
     model = DepthModel(library, SHAPE, PITCH, 0.0)
     thickness, y = 0.026, SHAPE[1] * PITCH / 2 + 1e-3
     found = []
-    for d in (1, 3, 5):  # library depths 2.5, 6 and 10 mm; 8.5 mm across, 6 times stiffer
-        truth = model.predict(thickness, -2e-3, y)[d, 1, 1]
+    depths = [list(library.depth_m).index(v) for v in (2.5e-3, 6e-3, 10e-3)]
+    middle = list(library.diameter_m).index(8.5e-3)
+    for d in depths:  # 8.5 mm across, 6 times stiffer
+        truth = model.predict(thickness, -2e-3, y)[d, middle, 1]
         rows, measured, tumour = _one_area(truth, 0.02, thickness, 0.030, y, 0.028)
         found.append(model.estimate(tumour, rows, measured))
     assert found[0][0] < found[1][0] < found[2][0]
-    for (estimate, low, high), d in zip(found, (1, 3, 5)):
+    for (estimate, low, high), d in zip(found, depths):
         assert low <= library.depth_m[d] <= high and low <= estimate <= high
 
 
@@ -161,10 +209,12 @@ def test_a_tumour_in_the_gap_between_two_areas_is_read_from_the_nearer_one(libra
     rather than left without an estimate; 1 mm outside it, it is not read at all."""
     model = DepthModel(library, SHAPE, PITCH, 0.0)
     thickness, y = 0.026, SHAPE[1] * PITCH / 2
-    seen = model.predict(thickness, 4e-3, y)[2, 1, 1]  # 4 mm deep, 8.5 mm across, 6 times stiffer
+    depth = 4e-3  # 8.5 mm across, 6 times stiffer
+    entry = (list(library.depth_m).index(depth), list(library.diameter_m).index(8.5e-3), 1)
+    seen = model.predict(thickness, 4e-3, y)[entry]
     rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.0342)
     estimate, low, high = model.estimate(tumour, rows, measured)
-    assert low <= library.depth_m[2] <= high and low <= estimate <= high
+    assert low <= depth <= high and low <= estimate <= high
     rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.035)
     assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))
 
@@ -186,7 +236,8 @@ def test_the_signature_carries_a_spheres_far_field_to_the_tissues_far_side(libra
     made, error = model.signature(tumour, rows, measured, np.array([0]))
     np.testing.assert_allclose(made[0][:, [0, -1]], truth[:, [0, -1]], atol=0.02)
     assert np.all(error >= 0) and error[0].max() > 0.1  # the model's error, largest over the sphere
-    shifted = model.predict(thickness, 0.0, tumour_y)[1, 1, 1]  # 2.5 mm, 8.5 mm, 6x: the nearest library entry
+    nearest = (list(library.depth_m).index(2.5e-3), list(library.diameter_m).index(8.5e-3), 1)  # 6x
+    shifted = model.predict(thickness, 0.0, tumour_y)[nearest]  # the nearest library entry
     assert abs(shifted[:, -1].mean()) < 0.02
     # a face beyond the sphere's reach feels nothing of it, whether or not the tumour has a fit
     far = SimpleNamespace(x_m=0.030 + 13e-3, y_m=tumour_y)
