@@ -413,7 +413,8 @@ class DepthModel:
                 continue
             h = float(np.nanmedian(onset))
             thickness.append(h)
-            strain = np.nan_to_num(np.nanmedian(levels["dL_m"][rows][:, near], axis=1) / h)
+            strain = np.zeros(len(rows))  # a level that did not press every element near it plays no part
+            strain[whole] = np.nan_to_num(np.nanmedian(levels["dL_m"][rows[whole]][:, near], axis=1) / h)
             fine = self._fine(self.predict(h, off_x, y_from_edge))[..., near]
             # The levels pressed least and most, each averaged: how a tumour's contrast grows with the press
             # tells its depth apart from its size and stiffness, which one average of every level blurs (a
