@@ -47,6 +47,10 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--depth-model-error", type=float, default=DepthParams.model_error,
                        help="the depth model's error in a tumour's predicted contrast, relative (default "
                             f"{DepthParams.model_error:g}); larger widens the depth intervals")
+    group.add_argument("--depth-scale-error", type=float, default=DepthParams.scale_error,
+                       help="the part of that error every element near a tumour shares, one scale on all its "
+                            f"predicted contrast, relative (default {DepthParams.scale_error:g}); larger widens "
+                            "the depth intervals")
     group.add_argument("--physics", choices=list(PHYSICS), default="rebuilt",
                        help="the probe's expected pattern on homogeneous tissue: " + "; ".join(
                            f"{k} = {v}" for k, v in PHYSICS.items()) + " (default rebuilt)")
@@ -78,7 +82,7 @@ def analysis_params(args) -> AnalysisParams:
     detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy,
                           merge_radius_m=args.merge_radius_mm * 1e-3, fit_radius_m=args.fit_radius_mm * 1e-3,
                           kernel_widths_m=args.blob_widths_m)
-    return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error))
+    return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error, args.depth_scale_error))
 
 
 def analyse(session: Session, args) -> SessionAnalysis:

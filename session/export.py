@@ -57,6 +57,7 @@ def _params_block(stitch_params: StitchParams, detect_params: DetectParams | Non
                    kernel_widths_m=list(detect_params.kernel_widths_m))
     if depth_params is not None:
         out["depth_model_error"] = depth_params.model_error
+        out["depth_scale_error"] = depth_params.scale_error
     return out
 
 

@@ -12,6 +12,7 @@ import pytest
 
 from app.depth_model import (LIBRARY_PATH, DepthModel, DepthModelError, LibraryGrid, _block_solve, build_library,
                              load_library)
+from session.detect import DepthParams
 
 PITCH = 2e-3
 SHAPE = (4, 15)
@@ -172,6 +173,40 @@ def test_a_shallow_tumour_is_read_at_its_depth_at_rest_from_levels_pressed_ever_
     estimate, low, high = model.estimate(tumour, rows, measured)
     assert low <= depth <= high
     assert abs(estimate - depth) < 0.5e-3
+
+
+def test_the_sphere_that_made_the_contrast_explains_it_best(library):
+    """A contrast the model itself predicts, for a sphere 3 or 6 mm deep, 8 mm across, 6 times stiffer, with
+    little noise: the posterior's mode is that sphere. With the model's error taken relative to each
+    sphere's own prediction, a sphere predicting less than was measured fitted better (6 mm deep read as a
+    sphere 3 times stiffer, 9 mm across, 5.25 mm deep)."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2
+    fine = model._fine(model.predict(thickness, 2e-3, y))
+    j, k = int(np.argmin(np.abs(model.diameters - 8e-3))), int(np.argmin(np.abs(model.ratios - 6.0)))
+    for depth in (3e-3, 6e-3):
+        i = int(np.argmin(np.abs(model.depths - depth)))
+        rows, measured, tumour = _one_area(fine[i, j, k], 0.002, thickness, 0.030, y, 0.032)
+        log_post, _ = model._posterior(tumour, rows, measured)
+        assert np.unravel_index(int(np.argmax(log_post)), log_post.shape) == (i, j, k)
+
+
+def test_the_shared_scale_error_is_the_whole_covariance_of_the_model_errors(library):
+    """The likelihood with a scale error shared by every element, group and area (Sherman-Morrison) is
+    the Gaussian one with the whole covariance, D + s^2 p p^T, up to a constant the spheres share."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0, params=DepthParams(0.25, 0.3))
+    rng = np.random.default_rng(3)
+    mode = (1, 0, 1)
+    terms = [(rng.normal(0.2, 0.1, n), rng.uniform(0.01, 0.05, n), rng.normal(0.2, 0.1, (3, 2, 2, n)), groups)
+             for n, groups in ((5, 2), (5, 2), (7, 1))]
+    p = np.concatenate([t[2][mode] for t in terms])
+    diagonal = np.concatenate([sigma**2 + groups * ((0.25 * t[mode]) ** 2 + model.contrast_floor**2)
+                               for _, sigma, t, groups in terms])
+    inverse = np.linalg.inv(np.diag(diagonal) + 0.3**2 * np.outer(p, p))
+    residual = np.concatenate([m - t for m, _, t, _ in terms], axis=-1)
+    whole = -0.5 * np.einsum("...i,ij,...j->...", residual, inverse, residual)
+    got = model._log_like(terms, mode)
+    np.testing.assert_allclose(got - got[mode], whole - whole[mode], rtol=1e-9, atol=1e-9)
 
 
 def test_deeper_tumours_read_deeper(library):

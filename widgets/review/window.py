@@ -203,6 +203,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._depth_error_spin = spin("depthErrorSpin", 1.0, 200.0, DepthParams.model_error * 100, 5.0, " %", 0)
         self._depth_error_spin.setToolTip("The depth model's error in a tumour's predicted contrast: larger widens "
                                           "the depth intervals")
+        self._depth_scale_spin = spin("depthScaleSpin", 0.0, 200.0, DepthParams.scale_error * 100, 5.0, " %", 0)
+        self._depth_scale_spin.setToolTip("The part of the depth model's error every element near a tumour "
+                                          "shares (one scale on all it predicts): larger widens the depth intervals")
         self._physics_combo = QtWidgets.QComboBox(objectName="physicsCombo")
         for label in self._physics_factories:
             self._physics_combo.addItem(label)
@@ -229,6 +232,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         form.addRow("Merge radius", self._merge_spin)
         form.addRow("Fit radius", self._fit_spin)
         form.addRow("Depth model error", self._depth_error_spin)
+        form.addRow("Depth scale error", self._depth_scale_spin)
         form.addRow("Flat-field physics", self._physics_combo)
         form.addRow(self._reference_button, self._reference_label)
         form.addRow("L0 (Eq. 1) from", self._l0_combo)
@@ -409,12 +413,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
                               merge_radius_m=self._merge_spin.value() * 1e-3,
                               fit_radius_m=self._fit_spin.value() * 1e-3,
                               kernel_widths_m=widths)
-        return AnalysisParams(stitch, detect, DepthParams(self._depth_error_spin.value() / 100.0))
+        return AnalysisParams(stitch, detect, DepthParams(self._depth_error_spin.value() / 100.0,
+                                                          self._depth_scale_spin.value() / 100.0))
 
     def set_analysis(self, stitch: StitchParams, detect: DetectParams, depth: DepthParams = DepthParams()) -> None:
         """Put parameters into the panel and re-analyse now."""
         widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin,
-                   self._widths_edit, self._merge_spin, self._fit_spin, self._depth_error_spin)
+                   self._widths_edit, self._merge_spin, self._fit_spin, self._depth_error_spin,
+                   self._depth_scale_spin)
         blocked = [w.blockSignals(True) for w in widgets]
         self._cell_spin.setValue(stitch.cell_m * 1e3)
         self._false_alarm_spin.setValue(detect.false_alarm_per_area * 100)
@@ -423,6 +429,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._merge_spin.setValue(detect.merge_radius_m * 1e3)
         self._fit_spin.setValue(detect.fit_radius_m * 1e3)
         self._depth_error_spin.setValue(depth.model_error * 100)
+        self._depth_scale_spin.setValue(depth.scale_error * 100)
         self._l0_combo.setCurrentIndex(self._l0_combo.findData(stitch.l0_source.value))
         if stitch.l0_fixed_m is not None:
             self._l0_fixed_spin.setValue(stitch.l0_fixed_m * 1e3)
