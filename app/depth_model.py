@@ -455,20 +455,24 @@ class DepthModel:
         groups), the model's error relative to each sphere's own prediction, independent per element."""
         out = 0.0
         for measured, sigma, predicted, groups in terms:
-            variance = sigma**2 + groups * ((self.model_error * predicted) ** 2 + self.contrast_floor**2)
+            variance = self._variance(sigma, groups, predicted)
             out = out - 0.5 * np.sum((measured - predicted) ** 2 / variance + np.log(variance), axis=-1)
         return out
+
+    def _variance(self, sigma: np.ndarray, groups: int, predicted: np.ndarray) -> np.ndarray:
+        """Each element's independent variance in one of ``groups`` level groups: measured, and the model's
+        error relative to ``predicted`` and its floor, counted once per group (module docstring)."""
+        return sigma**2 + groups * ((self.model_error * predicted) ** 2 + self.contrast_floor**2)
 
     def _log_like(self, terms, mode: tuple[int, int, int]) -> np.ndarray:
         """The log likelihood on the fine grid (up to a constant) of the level groups ``terms``, the model's
         errors relative to what the sphere at ``mode`` predicts (p): independent per element, and
         ``scale_error`` shared by all, one scale on p. That adds s^2 p p^T to the diagonal covariance D;
         its inverse by Sherman-Morrison: r^T D^-1 r - s^2 (p^T D^-1 r)^2 / (1 + s^2 p^T D^-1 p)."""
-        chi2 = along = 0.0
-        norm = 0.0
+        chi2 = along = norm = 0.0
         for measured, sigma, predicted, groups in terms:
             p = predicted[mode]
-            variance = sigma**2 + groups * ((self.model_error * p) ** 2 + self.contrast_floor**2)
+            variance = self._variance(sigma, groups, p)
             residual = measured - predicted
             chi2 = chi2 + np.sum(residual**2 / variance, axis=-1)
             along = along + np.sum(p * residual / variance, axis=-1)
