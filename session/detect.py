@@ -375,16 +375,23 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
             near[0].append(spot)
         else:
             clusters.append([spot])
+    # A cluster carries on the nearest track from a lower level within the merge radius, or one its edge
+    # spots join as above: where the stronger spot's own area stopped below this level (a stiff tumour near
+    # the surface reaches the force limit first), the edge of the area beside it still shows its far field
+    # at the levels above, and that is the same tumour, not a new one first seen there.
     tracks: list[dict[int, list[Spot]]] = []
     for index, clusters in enumerate(per_level):
         claimed: set[int] = set()
         for cluster in clusters:
             lead = cluster[0]
-            best, best_d = None, params.merge_radius_m
+            best, best_d = None, math.inf
             for t, track in enumerate(tracks):
-                last = track[max(track)]
-                d = math.hypot(lead.x_m - last[0].x_m, lead.y_m - last[0].y_m)
-                if t not in claimed and max(track) < index and d <= best_d:
+                last = track[max(track)][0]
+                d = math.hypot(lead.x_m - last.x_m, lead.y_m - last.y_m)
+                reached = d <= params.merge_radius_m or any(
+                    _joins(spot, px, py, last, params.merge_radius_m, beyond_edge)
+                    for spot in cluster if spot.at_edge for px, py in ((spot.x_m, spot.y_m), spot.strongest_xy_m))
+                if t not in claimed and max(track) < index and reached and d < best_d:
                     best, best_d = t, d
             if best is None:
                 tracks.append({index: cluster})

@@ -232,6 +232,28 @@ def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_t
     assert math.hypot(found[0].x_m - 0.0324, found[0].y_m - 0.015) < 1e-3
 
 
+def test_a_far_field_at_the_next_areas_edge_above_the_level_its_tumours_area_stopped_at_is_that_tumour():
+    # A stiff tumour near the surface under the second area takes that area to its force limit at 2 N; the
+    # third area, beside it, goes on to 4 N and its near edge shows the tumour's far field at every level.
+    # Above 2 N there is no spot of the tumour's own to join, and the far field is still the same tumour.
+    from types import SimpleNamespace
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    levels = levels[~((levels["region"] == 1) & (levels["force_desired_N"] > 2.0))]
+    x = np.asarray(levels["tsi_position_m"][:, None, None, 0]) + element_offsets_m(4, 15, PITCH)[None][..., 0]
+    y = np.asarray(levels["tsi_position_m"][:, None, None, 1]) + element_offsets_m(4, 15, PITCH)[None][..., 1]
+    second, third = ((levels["region"] == r)[:, None, None] for r in (1, 2))
+    tumour = np.where(second, 1.5 * np.exp(-0.5 * ((x - 0.0195) ** 2 + (y - 0.015) ** 2) / 2.5e-3 ** 2), 0.0)
+    far = np.where(third, 0.3 * np.exp(-0.5 * ((x - 0.0225) ** 2 + (y - 0.015) ** 2) / 2e-3 ** 2), 0.0)
+    seen = SimpleNamespace(map="stiffness", contrast=tumour + far, sigma=np.full(x.shape, 0.02), modes=None)
+    edge = [s for s in spots(levels, seen, PITCH, DetectParams()) if int(levels["region"][s.record]) == 2]
+    assert {s.force_N for s in edge} == set(FORCES) and all(s.at_edge for s in edge)
+    found = detect(levels, seen, PITCH)
+    assert len(found) == 1
+    assert math.hypot(found[0].x_m - 0.0195, found[0].y_m - 0.015) < 1e-3
+    assert found[0].levels_N == FORCES
+
+
 def test_a_tumour_at_one_edge_of_its_face_is_not_joined_to_a_stronger_spot_beyond_the_other():
     # A tumour just inside the fourth area's low edge, its elements unsure (beside a bump's flank), and a
     # weak but sure rise at the fifth area's low edge, 8 mm away: the tumour's spot reaches its face's edge
