@@ -81,3 +81,29 @@ def test_the_rebuilt_surfaces_uncertainty_is_kept_as_modes_shared_between_elemen
     # and their part of each element's uncertainty is within it
     own = pattern.sigma ** 2 - (modes ** 2).sum(axis=1)
     assert np.all(own[np.isfinite(own)] >= -1e-12)
+
+
+def test_the_sink_in_the_rebuild_adds_is_itself_an_uncertainty_shared_between_elements(tmp_path, monkeypatch):
+    # The base beside the ridge touched only once the ridge had sunk it in; the rebuild adds back what the
+    # block's linear response says (1.5 mm beside this 3 mm ridge), which next to a ridge pressed far was
+    # 1.6 times what the simulated tissue did, and the base then reads tilted. How much it added is a mode
+    # of the pattern's uncertainty: the base's elements are less sure the more was added.
+    import app.physics
+
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    response = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    _, sink_in = response._surfaces(levels)
+    assert sink_in[0][:, 5].min() > 1e-3 and np.all(sink_in[0][:, RIDGE] == 0.0)
+    sure = {}
+    for error in (0.0, app.physics.SINK_IN_ERROR):
+        monkeypatch.setattr(app.physics, "SINK_IN_ERROR", error)
+        sure[error] = response.pattern(levels).sigma
+    unsure = sure[app.physics.SINK_IN_ERROR] ** 2 - sure[0.0] ** 2
+    beside, next_over = unsure[:, 1:3, 4], unsure[:, 1:3, 3]
+    # at least a twentieth more spread beside the ridge, more the more was added (the nearer the ridge),
+    # less the deeper the face pressed the base past its sink-in
+    assert np.all(next_over > 0.05 ** 2) and np.all(beside > 2 * next_over)
+    assert np.all(unsure[0, 1:3, 3:5] > unsure[1, 1:3, 3:5])
+    assert np.all(unsure[np.isfinite(unsure)] >= -1e-12)
