@@ -79,8 +79,6 @@ class SessionAnalysis:
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
         if depth_model is not None:
             depth_model = depth_model.with_params(params.depth)
-            # the stiffness contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
-            tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
 
             def signature(tumour, records):
                 return depth_model.signature(tumour, levels, contrasts["stiffness"], records)
@@ -88,6 +86,9 @@ class SessionAnalysis:
             tumours = [t for source in SOURCES
                        for t in explained_away([t for t in tumours if t.source == source], levels, contrasts[source],
                                                session.pitch_m, params.detect, signature)]
+            # where each now lies (a weaker one is placed over the stronger ones' far field); the stiffness
+            # contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
+            tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)

@@ -184,16 +184,14 @@ def test_two_tracks_the_blob_fit_puts_on_one_tumour_are_one_tumour_first_seen_at
 def test_a_tumour_beside_the_palpated_tissue_is_placed_at_its_edge_not_beyond():
     # the faces span y 0-30 mm; a stiff spot past their side raises the side columns most, and a blob fitted
     # to that rise alone peaks off the tissue, where nothing was palpated
-    from types import SimpleNamespace
-
     from session.detect import _blob_centre
 
     levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
     offsets = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
     rising = 0.5 * np.exp(-0.5 * (np.hypot(offsets[..., 0] - 0.020, offsets[..., 1] - 0.033) / 3e-3) ** 2)
-    seen = SimpleNamespace(contrast=rising, sigma=np.full(rising.shape, 0.02))
     records = np.flatnonzero(levels["level"] == 2)
-    x, y = _blob_centre(levels, seen, records, [(0.020, 0.029)], PITCH, DetectParams().fit_radius_m)
+    x, y = _blob_centre(levels, rising, np.full(rising.shape, 0.02), records, [(0.020, 0.029)], PITCH,
+                        DetectParams().fit_radius_m)
     assert abs(x - 0.020) < 0.5e-3
     assert 0.029 <= y <= 0.030
 
@@ -385,3 +383,33 @@ def test_a_strong_tumours_far_field_in_the_face_beside_it_is_explained_away_too(
     kept = explained_away(found, levels, c, PITCH, params, signature)
     assert kept == [strong] and asked == [(0.011, [3])]
 
+
+
+
+def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_field():
+    # A large stiff tumour in the first area, and a weaker one 14 mm away in the second: the large one's far
+    # field slopes across the weaker one's blob and pulls where it peaks 2 mm towards it. Over what the large
+    # one's sphere makes of those faces, the weaker one stands where it is.
+    from types import SimpleNamespace
+
+    from session.detect import explained_away
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
+    d = np.hypot(xy[..., 0] - 0.012, xy[..., 1] - 0.010)
+    strong = 1.5 * np.exp(-0.5 * (d / 3e-3) ** 2) + 0.4 * np.exp(-0.5 * (d / 6e-3) ** 2)
+    weak = 0.5 * np.exp(-0.5 * np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.020) ** 2 / 2.5e-3 ** 2)
+    seen = SimpleNamespace(map="stiffness", contrast=(1.0 + strong) * (1.0 + weak) - 1.0,
+                           sigma=np.full(d.shape, 0.03), modes=None)
+    found = detect(levels, seen, PITCH)
+    assert len(found) == 2
+    pulled = min(found, key=lambda t: t.score)
+    assert math.hypot(pulled.x_m - 0.021, pulled.y_m - 0.020) > 1.5e-3
+
+    def signature(tumour, records):
+        return strong[records], np.zeros((len(records), 4, 15))
+
+    kept = explained_away(found, levels, seen, PITCH, DetectParams(), signature)
+    placed = min(kept, key=lambda t: t.score)
+    assert math.hypot(placed.x_m - 0.021, placed.y_m - 0.020) < 0.2e-3
+    assert placed.depth_m == levels["indentation_m"][(levels["region"] == 1) & (levels["level"] == 0)][0]
