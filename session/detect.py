@@ -291,28 +291,29 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
     offsets = element_offsets_m(*levels.dtype["pressure_pa"].shape, pitch_m)
     signatures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
     kept: list[Tumour] = []
+
+    def said(records) -> list[list[tuple[np.ndarray, np.ndarray] | None]]:
+        """Per record, what each kept tumour's sphere makes of its face (None: no fit), each solved once."""
+        for k in range(len(kept)):
+            wanted = sorted({r for r in records if (k, r) not in signatures})
+            if wanted:
+                made = signature(kept[k], np.array(wanted))
+                for n, r in enumerate(wanted):
+                    signatures[(k, r)] = None if made is None else (made[0][n], made[1][n])
+        return [[signatures[(k, r)] for k in range(len(kept))] for r in records]
+
     for t in sorted(tumours, key=lambda t: -t.score):
         top = [spot for spot in t.spots if spot.force_N == t.levels_N[-1]]
-        records = {spot.record for spot in top}
         if not kept:
             kept.append(t)
             continue
-        for k in range(len(kept)):
-            wanted = sorted(r for r in records if (k, r) not in signatures)
-            if wanted:
-                said = signature(kept[k], np.array(wanted))
-                for n, r in enumerate(wanted):
-                    signatures[(k, r)] = None if said is None else (said[0][n], said[1][n])
         survives = False
-        for spot in top:
-            r = spot.record
-            said = [signatures[(k, r)] for k in range(len(kept))]
-            if any(s is None for s in said):
+        for spot, by_kept in zip(top, said([spot.record for spot in top])):
+            if any(s is None for s in by_kept):
                 survives = True
                 break
-            made = np.prod([1.0 + c for c, _ in said], axis=0)
-            residual = (1.0 + contrast.contrast[r]) / made - 1.0
-            sigma = np.sqrt(contrast.sigma[r] ** 2 + sum(e ** 2 for _, e in said))
+            r = spot.record
+            residual, sigma = _over(contrast, r, by_kept)
             z = evidence(residual, sigma, pitch_m, params.kernel_widths_m,
                          None if contrast.modes is None else contrast.modes[r])
             tsi = levels["tsi_position_m"][r]
@@ -321,30 +322,33 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
                 survives = True
                 break
         if survives:
-            kept.append(_placed_over(t, kept, levels, contrast, pitch_m, params, signature))
+            kept.append(_placed_over(t, levels, contrast, pitch_m, params, said))
     return sorted(kept, key=lambda t: (t.x_m, t.y_m))
 
 
-def _placed_over(t: Tumour, stronger: list[Tumour], levels: np.ndarray, contrast: Contrast, pitch_m: float,
-                 params: DetectParams, signature: Signature) -> Tumour:
+def _over(contrast: Contrast, record: int, said: list[tuple[np.ndarray, np.ndarray] | None]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """(contrast, its uncertainty) of ``record`` over what the spheres ``said`` make of its face (those
+    with no fit left out), their model error added."""
+    said = [s for s in said if s is not None]
+    made = np.prod([1.0 + c for c, _ in said], axis=0)
+    return ((1.0 + contrast.contrast[record]) / made - 1.0,
+            np.sqrt(contrast.sigma[record] ** 2 + sum(e ** 2 for _, e in said)))
+
+
+def _placed_over(t: Tumour, levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams,
+                 said: Callable[[list[int]], list[list[tuple[np.ndarray, np.ndarray] | None]]]) -> Tumour:
     """``t`` placed by its own contrast over what the stronger tumours' best-fitting spheres make of the
-    faces at its strongest level: a large tumour's far field slopes across a weaker one's blob and pulls its
-    peak towards it (an 8.5 mm-deep tumour 9 mm from a 12 mm-wide shallow one was placed 3.4 mm off, on the
-    side towards it). Its paper's depth is taken again where it now lies."""
+    faces at its strongest level (``said``): a large tumour's far field slopes across a weaker one's blob
+    and pulls its peak towards it (an 8.5 mm-deep tumour 9 mm from a 12 mm-wide shallow one was placed
+    3.4 mm off, on the side towards it). Its paper's depth is taken again where it now lies."""
     groups = level_groups(levels)
     lead = max(t.spots, key=lambda spot: spot.score)
     records = groups[lead.level_index][1]
-    made = np.ones((len(records),) + contrast.contrast.shape[1:])
-    error = np.zeros(made.shape)
-    for other in stronger:
-        said = signature(other, records)
-        if said is not None:
-            made *= 1.0 + said[0]
-            error += said[1] ** 2
     over = np.array(contrast.contrast, copy=True)
     sigma = np.array(contrast.sigma, copy=True)
-    over[records] = (1.0 + contrast.contrast[records]) / made - 1.0
-    sigma[records] = np.sqrt(contrast.sigma[records] ** 2 + error)
+    for r, by_kept in zip(records, said(list(records))):
+        over[r], sigma[r] = _over(contrast, r, by_kept)
     x, y = _blob_centre(levels, over, sigma, records, [(t.x_m, t.y_m)], pitch_m, params.fit_radius_m)
     first = next(records for force, records in groups if force == t.first_level_N)
     return replace(t, x_m=x, y_m=y, depth_m=_depth_at(levels, first, x, y, pitch_m))
@@ -394,9 +398,8 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
     beyond_edge = rows * pitch_m / 2
     for spot in sorted(found, key=lambda s: -s.score):
         clusters = per_level[spot.level_index]
-        places = [(spot.x_m, spot.y_m)] + ([spot.strongest_xy_m] if spot.at_edge else [])
         near = [c for c in clusters if any(_joins(spot, px, py, o, params.merge_radius_m, beyond_edge)
-                                           for o in c for px, py in places)]
+                                           for o in c for px, py in _places(spot))]
         if near:
             near[0].append(spot)
         else:
@@ -414,10 +417,10 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
             for t, track in enumerate(tracks):
                 last = track[max(track)][0]
                 d = math.hypot(lead.x_m - last.x_m, lead.y_m - last.y_m)
-                reached = d <= params.merge_radius_m or any(
-                    _joins(spot, px, py, last, params.merge_radius_m, beyond_edge)
-                    for spot in cluster if spot.at_edge for px, py in ((spot.x_m, spot.y_m), spot.strongest_xy_m))
-                if t not in claimed and max(track) < index and reached and d < best_d:
+                if t in claimed or max(track) >= index or d >= best_d:
+                    continue
+                if d <= params.merge_radius_m or any(_joins(spot, px, py, last, params.merge_radius_m, beyond_edge)
+                                                     for spot in cluster if spot.at_edge for px, py in _places(spot)):
                     best, best_d = t, d
             if best is None:
                 tracks.append({index: cluster})
@@ -445,6 +448,12 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
                               levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
                               spots=tuple(s for cluster in run for s in cluster)))
     return sorted(_merged(tumours, params, levels, contrast, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
+
+
+def _places(spot: Spot) -> list[tuple[float, float]]:
+    """Where ``spot`` is seen from when joining it to another: its centroid, and where its contrast is
+    largest if it reaches its face's edge (see :func:`detect`)."""
+    return [(spot.x_m, spot.y_m)] + ([spot.strongest_xy_m] if spot.at_edge else [])
 
 
 def _joins(spot: Spot, x_m: float, y_m: float, other: Spot, radius_m: float, beyond_edge_m: float) -> bool:
@@ -485,10 +494,10 @@ def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, con
 
 def _blob_centre(levels: np.ndarray, values: np.ndarray, sigma: np.ndarray, records: np.ndarray,
                  starts: list[tuple[float, float]], pitch_m: float, radius_m: float) -> tuple[float, float]:
-    """Where a Gaussian blob fitted to the contrast ``values`` (uncertainty ``sigma``) within ``radius_m`` of the
-    starting points, over every element of every record at that level, peaks (weighted least squares). From several starts (two tracks
-    of one tumour), every fit sees the same elements and the one that explains them best is kept; the first
-    start again if every fit fails or leaves its fitted region."""
+    """Where a Gaussian blob fitted to the contrast ``values`` (uncertainty ``sigma``) within ``radius_m`` of
+    the starting points, over every element of every record at that level, peaks (weighted least squares).
+    From several starts (two tracks of one tumour), every fit sees the same elements and the one that
+    explains them best is kept; the first start again if every fit fails or leaves its fitted region."""
     from scipy.optimize import least_squares
 
     rows, cols = levels.dtype["pressure_pa"].shape
