@@ -215,11 +215,17 @@ def threshold(false_alarm: float, shape: tuple[int, int], pitch_m: float, widths
     return float(np.quantile(largest, 1.0 - false_alarm))
 
 
-def significant_peaks(z: np.ndarray, limit: float) -> np.ndarray:
+def significant_peaks(z: np.ndarray, limit: float, contrast: np.ndarray) -> np.ndarray:
     """Where the statistic passes ``limit`` at a local maximum over its 8 neighbours (two tumours under one
-    face stay two): a boolean mask of the face."""
+    face stay two), among the elements that read harder than expected: a boolean mask of the face.
+
+    A tumour only ever stiffens the tissue, so no blob is centred where the contrast is not positive. The
+    widest blob centred on an element the flat field knows little of (the side of a face partly off a
+    ridge) sums its neighbours' contrast, and a far field rising across the face towards a strong tumour
+    peaked there, on the far edge, at contrast -0.14 and z 9, and was reported as a tumour of its own."""
     finite = np.nan_to_num(z, nan=-np.inf)
-    return (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+    peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
+    return peaks & (np.nan_to_num(contrast, nan=0.0) > 0)
 
 
 def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams) -> list[Spot]:
@@ -236,7 +242,7 @@ def spots(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detect
     for r in range(len(levels)):
         c, s = contrast.contrast[r], contrast.sigma[r]
         z = evidence(c, s, pitch_m, params.kernel_widths_m, None if contrast.modes is None else contrast.modes[r])
-        peaks = significant_peaks(z, limit)
+        peaks = significant_peaks(z, limit, c)
         tsi = levels["tsi_position_m"][r]
         near = np.hypot(offsets[..., 0][None, None] - offsets[..., 0][..., None, None],
                         offsets[..., 1][None, None] - offsets[..., 1][..., None, None])
@@ -318,7 +324,7 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
                          None if contrast.modes is None else contrast.modes[r])
             tsi = levels["tsi_position_m"][r]
             around = np.hypot(tsi[0] + offsets[..., 0] - spot.x_m, tsi[1] + offsets[..., 1] - spot.y_m) <= 1.5 * pitch_m
-            if np.nanmax(np.where(around, z, -np.inf)) > limit:
+            if np.nanmax(np.where(around & (np.nan_to_num(residual) > 0), z, -np.inf)) > limit:
                 survives = True
                 break
         if survives:

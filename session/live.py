@@ -126,7 +126,7 @@ class LiveMaps:
         c = np.where(np.isfinite(c), c, np.nan)
         z = evidence(c, sigma, self._sensor.pitch_m, params.kernel_widths_m)  # elements without contrast are left out
         limit = threshold(params.false_alarm_per_area, c.shape, self._sensor.pitch_m, params.kernel_widths_m)
-        peaks = significant_peaks(z, limit)
+        peaks = significant_peaks(z, limit, c)
         return FrameContrast(c, z, tuple((int(i), int(j)) for i, j in zip(*np.nonzero(peaks))),
                              float(pattern.forces_N[k]))
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from session.analysis import SessionAnalysis
-from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth, spots,
-                            threshold)
+from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth,
+                            significant_peaks, spots, threshold)
 from session.flatfield import Reference, contrast
 from session.reader import open_session
 from session.stitch import element_offsets_m
@@ -210,6 +210,22 @@ def test_a_contrast_shaped_like_an_uncertainty_shared_between_elements_is_not_ev
     offsets = element_offsets_m(*shape, PITCH)
     blob = 0.08 * np.exp(-0.5 * (offsets ** 2).sum(axis=-1) / 2e-3 ** 2)
     assert np.nanmax(evidence(blob, sigma, PITCH, widths, mode[None])) > limit
+
+
+def test_no_spot_is_centred_where_the_tissue_does_not_read_harder():
+    # A strong tumour's far field rising across a face towards it (s5519-0006): the face's far row, partly
+    # off a ridge, is known poorly, and its sink-in is the area's largest shared uncertainty. The widest
+    # blob centred there sums the rise two rows away and peaks there, at contrast -0.21.
+    shape, widths = (4, 15), DetectParams().kernel_widths_m
+    limit = threshold(0.01, shape, PITCH, widths)
+    rows = lambda values: np.repeat(np.array(values)[:, None], shape[1], axis=1)  # noqa: E731
+    far_field = rows([0.14, 0.09, -0.04, -0.21])
+    sink_in = rows([-0.04, -0.015, 0.06, 0.49])[None]
+    z = evidence(far_field, rows([0.04, 0.025, 0.065, 0.49]), PITCH, widths, sink_in)
+    assert np.unravel_index(np.nanargmax(z), shape)[0] == 3 and np.nanmax(z) > 2 * limit
+    assert not significant_peaks(z, limit, far_field).any()
+    # where the tissue does read harder, the same statistic is a spot
+    assert significant_peaks(z, limit, far_field + 0.3).any()
 
 
 def test_a_strong_tumours_far_field_at_the_edge_of_the_area_beyond_the_next_is_that_tumour():
