@@ -86,7 +86,7 @@ class SessionAnalysis:
             tumours = [t for source in SOURCES
                        for t in explained_away([t for t in tumours if t.source == source], levels, contrasts[source],
                                                session.pitch_m, params.detect, signature)]
-            # where each now lies (a weaker one is placed over the stronger ones' far field); the stiffness
+            # where each now lies (each is placed over the others' far fields); the stiffness
             # contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
             tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
         stitched = stitch_session(session, params.stitch,

@@ -423,9 +423,42 @@ def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_f
     assert math.hypot(pulled.x_m - 0.021, pulled.y_m - 0.020) > 1.5e-3
 
     def signature(tumour, records):
-        return strong[records], np.zeros((len(records), 4, 15))
+        made = strong if tumour.score > pulled.score else weak
+        return made[records], np.zeros((len(records), 4, 15))
 
     kept = explained_away(found, levels, seen, PITCH, DetectParams(), signature)
     placed = min(kept, key=lambda t: t.score)
     assert math.hypot(placed.x_m - 0.021, placed.y_m - 0.020) < 0.2e-3
     assert placed.depth_m == levels["indentation_m"][(levels["region"] == 1) & (levels["level"] == 0)][0]
+
+
+def test_two_tumours_each_pulled_towards_the_other_are_placed_over_each_other():
+    # Two stiff tumours 11 mm apart, each with a far field that slopes across the other's blob: each is
+    # detected pulled towards the other (the stronger one by 0.8 mm). The weaker one placed over the
+    # stronger one's sphere solved where that was misplaced would be pushed away; placed over each other's
+    # spheres, each solved where the other now lies, both stand where they are.
+    from types import SimpleNamespace
+
+    from session.detect import explained_away
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
+    truths = [(0.016, 0.012, 0.9, 0.4), (0.026, 0.017, 0.4, 0.3)]  # x, y, blob and far-field heights
+
+    def field(x_m, y_m, blob, far):
+        d = np.hypot(xy[..., 0] - x_m, xy[..., 1] - y_m)
+        return blob * np.exp(-0.5 * (d / 2.5e-3) ** 2) + far * np.exp(-0.5 * (d / 6e-3) ** 2)
+
+    both = np.prod([1.0 + field(*truth) for truth in truths], axis=0) - 1.0
+    seen = SimpleNamespace(map="stiffness", contrast=both, sigma=np.full(both.shape, 0.03), modes=None)
+    found = sorted(detect(levels, seen, PITCH), key=lambda t: -t.score)
+    assert len(found) == 2
+    assert math.hypot(found[0].x_m - 0.016, found[0].y_m - 0.012) > 0.6e-3
+
+    def signature(tumour, records):  # each sphere's field, solved where the tumour now lies
+        _, _, blob, far = min(truths, key=lambda truth: math.hypot(truth[0] - tumour.x_m, truth[1] - tumour.y_m))
+        return field(tumour.x_m, tumour.y_m, blob, far)[records], np.zeros((len(records), 4, 15))
+
+    kept = sorted(explained_away(found, levels, seen, PITCH, DetectParams(), signature), key=lambda t: -t.score)
+    for placed, (x, y, _, _) in zip(kept, truths):
+        assert math.hypot(placed.x_m - x, placed.y_m - y) < 0.2e-3
