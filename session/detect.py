@@ -223,7 +223,7 @@ def significant_peaks(z: np.ndarray, limit: float, contrast: np.ndarray) -> np.n
     A tumour only ever stiffens the tissue, so no blob is centred where the contrast is not positive. The
     widest blob centred on an element the flat field knows little of (the side of a face partly off a
     ridge) sums its neighbours' contrast, and a far field rising across the face towards a strong tumour
-    peaked there, on the far edge, at contrast -0.14 and z 9, and was reported as a tumour of its own."""
+    peaked there, on the far edge, at contrast -0.21 and z 9, and was reported as a tumour of its own."""
     finite = np.nan_to_num(z, nan=-np.inf)
     peaks = (finite > limit) & (finite >= ndimage.maximum_filter(finite, size=3, mode="constant", cval=-np.inf))
     return peaks & (np.nan_to_num(contrast, nan=0.0) > 0)
