@@ -26,7 +26,7 @@ import numpy as np
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS, DepthModel
-from session.detect import SOURCES, DetectParams, Tumour, detect, evidence, significant_peaks, threshold
+from session.detect import SOURCES, DetectParams, Tumour, detect, evidence_by_width, significant_peaks, threshold
 from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, level_groups, stitch
@@ -124,9 +124,11 @@ class LiveMaps:
         params = self.detect_params
         sigma = np.maximum(np.nan_to_num(scatter, nan=0.0), params.accuracy)
         c = np.where(np.isfinite(c), c, np.nan)
-        z = evidence(c, sigma, self._sensor.pitch_m, params.kernel_widths_m)  # elements without contrast are left out
+        # elements without contrast are left out
+        by_width = evidence_by_width(c, sigma, self._sensor.pitch_m, params.kernel_widths_m)
         limit = threshold(params.false_alarm_per_area, c.shape, self._sensor.pitch_m, params.kernel_widths_m)
-        peaks = significant_peaks(z, limit, c)
+        peaks = significant_peaks(by_width, limit, c)
+        z = np.max(by_width, axis=0)
         return FrameContrast(c, z, tuple((int(i), int(j)) for i, j in zip(*np.nonzero(peaks))),
                              float(pattern.forces_N[k]))
 

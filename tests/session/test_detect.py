@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from session.analysis import SessionAnalysis
-from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, match_ground_truth,
-                            significant_peaks, spots, threshold)
+from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, evidence_by_width,
+                            match_ground_truth, significant_peaks, spots, threshold)
 from session.flatfield import Reference, contrast
 from session.reader import open_session
 from session.stitch import element_offsets_m
@@ -210,6 +210,27 @@ def test_a_contrast_shaped_like_an_uncertainty_shared_between_elements_is_not_ev
     offsets = element_offsets_m(*shape, PITCH)
     blob = 0.08 * np.exp(-0.5 * (offsets ** 2).sum(axis=-1) / 2e-3 ** 2)
     assert np.nanmax(evidence(blob, sigma, PITCH, widths, mode[None])) > limit
+
+
+def test_a_weaker_tumour_beside_a_stronger_one_under_one_face_is_a_spot_of_its_own():
+    # s7043-0002: a shallow tumour 8 mm across the face from a stronger one. The widest blob sums both and
+    # has one maximum, on the stronger one; the narrower blob has one on each.
+    shape, widths = (4, 15), DetectParams().kernel_widths_m
+    limit = threshold(0.01, shape, PITCH, widths)
+    offsets = element_offsets_m(*shape, PITCH)
+
+    def blob(i, j, height, width_m=2e-3):
+        return height * np.exp(-0.5 * ((offsets - offsets[i, j]) ** 2).sum(axis=-1) / width_m ** 2)
+
+    contrast, sigma = blob(0, 5, 1.0) + blob(1, 9, 0.5), np.full(shape, 0.05)
+    widest_wins = evidence(contrast, sigma, PITCH, widths)
+    assert np.argwhere(significant_peaks(widest_wins, limit, contrast)).tolist() == [[0, 5]]
+    by_width = evidence_by_width(contrast, sigma, PITCH, widths)
+    assert np.argwhere(significant_peaks(by_width, limit, contrast)).tolist() == [[0, 5], [1, 9]]
+    # and one tumour is one spot though its widths peak on neighbouring elements (a sharp peak, and a broad
+    # skirt centred a row and a column over)
+    one = blob(0, 7, 0.8, 1e-3) + blob(2, 8, 0.3, 4e-3)
+    assert significant_peaks(evidence_by_width(one, sigma, PITCH, widths), limit, one).sum() == 1
 
 
 def test_no_spot_is_centred_where_the_tissue_does_not_read_harder():
