@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
-                            match_ground_truth)
+                            match_ground_truth, over_the_others)
 from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
@@ -86,9 +86,14 @@ class SessionAnalysis:
             tumours = [t for source in SOURCES
                        for t in explained_away([t for t in tumours if t.source == source], levels, contrasts[source],
                                                session.pitch_m, params.detect, signature)]
-            # where each now lies (each is placed over the others' far fields); the stiffness
-            # contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
-            tumours = [t.with_depth_model(*depth_model.estimate(t, levels, contrasts["stiffness"])) for t in tumours]
+            # where each now lies (each is placed over the others' far fields), from what stands out over
+            # the others' spheres, for the model explains one; the stiffness contrast for either map's
+            # tumours: Eq. 1 has taken the surface's relief out of it
+            face_length = levels.dtype["pressure_pa"].shape[0] * session.pitch_m  # the estimate reads half that
+            tumours = [t.with_depth_model(*depth_model.estimate(
+                t, levels, over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels,
+                                           contrasts["stiffness"], signature, face_length)))
+                       for t in tumours]
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)

@@ -403,6 +403,20 @@ def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Co
     return kept
 
 
+def over_the_others(tumour: Tumour, others: list[Tumour], levels: np.ndarray, contrast: Contrast,
+                    signature: Signature, reach_m: float) -> Contrast:
+    """``contrast`` over what the best-fitting spheres of ``others`` make of the faces of the records whose
+    centre lies within ``reach_m`` of ``tumour`` along x, their model error added: what ``tumour`` itself
+    did to the tissue, for a model of one sphere to explain. Faces no other reaches are left as they are."""
+    records = np.flatnonzero(np.abs(levels["tsi_position_m"][:, 0] - tumour.x_m) <= reach_m)
+    said = _Said(signature)(others, list(records)) if others and len(records) else []
+    over, sigma = np.array(contrast.contrast, copy=True), np.array(contrast.sigma, copy=True)
+    for r, by in zip(records, said):
+        if any(s is not None and s[0].any() for s in by):
+            over[r], sigma[r] = _over(contrast, r, by)
+    return replace(contrast, contrast=over, sigma=sigma)
+
+
 def _over(contrast: Contrast, record: int, said: list[tuple[np.ndarray, np.ndarray] | None]
           ) -> tuple[np.ndarray, np.ndarray]:
     """(contrast, its uncertainty) of ``record`` over what the spheres ``said`` make of its face (those

@@ -453,6 +453,36 @@ def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_f
     assert placed.depth_m == levels["indentation_m"][(levels["region"] == 1) & (levels["level"] == 0)][0]
 
 
+def test_a_tumours_depth_is_read_over_the_other_tumours_spheres():
+    # s7043-0002: a 1.9 mm-deep tumour 8 mm across one face from a larger one was read 10.4 mm deep, the
+    # other's skirt fitted as its own broad, deep sphere. What the model of one sphere is given is each
+    # face's contrast over the other's sphere, its model error added, on the faces that could hold it.
+    from session.detect import over_the_others
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
+    skirt = 0.3 * np.exp(-0.5 * (np.hypot(xy[..., 0] - 0.020, xy[..., 1] - 0.010) / 4e-3) ** 2)
+    own = 0.2 * np.exp(-0.5 * (np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.018) / 2e-3) ** 2)
+    both = (1.0 + skirt) * (1.0 + own) - 1.0
+    seen = replace(contrast(levels, "stiffness"), contrast=both, sigma=np.full(both.shape, 0.03), modes=None)
+    weak, strong = (Tumour(x, y, 2e-3, 1.0, "stiffness", score, 0.3, (1.0,))
+                    for x, y, score in ((0.021, 0.018, 10.0), (0.020, 0.010, 50.0)))
+    asked = []
+
+    def signature(tumour, records):
+        asked.append((tumour, tuple(records)))
+        return skirt[records], 0.1 * skirt[records]
+
+    over = over_the_others(weak, [strong], levels, seen, signature, 8e-3)
+    near = np.abs(levels["tsi_position_m"][:, 0] - 0.021) <= 8e-3
+    assert asked == [(strong, tuple(np.flatnonzero(near)))]
+    np.testing.assert_allclose(over.contrast[near], own[near], atol=1e-12)
+    np.testing.assert_allclose(over.sigma[near], np.hypot(0.03, 0.1 * skirt[near]))
+    assert np.array_equal(over.contrast[~near], both[~near]) and np.all(over.sigma[~near] == 0.03)
+    alone = over_the_others(weak, [], levels, seen, signature, 8e-3)  # no other: the contrast as it is
+    assert alone.contrast is not both and np.array_equal(alone.contrast, both)
+
+
 def test_two_tumours_each_pulled_towards_the_other_are_placed_over_each_other():
     # Two stiff tumours 11 mm apart, each with a far field that slopes across the other's blob: each is
     # detected pulled towards the other (the stronger one by 0.8 mm). The weaker one placed over the
