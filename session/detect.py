@@ -393,10 +393,7 @@ def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Co
             by_others = said(others, list(records))
             if not any(s is not None and s[0].any() for by in by_others for s in by):
                 continue
-            over = np.array(contrast.contrast, copy=True)
-            sigma = np.array(contrast.sigma, copy=True)
-            for r, by in zip(records, by_others):
-                over[r], sigma[r] = _over(contrast, r, by)
+            over, sigma = _over_faces(contrast, records, by_others)
             x, y = _blob_centre(levels, over, sigma, records, [(t.x_m, t.y_m)], pitch_m, params.fit_radius_m)
             first = next(records for force, records in groups if force == t.first_level_N)
             kept[n] = replace(t, x_m=x, y_m=y, depth_m=_depth_at(levels, first, x, y, pitch_m))
@@ -409,12 +406,19 @@ def over_the_others(tumour: Tumour, others: list[Tumour], levels: np.ndarray, co
     centre lies within ``reach_m`` of ``tumour`` along x, their model error added: what ``tumour`` itself
     did to the tissue, for a model of one sphere to explain. Faces no other reaches are left as they are."""
     records = np.flatnonzero(np.abs(levels["tsi_position_m"][:, 0] - tumour.x_m) <= reach_m)
-    said = _Said(signature)(others, list(records)) if others and len(records) else []
+    over, sigma = _over_faces(contrast, records, _Said(signature)(others, list(records)))
+    return replace(contrast, contrast=over, sigma=sigma)
+
+
+def _over_faces(contrast: Contrast, records, said: list[list[tuple[np.ndarray, np.ndarray] | None]]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Every record's (contrast, uncertainty), those of ``records`` over what the spheres ``said`` (per
+    record) make of their faces (:func:`_over`); a face no sphere reaches is left as it is."""
     over, sigma = np.array(contrast.contrast, copy=True), np.array(contrast.sigma, copy=True)
     for r, by in zip(records, said):
         if any(s is not None and s[0].any() for s in by):
             over[r], sigma[r] = _over(contrast, r, by)
-    return replace(contrast, contrast=over, sigma=sigma)
+    return over, sigma
 
 
 def _over(contrast: Contrast, record: int, said: list[tuple[np.ndarray, np.ndarray] | None]
