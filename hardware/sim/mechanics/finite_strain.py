@@ -13,6 +13,13 @@ the table, geometrically and materially nonlinear:
   & Pister 1985), so it does not lock either;
 * contact: the nodes under the face follow it down and slide freely (frictionless), material drawn in
   under the face's edge joins the contact and a node that pulls on the face leaves it;
+* the face's edge: hexahedra have straight top edges, so as the tissue beside the face rises the element
+  across the edge cut through the face's corner (by up to 2.5 mm at 8 mm on a 2 mm mesh), rolled about
+  it, and no step converged further. In each row of top nodes along x the corner is held on or above the
+  top segment across the edge (a gap held by a Lagrange multiplier, its vertical force counted in the
+  edge row's element), a node that slides out to the corner stays there, and tissue rising beside the
+  face stays outside its side plane. This does not cover the face's edge where it meets a free side of
+  the block, a corner in 3-D, which is where fine meshes stop (see :func:`punch`);
 * sides free, or on frictionless walls (a phantom in its mould);
 * solution: Newton's method on load steps (halved when one does not converge), with element tangents
   from complex-step differentiation of the element forces (exact to rounding, no hand-derived geometric
@@ -334,8 +341,10 @@ def punch(length_m: float, width_m: float, thickness_m: float, material: Materia
     ``material`` gives (E, nu) at points in coordinates centred on the face (x, y from its centre, z up
     from the table); it must be symmetric about x = 0 and y = 0, for only a quarter is meshed. ``sides``:
     "free", or "mould" (the block's lateral faces slide on frictionless walls). A load step that does not
-    converge is halved, down to a sixteenth; the solution ends where even that fails (the elements at the
-    face's sharp edge, a strain singularity, have sheared past what hexahedra can follow).
+    converge is halved, down to a sixteenth; the solution ends where even that fails. On the flat phantom
+    (25 mm) a 2 mm mesh and a 1 mm one, both with nodes 2 mm apart along the face's long side, reach 10 mm;
+    finer meshes stop where the face's edge meets the block's free side (1 mm along both sides: 9.3 mm
+    deep; 0.5 mm along x: 6.7 mm).
     """
     if sides not in SIDES:
         raise ValueError(f"sides must be one of {SIDES}, got {sides!r}")
