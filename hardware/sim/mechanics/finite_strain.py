@@ -203,12 +203,14 @@ def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
     half sizes) and pushes on it; material drawn in under the face's edge joins the contact, and a node
     pulled away from the face leaves it. Hexahedra have straight top edges, and the face's edge is not a
     node: in each row along x the element across the edge would cut through the face's corner as the
-    tissue beside it rises, and roll about it. So three more constraints, each held while it pushes:
+    tissue beside it rises, and roll about it. So three more constraints:
 
     * the corner is on or above the row's top segment that crosses the edge (a gap with a Lagrange
-      multiplier: the corner presses on the segment along its normal);
-    * a node that slides out along the face's bottom to its edge stays at the corner;
-    * a node beside the face, above its bottom plane, stays outside its side plane.
+      multiplier, held while the corner presses on the segment along its normal);
+    * a node that slides out along the face's bottom to its edge stays at the corner while it is on the
+      face; it may slide back in only once the tissue beside it is below the face's bottom;
+    * a node beside the face, above its bottom plane, stays outside its side plane while the side
+      pushes on it.
 
     Returns the converged displacements and contact, the face's force on each top node it holds, and
     each row's corner force (vertical components; both > 0 pushing down).
