@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
-                            match_ground_truth, over_the_others)
+                            match_ground_truth, over_each_other)
 from session.flatfield import Contrast, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
@@ -80,20 +80,21 @@ class SessionAnalysis:
         if depth_model is not None:
             depth_model = depth_model.with_params(params.depth)
 
+            def fitted(tumour, seen, records):
+                return depth_model.signature(tumour, levels, seen, records)
+
             def signature(tumour, records):
-                return depth_model.signature(tumour, levels, contrasts["stiffness"], records)
+                return fitted(tumour, contrasts["stiffness"], records)
 
             tumours = [t for source in SOURCES
                        for t in explained_away([t for t in tumours if t.source == source], levels, contrasts[source],
                                                session.pitch_m, params.detect, signature)]
             # where each now lies (each is placed over the others' far fields), from what stands out over
-            # the others' spheres, for the model explains one; the stiffness contrast for either map's
-            # tumours: Eq. 1 has taken the surface's relief out of it
+            # the others' spheres (each fitted over the rest), for the model explains one; the stiffness
+            # contrast for either map's tumours: Eq. 1 has taken the surface's relief out of it
             face_length = levels.dtype["pressure_pa"].shape[0] * session.pitch_m  # the estimate reads half that
-            tumours = [t.with_depth_model(*depth_model.estimate(
-                t, levels, over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels,
-                                           contrasts["stiffness"], signature, face_length)))
-                       for t in tumours]
+            tumours = [t.with_depth_model(*depth_model.estimate(t, levels, seen)) for t, seen in
+                       zip(tumours, over_each_other(tumours, levels, contrasts["stiffness"], fitted, face_length))]
         stitched = stitch_session(session, params.stitch,
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)

@@ -404,30 +404,67 @@ def over_the_others(tumour: Tumour, others: list[Tumour], levels: np.ndarray, co
                     signature: Signature, reach_m: float) -> Contrast:
     """``contrast`` over what the best-fitting spheres of ``others`` make of the faces of the records whose
     centre lies within ``reach_m`` of ``tumour`` along x, their model error added: what ``tumour`` itself
-    did to the tissue, for a model of one sphere to explain. Faces no other reaches are left as they are."""
+    did to the tissue, for a model of one sphere to explain. Faces no other reaches are left as they are.
+
+    A contrast is over its face's median (the record's scale, :mod:`session.flatfield`), and two tumours
+    under one face raise that median where one does not: the small tumour of a face that also held a
+    large one read 7 % low everywhere, its healthy elements -0.07 where they stood at 0, a skirt that made
+    it a shallow sphere (4.6 mm deep read as 1.1 mm, s5519-0006). So each face is scaled back by the
+    median of what the spheres, ``tumour``'s own among them, make of it together."""
     records = np.flatnonzero(np.abs(levels["tsi_position_m"][:, 0] - tumour.x_m) <= reach_m)
-    over, sigma = _over_faces(contrast, records, _Said(signature)(others, list(records)))
+    said = _Said(signature)([tumour, *others], list(records))
+    over, sigma = _over_faces(contrast, records, [by[1:] for by in said], [by[0] for by in said])
     return replace(contrast, contrast=over, sigma=sigma)
 
 
-def _over_faces(contrast: Contrast, records, said: list[list[tuple[np.ndarray, np.ndarray] | None]]
-                ) -> tuple[np.ndarray, np.ndarray]:
+# What the sphere that best explains a tumour in a given contrast makes of level records' faces: (tumour,
+# contrast, records) -> as Signature
+FittedSignature = Callable[[Tumour, Contrast, np.ndarray], "tuple[np.ndarray, np.ndarray] | None"]
+
+# A sphere fitted where a neighbour's skirt is still in the contrast takes part of it as its own, and the
+# neighbour read over it then loses that part twice. Each sphere is fitted again over the others' fits of
+# the sweep before, until the fits settle (the model's fit is the mode of a grid, so they do) or for at
+# most this many sweeps: what is double counted shrinks each sweep by about the square of the share of one
+# tumour's footprint that reaches the other's centre (by half, for two broad ones 4.5 mm apart).
+DEPTH_SWEEPS = 4
+
+
+def over_each_other(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast, fitted: FittedSignature,
+                    reach_m: float) -> list[Contrast]:
+    """Each tumour's ``contrast`` over the spheres of the other tumours of its map (:func:`over_the_others`),
+    each of those fitted, in sweeps, to its own contrast over the others of the sweep before (the first
+    sweep fits them to ``contrast`` itself)."""
+    over = [contrast] * len(tumours)
+    for _ in range(DEPTH_SWEEPS if len(tumours) > 1 else 1):
+        given = dict(zip(tumours, over))
+        over = [over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels, contrast,
+                                lambda o, records: fitted(o, given[o], records), reach_m) for t in tumours]
+        if all(np.array_equal(new.contrast, given[t].contrast) for t, new in zip(tumours, over)):
+            break
+    return over
+
+
+def _over_faces(contrast: Contrast, records, said: list[list[tuple[np.ndarray, np.ndarray] | None]],
+                own: list[tuple[np.ndarray, np.ndarray] | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every record's (contrast, uncertainty), those of ``records`` over what the spheres ``said`` (per
-    record) make of their faces (:func:`_over`); a face no sphere reaches is left as it is."""
+    record) make of their faces (:func:`_over`), with the face's scale put back as the spheres and the
+    tumour's ``own`` (per record) make it; a face no sphere reaches is left as it is."""
     over, sigma = np.array(contrast.contrast, copy=True), np.array(contrast.sigma, copy=True)
-    for r, by in zip(records, said):
+    for n, (r, by) in enumerate(zip(records, said)):
         if any(s is not None and s[0].any() for s in by):
-            over[r], sigma[r] = _over(contrast, r, by)
+            over[r], sigma[r] = _over(contrast, r, by, None if own is None else own[n])
     return over, sigma
 
 
-def _over(contrast: Contrast, record: int, said: list[tuple[np.ndarray, np.ndarray] | None]
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _over(contrast: Contrast, record: int, said: list[tuple[np.ndarray, np.ndarray] | None],
+          own: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(contrast, its uncertainty) of ``record`` over what the spheres ``said`` make of its face (those
-    with no fit left out), their model error added."""
+    with no fit left out), their model error added; with the tumour's ``own`` sphere, times the median of
+    what all of them make of the face together (each sphere's contrast is over its own face's median)."""
     said = [s for s in said if s is not None]
     made = np.prod([1.0 + c for c, _ in said], axis=0)
-    return ((1.0 + contrast.contrast[record]) / made - 1.0,
+    scale = 1.0 if own is None else float(np.median((1.0 + own[0]) * made))
+    return ((1.0 + contrast.contrast[record]) * scale / made - 1.0,
             np.sqrt(contrast.sigma[record] ** 2 + sum(e ** 2 for _, e in said)))
 
 
