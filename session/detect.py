@@ -411,9 +411,14 @@ def over_the_others(tumour: Tumour, others: list[Tumour], levels: np.ndarray, co
     large one read 7 % low everywhere, its healthy elements -0.07 where they stood at 0, a skirt that made
     it a shallow sphere (4.6 mm deep read as 1.1 mm, s5519-0006). So each face is scaled back by the
     median of what the spheres, ``tumour``'s own among them, make of it together."""
+    return _over_the_others(tumour, others, levels, contrast, _Said(signature), reach_m)
+
+
+def _over_the_others(tumour: Tumour, others: list[Tumour], levels: np.ndarray, contrast: Contrast, said: _Said,
+                     reach_m: float) -> Contrast:
     records = np.flatnonzero(np.abs(levels["tsi_position_m"][:, 0] - tumour.x_m) <= reach_m)
-    said = _Said(signature)([tumour, *others], list(records))
-    over, sigma = _over_faces(contrast, records, [by[1:] for by in said], [by[0] for by in said])
+    made = said([tumour, *others], list(records))
+    over, sigma = _over_faces(contrast, records, [by[1:] for by in made], [by[0] for by in made])
     return replace(contrast, contrast=over, sigma=sigma)
 
 
@@ -437,8 +442,10 @@ def over_each_other(tumours: list[Tumour], levels: np.ndarray, contrast: Contras
     over = [contrast] * len(tumours)
     for _ in range(DEPTH_SWEEPS if len(tumours) > 1 else 1):
         given = dict(zip(tumours, over))
-        over = [over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels, contrast,
-                                lambda o, records: fitted(o, given[o], records), reach_m) for t in tumours]
+        # a sphere's fit in this sweep is the same whichever tumour is read over it: solved once
+        said = _Said(lambda o, records: fitted(o, given[o], records))
+        over = [_over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels, contrast,
+                                 said, reach_m) for t in tumours]
         if all(np.array_equal(new.contrast, given[t].contrast) for t, new in zip(tumours, over)):
             break
     return over
