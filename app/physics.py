@@ -215,8 +215,8 @@ class BlockResponse(HomogeneousTissue):
                  nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int],
                  finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0):
         super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}: the palpated extent "
-                         "and the measured surface, finite elements"
-                         + (", finite strain)" if finite_strain is not None else ")"), cover_spread_m, pitch_m, shape)
+                         f"and the measured surface, finite elements{_finite(finite_strain)})", cover_spread_m,
+                         pitch_m, shape)
         self.block = block
         self.origin_xy_m = origin_xy_m
         self.finite_strain = finite_strain
@@ -584,6 +584,17 @@ def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | 
     except OSError:
         pass  # an unwritable cache only costs the recomputation next time
     return compliance, nodes
+
+
+def _finite(finite_strain: FiniteStrain | None) -> str:
+    from hardware.sim.mechanics.model import FIT_STRAIN
+
+    if finite_strain is None:
+        return ""
+    if finite_strain.fit_strain < FIT_STRAIN:
+        return (f", finite strain solved to {finite_strain.fit_strain:.0%} of {FIT_STRAIN:.0%} and held "
+                "beyond")
+    return ", finite strain"
 
 
 def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None

@@ -251,6 +251,9 @@ def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress
                      sides=phantom.sides, law=phantom.material, progress=progress)
     if len(solution.indentation_m) < 3:
         raise RuntimeError("the finite-strain solution did not get past its second step")
+    # A solve that stops short is fitted as far as it got and held beyond (FiniteStrain.scale): a quadratic
+    # through three points within 4 % strain, extrapolated to 32 %, once took a block's force to 0.28 of
+    # its linear value.
     s = solution.indentation_m[1:] / phantom.thickness_m
     basis = np.stack([s, s * s], axis=1)
     linear = solution.linear_N()[1:].reshape(len(s), -1)
@@ -261,7 +264,7 @@ def _stiffening(phantom: Phantom, sensor: TactileConstraints, progress: Progress
     coeffs = np.zeros((2, linear.shape[1]))  # elements off the phantom carry nothing to scale
     coeffs[:, loaded] = per_element
     total, *_ = np.linalg.lstsq(basis, solution.curve().ratio()[1:] - 1.0, rcond=None)
-    return {"element_ab": coeffs, "total_ab": total}
+    return {"element_ab": coeffs, "total_ab": total, "fit_strain": np.array(min(s[-1], FIT_STRAIN))}
 
 
 # The strain at which the inclusions are tabulated where the compressed layer has carried them (see
@@ -294,22 +297,27 @@ class FiniteStrain:
 
     element_ab: np.ndarray  # (2, elements): each element's (a, b)
     total_ab: tuple[float, float]  # the total force's (a, b)
+    fit_strain: float = FIT_STRAIN  # as far as the solve got, and the fit goes
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> FiniteStrain:
-        return cls(np.asarray(arrays["element_ab"], dtype=float), tuple(float(v) for v in arrays["total_ab"]))
+        return cls(np.asarray(arrays["element_ab"], dtype=float), tuple(float(v) for v in arrays["total_ab"]),
+                   float(arrays["fit_strain"]))
 
     def scale(self, strain: np.ndarray) -> np.ndarray:
         """Each element's nonlinear over linear force at its nominal strain (flat, one per element)."""
         # Past the strains solved, the pattern is held where it was solved and only the total keeps
         # stiffening along the fitted curve: extrapolating each element's own curve would grow the
-        # face's edge peaks without anything to check them against.
-        held = np.minimum(strain, FIT_STRAIN)
+        # face's edge peaks without anything to check them against. The total never softens out there: a
+        # homogeneous layer only stiffens as it is pressed, so a fit that bends down is held at its top.
+        held = np.minimum(strain, self.fit_strain)
         a, b = self.element_ab
         out = 1.0 + held * (a + b * held)
-        if strain.max() > FIT_STRAIN:
+        if strain.max() > self.fit_strain:
             a_total, b_total = self.total_ab
-            out *= (1.0 + strain * (a_total + b_total * strain)) / (1.0 + held * (a_total + b_total * held))
+            top = -a_total / (2.0 * b_total) if b_total < 0 else np.inf
+            beyond = np.minimum(strain, max(top, self.fit_strain))
+            out *= (1.0 + beyond * (a_total + b_total * beyond)) / (1.0 + held * (a_total + b_total * held))
         return out
 
 
@@ -330,7 +338,7 @@ def _stiffening_cached(phantom: Phantom, sensor: TactileConstraints, folder: Pat
 
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
     if (np.asarray(arrays["element_ab"]).ndim != 2 or len(arrays["element_ab"]) != 2
-            or np.asarray(arrays["total_ab"]).shape != (2,)):
+            or np.asarray(arrays["total_ab"]).shape != (2,) or not 0 < float(arrays["fit_strain"]) <= FIT_STRAIN):
         raise ValueError("inconsistent cache entry")
 
 

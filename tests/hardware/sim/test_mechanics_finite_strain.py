@@ -5,7 +5,8 @@ import pytest
 
 from hardware.sim.mechanics.fem import HexGrid, assemble_sparse, graded_levels
 from hardware.sim.mechanics.finite_strain import HyperelasticBlock, corner_gap, homogeneous, punch
-from hardware.sim.mechanics.model import FIT_STRAIN, ContinuumTissue, MeshSettings, compressed_material
+from hardware.interfaces import TactileConstraints
+from hardware.sim.mechanics.model import FIT_STRAIN, ContinuumTissue, FiniteStrain, MeshSettings, compressed_material
 from hardware.sim.phantom import Hyperelastic, parse_phantom
 
 
@@ -64,9 +65,12 @@ def test_the_corner_gap_is_the_corner_s_height_over_the_segment_and_its_derivati
     assert np.allclose(hess, np.swapaxes(hess, 1, 2), atol=1e-9 * np.abs(hess).max())
 
 
-def test_the_face_presses_on_past_where_the_element_across_its_edge_cut_its_corner():
+# The second width is a rebuilt block's: the face's 30 mm plus rounding. Taken as wider than the face, it
+# stopped converging at 1.1 mm.
+@pytest.mark.parametrize("width_m", [0.030, 0.030000000000000002])
+def test_the_face_presses_on_past_where_the_element_across_its_edge_cut_its_corner(width_m):
     # Without the corner held outside the tissue this block stops converging at 3.9 mm.
-    solved = punch(0.024, 0.030, 0.010, homogeneous(20e3, 0.49), max_indentation_m=4.5e-3, step_m=0.5e-3,
+    solved = punch(0.024, width_m, 0.010, homogeneous(20e3, 0.49), max_indentation_m=4.5e-3, step_m=0.5e-3,
                    spacing_m=2e-3, layers=5)
     assert np.allclose(solved.indentation_m, np.arange(10) * 0.5e-3)  # no step halved
     assert solved.all_compressive
@@ -129,6 +133,33 @@ def test_an_inclusion_shows_more_as_the_face_presses_deeper_as_a_full_solve_find
     model_growth = (1.0 + fin[1]) / (1.0 + fin[0]) - 1.0
     assert full_growth > 0.03  # the physics: the tissue over the sphere thins
     assert 0.5 * full_growth < model_growth < 1.5 * full_growth
+
+
+def test_a_solve_that_stops_short_is_fitted_as_far_as_it_got_and_held_beyond(monkeypatch):
+    from hardware.sim.mechanics import finite_strain
+    from hardware.sim.mechanics.model import _stiffening
+
+    solve = finite_strain.punch
+
+    def stopping_short(*args, max_indentation_m, step_m, **kwargs):  # as a solve whose steps stop converging
+        return solve(*args, max_indentation_m=2 * step_m, step_m=step_m, **kwargs)
+
+    monkeypatch.setattr(finite_strain, "punch", stopping_short)
+    fitted = FiniteStrain.from_arrays(_stiffening(parse_phantom({"phantom": BLOCK}), TactileConstraints(), None))
+    assert fitted.fit_strain == pytest.approx(2 * FIT_STRAIN / 5)
+    held = fitted.scale(np.full(60, fitted.fit_strain))
+    deeper = fitted.scale(np.full(60, FIT_STRAIN))
+    assert np.allclose(deeper / held, deeper[0] / held[0])  # the pattern held, only the total goes on
+    assert deeper[0] / held[0] > 1.0
+
+
+def test_stiffening_fitted_to_a_short_solve_never_softens_beyond_it():
+    # a block's fit from three points within 4 % strain, as a solve that stopped there gave it
+    bent = FiniteStrain(np.stack([np.full(60, 35.0), np.full(60, -1063.0)]), (1.0, -2.0), fit_strain=0.04)
+    strain = np.linspace(0.04, 0.5, 47)
+    scale = np.array([bent.scale(np.full(60, s))[0] for s in strain])
+    top = strain >= 0.25  # where the total's fitted curve would turn down
+    assert np.all(np.diff(scale[~top]) > 0) and np.allclose(scale[top], scale[top][0])
 
 
 def test_a_yeoh_law_with_a_positive_second_term_stiffens_faster_than_neo_hookean():
