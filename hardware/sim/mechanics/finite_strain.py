@@ -332,7 +332,7 @@ class PunchSolution:
                                self.nonlinear_N.sum(axis=(1, 2)), self.all_compressive)
 
 
-SAME_WIDTH_M = 1e-6
+SAME_WIDTH_M = 1e-6  # a face this close to the block's width is as wide as the block (see punch)
 
 
 def punch(length_m: float, width_m: float, thickness_m: float, material: MaterialFn,
@@ -376,7 +376,7 @@ def punch(length_m: float, width_m: float, thickness_m: float, material: Materia
     # A face as wide as the block keeps its sides under it as they bulge, as the linear model does. "As
     # wide" within a micrometre: a block rebuilt from where the areas were is the face's width plus
     # rounding (30 mm + 2e-18 m), and taken as wider its side would be an edge of the face the corner
-    # treatment does not cover (that block stopped converging at 1.1 mm instead of 4.5 mm).
+    # treatment does not cover (the corner test's block, so taken, stopped converging at 1.1 mm of 4.5 mm).
     reach = np.where(half_face >= np.array((half_l, half_w)) - SAME_WIDTH_M, np.inf, half_face)
     # Rows along x that the face's long edge crosses; the element over the edge takes the corner's force.
     crossed = np.flatnonzero(y <= reach[1] + 1e-12) if np.isfinite(reach[0]) else np.zeros(0, int)
