@@ -58,11 +58,13 @@ rather than a wrong one.
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import math
 import time
 import zipfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +150,33 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
         forces = np.linalg.solve(compliance[np.ix_(under, under)], np.ones(len(under)))
         out[k] = forces.reshape(face_nodes, ny)  # ij is i-major: rows of x, columns of y
     return out
+
+
+# bump when _block_solve changes what it returns: the cache's code digest covers the mechanics, not this module
+SOLVE_VERSION = 1
+
+
+def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
+                      tumour_y_m: float | None = None) -> np.ndarray:
+    """:func:`_block_solve`, kept in the tissue model's cache: a session analysed again (a study re-analysed
+    with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case."""
+    from hardware.sim.mechanics import cache as cache_mod
+
+    described = json.dumps({"version": SOLVE_VERSION, "grid": asdict(grid), "thickness_m": thickness_m,
+                            "inclusion": inclusion, "tumour_y_m": tumour_y_m}, sort_keys=True)
+    key = "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24]
+    path = cache_mod.cache_path(cache_mod.default_cache_dir(), key)
+    shape = (len(grid.offset_x_m), int(round(grid.rows * grid.pitch_m / grid.grid_m)) + 1,
+             int(round(grid.width_m / grid.grid_m)) + 1)
+    arrays = cache_mod.load(path, key)
+    if arrays is not None and np.shape(arrays.get("forces")) == shape:
+        return arrays["forces"]
+    forces = _block_solve(grid, thickness_m, inclusion, tumour_y_m)
+    try:
+        cache_mod.store(path, key, {"forces": forces})
+    except OSError:
+        pass  # an unwritable cache only costs the solve again next time
+    return forces
 
 
 def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
@@ -529,7 +558,7 @@ class DepthModel:
             y = min(max(y, a / 2), self.shape[1] * self.pitch_m - a / 2)
             # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
             grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
-            q = self._elements(_block_solve(grid, t, (d, a, ratio), tumour_y_m=y)) / self._elements(
+            q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y)) / self._elements(
                 self._homogeneous_solve(t, grid))
             cache[key] = q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0
         out = _lerp_axis(cache[key], np.arange(len(cache[key])) * 1e-3, np.array([abs(offset_x_m)]), 0)[0]
@@ -539,7 +568,7 @@ class DepthModel:
         cache = self._homogeneous
         key = round(thickness_m, 6)
         if key not in cache:
-            cache[key] = _block_solve(grid, thickness_m, None)
+            cache[key] = _kept_block_solve(grid, thickness_m, None)
         return cache[key]
 
 

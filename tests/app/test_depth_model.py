@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.depth_model import (LIBRARY_PATH, DepthModel, DepthModelError, LibraryGrid, _block_solve, build_library,
-                             load_library)
+                             _kept_block_solve, load_library)
 from session.detect import DepthParams
 
 PITCH = 2e-3
@@ -279,3 +279,26 @@ def test_the_signature_carries_a_spheres_far_field_to_the_tissues_far_side(libra
     made, error = model.signature(far, rows, SimpleNamespace(contrast=np.full_like(measured.contrast, np.nan),
                                                              sigma=measured.sigma), np.array([0]))
     assert not made.any() and not error.any()
+
+
+def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_again(tmp_path, monkeypatch):
+    import app.depth_model as depth_model
+    from hardware.sim.mechanics import cache as cache_mod
+
+    monkeypatch.setenv(cache_mod.ENV_VAR, str(tmp_path))
+    grid = replace(LibraryGrid(), offset_x_m=(0.0, 1e-3))
+    solved = []
+
+    def solve(grid, thickness_m, inclusion, tumour_y_m):  # the solve itself is checked against the library
+        solved.append((thickness_m, inclusion, tumour_y_m))
+        return np.full((2, 9, 31), thickness_m + sum(inclusion) + tumour_y_m)
+
+    monkeypatch.setattr(depth_model, "_block_solve", solve)
+    first = _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015)
+    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first)
+    assert solved == [(0.005, (1e-3, 2e-3, 5.0), 0.015)]
+    _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 6.0), 0.015)  # another sphere is another solve
+    assert len(solved) == 2
+    for entry in tmp_path.iterdir():
+        entry.write_bytes(entry.read_bytes()[:-7])
+    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first) and len(solved) == 3
