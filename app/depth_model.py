@@ -110,6 +110,13 @@ class LibraryGrid:
         return self.cols * self.pitch_m
 
     @property
+    def face_shape(self) -> tuple[int, int, int]:
+        """(offsets, nodes along x, along y) of the face's nodal forces a solve gives: the face covers the
+        layer's width."""
+        return (len(self.offset_x_m), int(round(self.rows * self.pitch_m / self.grid_m)) + 1,
+                int(round(self.width_m / self.grid_m)) + 1)
+
+    @property
     def tumour_xy_m(self) -> tuple[float, float]:
         """Where the library's tumour sits: a node line, with room for every face offset on one side."""
         return round(self.length_m / 2 - 2e-3, 9), self.width_m / 2
@@ -126,7 +133,7 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
     from hardware.sim.phantom import Inclusion
 
     nx = int(round(grid.length_m / grid.grid_m)) + 1
-    ny = int(round(grid.width_m / grid.grid_m)) + 1
+    _, face_nodes, ny = grid.face_shape
     inclusions = ()
     if inclusion is not None:
         depth, diameter, ratio = inclusion
@@ -143,8 +150,7 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
     ij, stiffness = condensed_surface_stiffness(mesh, phantom_material(block), mask=strip)
     compliance = np.linalg.inv(stiffness)
     node_x = mesh.x_m[ij[:, 0]]
-    face_nodes = int(round(2 * half / grid.grid_m)) + 1
-    out = np.empty((len(grid.offset_x_m), face_nodes, ny))
+    out = np.empty(grid.face_shape)
     for k, off in enumerate(grid.offset_x_m):
         under = np.flatnonzero(np.abs(node_x - (tx + off)) <= half + 1e-9)
         forces = np.linalg.solve(compliance[np.ix_(under, under)], np.ones(len(under)))
@@ -160,23 +166,18 @@ def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[fl
                       tumour_y_m: float | None = None) -> np.ndarray:
     """:func:`_block_solve`, kept in the tissue model's cache: a session analysed again (a study re-analysed
     with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case."""
-    from hardware.sim.mechanics import cache as cache_mod
+    from hardware.sim.mechanics.cache import default_cache_dir
+    from hardware.sim.mechanics.model import cached
 
     described = json.dumps({"version": SOLVE_VERSION, "grid": asdict(grid), "thickness_m": thickness_m,
                             "inclusion": inclusion, "tumour_y_m": tumour_y_m}, sort_keys=True)
-    key = "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24]
-    path = cache_mod.cache_path(cache_mod.default_cache_dir(), key)
-    shape = (len(grid.offset_x_m), int(round(grid.rows * grid.pitch_m / grid.grid_m)) + 1,
-             int(round(grid.width_m / grid.grid_m)) + 1)
-    arrays = cache_mod.load(path, key)
-    if arrays is not None and np.shape(arrays.get("forces")) == shape:
-        return arrays["forces"]
-    forces = _block_solve(grid, thickness_m, inclusion, tumour_y_m)
-    try:
-        cache_mod.store(path, key, {"forces": forces})
-    except OSError:
-        pass  # an unwritable cache only costs the solve again next time
-    return forces
+
+    def check(arrays):
+        if np.shape(arrays["forces"]) != grid.face_shape:
+            raise ValueError("inconsistent cache entry")
+
+    return cached(default_cache_dir(), "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24],
+                  lambda: {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m)}, check)["forces"]
 
 
 def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
@@ -184,8 +185,7 @@ def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
     """Solve every configuration of ``grid`` and write the library to ``path`` (about six minutes of
     one core per thickness); configurations whose sphere would not fit in the layer are NaN."""
     shape = (len(grid.thickness_m), len(grid.depth_m), len(grid.diameter_m), len(grid.modulus_ratio))
-    face = (len(grid.offset_x_m), int(round(grid.rows * grid.pitch_m / grid.grid_m)) + 1,
-            int(round(grid.width_m / grid.grid_m)) + 1)
+    face = grid.face_shape
     homogeneous = np.empty((len(grid.thickness_m), *face))
     inclusion = np.full((*shape, *face), np.nan)
     started = time.perf_counter()

@@ -332,7 +332,7 @@ def homogeneous_stiffening(phantom: Phantom, sensor: TactileConstraints | None =
 def _stiffening_cached(phantom: Phantom, sensor: TactileConstraints, folder: Path,
                        progress: Progress | None) -> dict[str, np.ndarray]:
     # the key leaves the mesh out (cache_key): the finite-strain solve has its own
-    return _cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
+    return cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
                    lambda: _stiffening(phantom, sensor, progress), _check_stiffening)
 
 
@@ -342,7 +342,7 @@ def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
         raise ValueError("inconsistent cache entry")
 
 
-def _cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
+def cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
     """The arrays under ``key``: from the cache if they load and pass ``check``, else computed and stored.
 
     An unwritable cache is logged and otherwise ignored: the model still works, it is just recomputed
@@ -482,11 +482,11 @@ class ContinuumTissue:
         def check(arrays):
             _Tables(arrays, n_el)
 
-        tables = _cached(folder, cache_key(phantom, settings, sensor),
+        tables = cached(folder, cache_key(phantom, settings, sensor),
                          lambda: precompute(phantom, settings, sensor, stage(progress, ends[0], ends[1])), check)
         stiffening = compressed = None
         if moved:
-            compressed = _cached(
+            compressed = cached(
                 folder, cache_key(phantom, settings, sensor, f"tables-compressed-{COMPRESSED_STRAIN:g}"),
                 lambda: precompute(phantom, settings, sensor, stage(progress, ends[1], ends[2]),
                                    compressed_material(phantom, COMPRESSED_STRAIN)), check)
