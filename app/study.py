@@ -240,7 +240,7 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
         "control": {"ramp": {"force_max_N": case.force_max_N}}}))
     started = time.perf_counter()
     phantom = load_phantom(phantom_path)
-    tissue = build_tissue(phantom, config.rig.sim)
+    tissue = build_tissue(phantom, config.rig.sim, workers=1)  # the study's own processes fill the cores
     prepared = time.perf_counter()
     rig = build_sim_rig(phantom, config.rig.sim, tissue=tissue, seed=case.rig_seed)
     session_path = folder / f"{case.name}.h5" if keep_session else Path(tempfile.mkstemp(suffix=".h5")[1])

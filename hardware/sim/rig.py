@@ -36,16 +36,18 @@ def build_tissue(
     phantom: Phantom | str,
     settings: SimSettings | dict[str, Any] | None = None,
     progress: Progress | None = None,
+    workers: int | None = None,
 ) -> TissueModel:
     """The tissue model ``settings.tissue`` names; the continuum model is precomputed on first use of a
-    phantom (seconds to a minute, with ``progress`` reports) and loaded from the disk cache after that."""
+    phantom (seconds to a minute, with ``progress`` reports, in up to ``workers`` processes: see
+    :meth:`ContinuumTissue.load`) and loaded from the disk cache after that."""
     phantom, settings = _resolve(phantom, settings)
     sensor_geometry = TactileConstraints(full_scale_pa=settings.sensor.full_scale_pa,
                                          frame_rate_hz=settings.sensor.frame_rate_hz)
     if settings.tissue == "winkler":
         return WinklerTissue(phantom, sensor_geometry)
     return ContinuumTissue.load(phantom, progress=progress, sensor=sensor_geometry,
-                                settings=MeshSettings(finite_strain=settings.finite_strain))
+                                settings=MeshSettings(finite_strain=settings.finite_strain), workers=workers)
 
 
 def build_sim_rig(

@@ -64,6 +64,7 @@ from hardware.sim.mechanics.contact import contact_path, tributary_weights
 from hardware.sim.mechanics.fem import (HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs,
                                         wall_dofs)
 from hardware.sim.mechanics.progress import Progress, stage
+from hardware.sim.mechanics.workers import Job, run as run_jobs, usable_cores
 from hardware.sim.phantom import Phantom
 
 log = logging.getLogger(__name__)
@@ -321,6 +322,12 @@ class FiniteStrain:
         return out
 
 
+def compressed_precompute(phantom: Phantom, settings: MeshSettings, sensor: TactileConstraints,
+                          progress: Progress | None = None) -> dict[str, np.ndarray]:
+    """:func:`precompute` with every inclusion where the layer compressed by ``COMPRESSED_STRAIN`` carries it."""
+    return precompute(phantom, settings, sensor, progress, compressed_material(phantom, COMPRESSED_STRAIN))
+
+
 def homogeneous_stiffening(phantom: Phantom, sensor: TactileConstraints | None = None,
                            cache_dir: str | Path | None = None, progress: Progress | None = None) -> FiniteStrain:
     """The finite-strain factor of ``phantom``'s homogeneous base block (its inclusions play no part), from
@@ -331,9 +338,13 @@ def homogeneous_stiffening(phantom: Phantom, sensor: TactileConstraints | None =
 
 def _stiffening_cached(phantom: Phantom, sensor: TactileConstraints, folder: Path,
                        progress: Progress | None) -> dict[str, np.ndarray]:
+    return cached(folder, _stiffening_key(phantom, sensor), lambda: _stiffening(phantom, sensor, progress),
+                  _check_stiffening)
+
+
+def _stiffening_key(phantom: Phantom, sensor: TactileConstraints) -> str:
     # the key leaves the mesh out (cache_key): the finite-strain solve has its own
-    return cached(folder, cache_key(phantom, MeshSettings(), sensor, "stiffening"),
-                   lambda: _stiffening(phantom, sensor, progress), _check_stiffening)
+    return cache_key(phantom, MeshSettings(), sensor, "stiffening")
 
 
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
@@ -347,6 +358,29 @@ def cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
 
     An unwritable cache is logged and otherwise ignored: the model still works, it is just recomputed
     next time."""
+    arrays = _load_checked(folder, key, check)
+    if arrays is None:
+        arrays = compute()
+        _store(folder, key, arrays)
+    return arrays
+
+
+def cached_together(folder: Path, pieces: list[tuple[str, object, Job]], workers: int | None,
+                    progress: Progress | None = None) -> list[dict[str, np.ndarray]]:
+    """Each ``(key, check, job)``'s arrays as :func:`cached` gives them, the jobs of those not in the cache
+    run side by side in up to ``workers`` processes (None: one per core)."""
+    found = [_load_checked(folder, key, check) for key, check, _ in pieces]
+    missing = [i for i, arrays in enumerate(found) if arrays is None]
+    if missing:
+        workers = usable_cores() if workers is None else workers
+        computed = run_jobs([pieces[i][2] for i in missing], min(workers, len(missing)), progress)
+        for i, arrays in zip(missing, computed):
+            _store(folder, pieces[i][0], arrays)
+            found[i] = arrays
+    return found
+
+
+def _load_checked(folder: Path, key: str, check) -> dict[str, np.ndarray] | None:
     path = cache_mod.cache_path(folder, key)
     arrays = cache_mod.load(path, key)
     if arrays is not None:
@@ -355,12 +389,15 @@ def cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
             return arrays
         except (KeyError, ValueError, TypeError):
             log.warning("ignoring inconsistent tissue cache %s; recomputing", path)
-    arrays = compute()
+    return None
+
+
+def _store(folder: Path, key: str, arrays: dict[str, np.ndarray]) -> None:
+    path = cache_mod.cache_path(folder, key)
     try:
         cache_mod.store(path, key, arrays)
     except OSError as err:
         log.warning("could not write the tissue cache %s: %s", path, err)
-    return arrays
 
 
 def _spd_inverse(a: np.ndarray) -> np.ndarray:
@@ -463,38 +500,40 @@ class ContinuumTissue:
 
     @classmethod
     def load(cls, phantom: Phantom, cache_dir: str | Path | None = None, progress: Progress | None = None,
-             settings: MeshSettings | None = None, sensor: TactileConstraints | None = None) -> "ContinuumTissue":
+             settings: MeshSettings | None = None, sensor: TactileConstraints | None = None,
+             workers: int | None = None) -> "ContinuumTissue":
         """The model of ``phantom``: from the cache if a trustworthy entry exists, else computed and cached.
 
         ``cache_dir`` defaults to ``$PALPATION_CACHE_DIR`` or the user cache directory. An unwritable
         cache is logged and otherwise ignored: the model still works, it is just recomputed next time.
+        The pieces not in the cache are computed side by side in up to ``workers`` processes (default:
+        one per core; 1 computes them here, for a caller whose own processes already fill the cores).
         """
         settings = settings or MeshSettings()
         sensor = sensor or TactileConstraints()
         settings.validate(sensor)
         folder = Path(cache_dir) if cache_dir is not None else cache_mod.default_cache_dir()
-        moved = settings.finite_strain and bool(phantom.inclusions)
-        ends = [0.0, 0.8 if settings.finite_strain else 1.0]
-        if moved:
-            ends.insert(1, 0.45)
         n_el = sensor.rows * sensor.cols
 
         def check(arrays):
             _Tables(arrays, n_el)
 
-        tables = cached(folder, cache_key(phantom, settings, sensor),
-                         lambda: precompute(phantom, settings, sensor, stage(progress, ends[0], ends[1])), check)
-        stiffening = compressed = None
-        if moved:
-            compressed = cached(
-                folder, cache_key(phantom, settings, sensor, f"tables-compressed-{COMPRESSED_STRAIN:g}"),
-                lambda: precompute(phantom, settings, sensor, stage(progress, ends[1], ends[2]),
-                                   compressed_material(phantom, COMPRESSED_STRAIN)), check)
+        # longest first: the finite-strain fit takes a third of either table's time, so it follows the first
+        pieces = {"tables": (cache_key(phantom, settings, sensor), check,
+                             Job("the tables at rest", f"{__name__}:precompute", (phantom, settings, sensor), 0.45))}
+        if settings.finite_strain and phantom.inclusions:
+            pieces["compressed"] = (
+                cache_key(phantom, settings, sensor, f"tables-compressed-{COMPRESSED_STRAIN:g}"), check,
+                Job("the tables of the compressed layer", f"{__name__}:compressed_precompute",
+                    (phantom, settings, sensor), 0.35))
         if settings.finite_strain:
-            stiffening = _stiffening_cached(phantom, sensor, folder, stage(progress, ends[-1], 1.0))
+            pieces["stiffening"] = (_stiffening_key(phantom, sensor), _check_stiffening,
+                                    Job("the finite-strain fit", f"{__name__}:_stiffening", (phantom, sensor), 0.2))
+        arrays = cached_together(folder, list(pieces.values()), workers, progress)
+        found = dict(zip(pieces, arrays))
         if progress:
             progress(1.0, f"tissue model of {phantom.name!r} ready")
-        return cls(phantom, sensor, tables, stiffening, compressed)
+        return cls(phantom, sensor, found["tables"], found.get("stiffening"), found.get("compressed"))
 
     def element_forces_N(self, x_m: float, y_m: float, z_m: float) -> np.ndarray:
         """Normal force on each TSI element, (rows, cols), for the face centred at (x, y) at height z."""
