@@ -365,3 +365,27 @@ def test_the_timeline_draws_f_d_and_f_ts_in_the_consoles_colours(qtbot):
 
     assert rgb(timeline._f_desired) == rgb(history._f_desired) == F_DESIRED_COLOUR
     assert rgb(timeline._f_measured) == rgb(history._f_measured) == F_MEASURED_COLOUR
+
+
+def test_the_record_maps_open_on_their_contrast_with_the_tumours_spots_circled(qtbot, window, recorded,
+                                                                             reference_file):
+    open_in(qtbot, window, recorded[0])
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        assert window.set_reference(reference_file)
+    stiffness = child(window, TactileMapWidget, "stiffnessMap")
+    pressure = child(window, TactileMapWidget, "pressureMap")
+    # the raw maps' brightest elements are the face's edge rows, so the contrast is what a reviewer sees first
+    assert stiffness.contrast_view() and pressure.contrast_view()
+    tumour = next(t for t in window.tumours if t.source == "stiffness")
+    spot = tumour.spots[0]
+    window.select_record(spot.record)
+    assert child(stiffness, QtWidgets.QLabel, "maxLabel").text().endswith(" %")
+    shown = window.analysis.contrasts["stiffness"].contrast[spot.record]
+    rec = window.session.levels[spot.record]
+    for row, col in stiffness.contrast_spots():  # circled where the spot is, on an element reading high
+        x = rec["tsi_position_m"][0] + (row - 1.5) * window.session.pitch_m
+        y = rec["tsi_position_m"][1] + (col - 7.0) * window.session.pitch_m
+        assert np.hypot(x - spot.x_m, y - spot.y_m) <= window.session.pitch_m and shown[row, col] > 0
+    assert stiffness.contrast_spots()
+    child(stiffness, QtWidgets.QCheckBox, "contrastView").setChecked(False)  # the reading itself, one click away
+    assert child(stiffness, QtWidgets.QLabel, "maxLabel").text().endswith(" kPa") and pressure.contrast_view()

@@ -28,7 +28,7 @@ from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumo
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Physics, Reference
 from session.reader import Session, SessionFileError, open_session
-from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
+from session.stitch import L0Source, StitchError, StitchParams, StitchResult, element_offsets_m, level_groups
 from widgets.colormaps import colour_range
 from widgets.map_painting import render_maps_png, write_report
 from widgets.plot_style import dark_palette
@@ -370,6 +370,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
             self._record_info.setText("No force level was recorded in this session.")
         self._timeline.set_session(session)
         self.reanalyse()
+        # The raw maps' brightest elements are the face's own edge rows; what a reviewer looks for is what
+        # differs from healthy tissue, so a session opens on the contrast wherever there is one.
+        for record_map in (self._pressure_map, self._stiffness_map):
+            record_map.set_contrast_view(self._analysis is not None)
         self._set_exports_enabled(True)
 
     def close_session(self) -> None:
@@ -392,6 +396,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._indentation_map.clear()
         for record_map in (self._pressure_map, self._stiffness_map):  # with their "max ..." headings
             record_map.set_data(np.full(record_map.data_pa().shape, np.nan))
+            record_map.set_contrast(None)
         self._summary.setText("")
         self._record_info.setText("")
         self._banner.hide()
@@ -644,6 +649,11 @@ class ReviewWindow(QtWidgets.QMainWindow):
             lo, hi = colour_range(pool)
             widget.lock_levels(lo, hi)
             widget.set_data(values)
+        for widget, source in ((self._pressure_map, "force"), (self._stiffness_map, "stiffness")):
+            if self._analysis is None:
+                widget.set_contrast(None)
+            else:
+                widget.set_contrast(self._analysis.contrasts[source].contrast[row], self._spots_on(row, source))
         x, y, z = (float(v) for v in rec["tsi_position_m"])
         rows, cols = rec["dL_m"].shape
         half_x, half_y = rows * session.pitch_m / 2, cols * session.pitch_m / 2
@@ -656,6 +666,19 @@ class ReviewWindow(QtWidgets.QMainWindow):
             f"settled in {rec['settle_time_s']:.2f} s, {rec['t_s'] - session.time_span_s()[0]:.2f} s into the session; "
             f"TSI at ({x * 1e3:.1f}, {y * 1e3:.1f}, "
             f"{z * 1e3:.1f}) mm; TSI indentation {_mm(float(rec['indentation_m']), 2)} mm")
+
+    def _spots_on(self, row: int, source: str) -> tuple[tuple[int, int], ...]:
+        """The elements (row, col) of record ``row`` nearest the spots of the ``source`` map's tumours there."""
+        rec = self._session.levels[row]
+        rows, cols = rec["pressure_pa"].shape
+        centres = element_offsets_m(rows, cols, self._session.pitch_m) + np.asarray(rec["tsi_position_m"][:2])
+        out = []
+        for tumour in self._analysis.tumours:
+            for spot in tumour.spots:
+                if tumour.source == source and spot.record == row:
+                    nearest = np.argmin(np.hypot(centres[..., 0] - spot.x_m, centres[..., 1] - spot.y_m))
+                    out.append(tuple(int(i) for i in np.unravel_index(nearest, (rows, cols))))
+        return tuple(out)
 
     def _show_stitched(self) -> None:
         stitched = self.stitched
