@@ -43,6 +43,7 @@ class FrameContrast:
     z: np.ndarray  # (rows, cols) the matched-filter statistic (session.detect.evidence)
     spots: tuple[tuple[int, int], ...]  # elements (row, col) where a significant spot peaks
     level_N: float  # the recorded level whose pattern it was compared with
+    sigma: np.ndarray  # (rows, cols) the contrast's relative uncertainty (healthy tissue's scatter and the frame's)
 
 
 @dataclass(frozen=True)
@@ -115,7 +116,7 @@ class LiveMaps:
         touching = np.isfinite(values) & (values > 0)
         if not math.isfinite(force_N) or touching.sum() < MIN_VOUCHING:
             nothing = np.full(values.shape, np.nan)
-            return FrameContrast(nothing, nothing, (), math.nan)
+            return FrameContrast(nothing, nothing, (), math.nan, nothing)
         k = int(np.argmin(np.abs(pattern.forces_N - force_N)))
         base, scatter = pattern.baseline[k], pattern.scatter[k]
         ratio = np.where(touching, values, np.nan) / base
@@ -130,7 +131,7 @@ class LiveMaps:
         peaks = significant_peaks(by_width, limit, c)
         z = np.max(by_width, axis=0)
         return FrameContrast(c, z, tuple((int(i), int(j)) for i, j in zip(*np.nonzero(peaks))),
-                             float(pattern.forces_N[k]))
+                             float(pattern.forces_N[k]), sigma)
 
     def _frame_pattern(self, levels: np.ndarray, map_name: str) -> _FramePattern:
         """Each recorded level's pattern of the map (the reference's when one is loaded, else the median over

@@ -829,7 +829,10 @@ class LiveWindow(QtWidgets.QMainWindow):
                                                                            frame["stiffness_pa"])):
             if widget.contrast_view():
                 found = self._tissue.frame_contrast(values, name, force_N)
-                widget.set_contrast(None if found is None else found.contrast, () if found is None else found.spots)
+                if found is None:
+                    widget.set_contrast(None)
+                else:
+                    widget.set_contrast(found.contrast, found.spots, found.sigma)
 
     def _jog_unavailable(self) -> str | None:
         return self._state.jog_unavailable(self.autopilot is not None and self.autopilot.running)

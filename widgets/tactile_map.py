@@ -13,6 +13,8 @@ A *contrast* view shows, instead of the reading, how far each element lies from 
 would read there (measured / expected - 1, in %; the probe's own edge pattern divided out) on a range
 symmetric about healthy tissue, with the spots that pass the detection threshold circled. The contrast is
 computed elsewhere (:meth:`session.live.LiveMaps.frame_contrast`) and handed to :meth:`set_contrast`.
+Elements whose expected reading is too uncertain to read a contrast from (see :data:`UNREADABLE_SIGMA`)
+are left blank in that view.
 """
 
 from __future__ import annotations
@@ -35,6 +37,12 @@ MARKER_ARM_MM = 1.6
 _KPA_PER_PA = 1e-3
 _SPIN_LIMIT_KPA = 1e4  # ten times the stiffness of a hard tumour; the spin boxes stay narrow
 _PCT = 100.0
+# An element whose expected reading is uncertain by more than this (one standard deviation, relative) is
+# left blank in the contrast view. The row of a face that overhangs the tissue's end is uncertain by about
+# 50 % (the share of the element still on the tissue), and read +84 % there in a study session: the
+# brightest element of the map, on no tumour, and it stretched the symmetric colour range until the
+# tumour's +10 % beside it was pale. Detection weighs such elements down by their uncertainty anyway.
+UNREADABLE_SIGMA = 0.25
 NO_CONTRAST_TEXT = "contrast from the 4th area on\n(or with a reference palpation)"
 
 
@@ -220,7 +228,9 @@ class TactileMapWidget(QtWidgets.QWidget):
 
         self._contrast_box = QtWidgets.QCheckBox("Contrast", objectName="contrastView")
         self._contrast_box.setToolTip("Each element over what homogeneous tissue would read there, in % (the "
-                                      "probe's own pattern divided out); significant spots are circled")
+                                      "probe's own pattern divided out); significant spots are circled. An "
+                                      "element whose expected reading is uncertain by over "
+                                      f"{UNREADABLE_SIGMA * _PCT:.0f} % is left blank")
         self._contrast_box.toggled.connect(self.set_contrast_view)
 
         self._lock = QtWidgets.QCheckBox("Lock", objectName="lockRange")
@@ -414,9 +424,11 @@ class TactileMapWidget(QtWidgets.QWidget):
             marker.setPos(y_mm, x_mm)  # y runs across the screen, x up it
             marker.show()
 
-    def set_contrast(self, contrast: np.ndarray | None, spots: tuple[tuple[int, int], ...] = ()) -> None:
+    def set_contrast(self, contrast: np.ndarray | None, spots: tuple[tuple[int, int], ...] = (),
+                     sigma: np.ndarray | None = None) -> None:
         """The frame's contrast (measured / expected - 1, (4, 15)) and the elements (row, col) where a
-        significant spot peaks, shown in the contrast view; None while there is no flat field."""
+        significant spot peaks, shown in the contrast view; None while there is no flat field. ``sigma``
+        (4, 15): the contrast's relative uncertainty, to blank the elements it cannot be read from."""
         if contrast is None:
             self._contrast_pct, self._contrast_spots = None, ()
         else:
@@ -425,6 +437,8 @@ class TactileMapWidget(QtWidgets.QWidget):
                 raise ValueError(f"{self._name} map: expected a ({ROWS}, {COLS}) contrast, got shape {contrast.shape}")
             pct = (contrast * _PCT).astype(np.float32)
             pct[~np.isfinite(pct)] = np.nan
+            if sigma is not None:
+                pct[~(np.asarray(sigma, dtype=np.float64) <= UNREADABLE_SIGMA)] = np.nan
             self._contrast_pct, self._contrast_spots = pct, tuple(spots)
         if self._contrast_on:
             self._render()

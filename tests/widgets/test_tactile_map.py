@@ -288,3 +288,22 @@ def test_lock_levels_api_validates(tmap):
     assert tmap.is_locked() and tmap.levels_pa() == pytest.approx((1e3, 9e3))
     tmap.unlock_levels()
     assert not tmap.is_locked()
+
+
+def test_the_contrast_view_blanks_the_elements_whose_expected_reading_is_too_uncertain(tmap):
+    contrast = np.full((ROWS, COLS), 0.02)
+    contrast[1, 7] = 0.12  # a tumour
+    contrast[0, 2] = 0.84  # a face hanging off the tissue's end: known only to +-50 %
+    sigma = np.full((ROWS, COLS), 0.03)
+    sigma[0] = 0.5
+    tmap.set_data(hot_spot())
+    tmap.set_contrast_view(True)
+    tmap.set_contrast(contrast, ((1, 7),), sigma)
+    assert close(pixel_at(tmap, *element_centre_mm(0, 2)), NO_DATA_RGB)
+    assert tmap.findChild(QtWidgets.QLabel, "maxLabel").text() == "max +12 %"  # the tumour, not the overhang
+    assert not close(pixel_at(tmap, *element_centre_mm(1, 7)), NO_DATA_RGB)
+    sigma[0, 2] = np.nan  # an uncertainty nobody knows is not a small one
+    tmap.set_contrast(contrast, (), sigma)
+    assert close(pixel_at(tmap, *element_centre_mm(0, 2)), NO_DATA_RGB)
+    tmap.set_contrast(contrast)  # without an uncertainty every element is shown
+    assert tmap.findChild(QtWidgets.QLabel, "maxLabel").text() == "max +84 %"

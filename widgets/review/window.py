@@ -653,7 +653,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
             if self._analysis is None:
                 widget.set_contrast(None)
             else:
-                widget.set_contrast(self._analysis.contrasts[source].contrast[row], self._spots_on(row, source))
+                found = self._analysis.contrasts[source]
+                widget.set_contrast(found.contrast[row], self._spots_on(row, source), found.sigma[row])
         x, y, z = (float(v) for v in rec["tsi_position_m"])
         rows, cols = rec["dL_m"].shape
         half_x, half_y = rows * session.pitch_m / 2, cols * session.pitch_m / 2
