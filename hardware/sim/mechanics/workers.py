@@ -82,9 +82,16 @@ def _run_here(jobs: list[Job], progress: Progress | None) -> list[Any]:
     total = sum(job.weight for job in jobs)
     results, done = [], 0.0
     for job in jobs:
-        results.append(_call(job, stage(progress, done, done + job.weight / total)))
+        results.append(_call(job, _named(stage(progress, done, done + job.weight / total), job.name)))
         done += job.weight / total
     return results
+
+
+def _named(progress: Progress | None, name: str) -> Progress | None:
+    """``progress`` with each message saying which piece it is about: several run at once."""
+    if progress is None:
+        return None
+    return lambda fraction, message: progress(fraction, f"{name}: {message}")
 
 
 class _Worker:
@@ -129,6 +136,7 @@ class _Worker:
 def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) -> list[Any]:
     total = sum(job.weight for job in jobs)
     fractions = [0.0] * len(jobs)
+    named = [_named(progress, job.name) for job in jobs]
     results: dict[int, Any] = {}
     messages: queue.Queue = queue.Queue()
     running: dict[int, _Worker] = {}
@@ -144,7 +152,7 @@ def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) ->
             if kind == "progress":
                 fractions[index] = min(1.0, max(0.0, payload[0]))
                 if progress:
-                    progress(sum(f * job.weight for f, job in zip(fractions, jobs)) / total, payload[1])
+                    named[index](sum(f * job.weight for f, job in zip(fractions, jobs)) / total, payload[1])
                 continue
             worker = running.pop(index)
             if kind == "gone":

@@ -27,13 +27,17 @@ def _tables(workers_n, folder, progress=None):
 
 def test_the_pieces_computed_in_workers_make_the_model_computed_here(tmp_path):
     reports = []
-    apart = _tables(3, tmp_path / "apart", lambda f, message: reports.append(f))
+    apart = _tables(3, tmp_path / "apart", lambda f, message: reports.append((f, message)))
     here = _tables(1, tmp_path / "here")
     for z in (0.009, 0.007, 0.005):  # linear, then into the compressed layer and the finite-strain fit
         assert np.allclose(apart.element_forces_N(0.012, 0.015, z), here.element_forces_N(0.012, 0.015, z),
                            rtol=1e-9, atol=1e-12)
     assert apart.finite_strain.total_ab == pytest.approx(here.finite_strain.total_ab, rel=1e-9)
-    assert reports == sorted(reports) and reports[-1] == 1.0 and len(reports) > 10
+    fractions = [f for f, _ in reports]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(fractions) > 10
+    # the three run at once, so each message says which it is about
+    for piece in ("the tables at rest: ", "the tables of the compressed layer: ", "the finite-strain fit: "):
+        assert any(message.startswith(piece) for _, message in reports), piece
     # and what the workers computed went to the cache: loading again computes nothing
     again = _tables(3, tmp_path / "apart")
     assert again.precompute_s == apart.precompute_s
