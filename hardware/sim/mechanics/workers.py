@@ -9,9 +9,9 @@ thread, 15.1 s with two) while two BLAS pools on two cores spin against each oth
 second tables in a process that kept its default pool). In two worker processes with one BLAS thread
 each they took 21.9 s.
 
-A worker is a fresh interpreter (``python -m hardware.sim.mechanics.workers``) whose BLAS is limited to
-one thread by its environment, the one way to set that before numpy loads. It reads one pickled
-:class:`Job` on stdin and writes pickled messages on stdout: progress, then the result or the exception.
+A worker is a fresh interpreter running :func:`serve`, whose BLAS is limited to one thread by its
+environment, the one way to set that before numpy loads. It reads one pickled :class:`Job` on stdin and
+writes pickled messages on stdout: progress, then the result or the exception.
 The pickles only ever pass between this process and the children it started.
 """
 
@@ -35,8 +35,9 @@ from hardware.sim.mechanics.progress import Progress, stage
 log = logging.getLogger(__name__)
 
 _ONE_THREAD = {name: "1" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
-# the interpreter a worker runs in; a test replaces it to see a worker die
-_COMMAND = [sys.executable, "-m", __name__]
+# what a worker runs (not ``-m`` this module: the package imports it first, and it would run as a second copy
+# of itself); a test replaces it to see a worker die
+_COMMAND = [sys.executable, "-c", f"from {__name__} import serve; serve()"]
 
 
 @dataclass(frozen=True)
@@ -172,7 +173,8 @@ def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) ->
     return [results[i] for i in range(len(jobs))]
 
 
-def _serve() -> None:
+def serve() -> None:
+    """A worker's whole life: one job from stdin, its messages to stdout."""
     # stdout carries the messages; anything else the computation prints goes to stderr
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
@@ -193,6 +195,3 @@ def _serve() -> None:
         return
     send("result", result)
 
-
-if __name__ == "__main__":
-    _serve()
