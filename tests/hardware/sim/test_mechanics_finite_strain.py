@@ -153,6 +153,15 @@ def test_a_solve_that_stops_short_is_fitted_as_far_as_it_got_and_held_beyond(mon
     assert deeper[0] / held[0] > 1.0
 
 
+def test_a_solve_that_got_all_the_way_is_not_taken_as_short_by_rounding():
+    from hardware.sim.mechanics.model import _stiffening
+
+    # 12.9 mm: the last step's indentation over the thickness is 0.31999999999999995
+    block = parse_phantom({"phantom": {**BLOCK, "thickness_m": 0.0129}})
+    assert (FIT_STRAIN * 0.0129) / 0.0129 < FIT_STRAIN
+    assert FiniteStrain.from_arrays(_stiffening(block, TactileConstraints(), None)).fit_strain == FIT_STRAIN
+
+
 def test_stiffening_fitted_to_a_short_solve_never_softens_beyond_it():
     # a block's fit from three points within 4 % strain, as a solve that stopped there gave it
     bent = FiniteStrain(np.stack([np.full(60, 35.0), np.full(60, -1063.0)]), (1.0, -2.0), fit_strain=0.04)
