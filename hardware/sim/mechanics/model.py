@@ -523,15 +523,15 @@ class ContinuumTissue:
 
         # longest first: the finite-strain fit takes a third of either table's time, so it follows the first
         pieces = {"tables": (cache_key(phantom, settings, sensor), check,
-                             Job("the tables at rest", f"{__name__}:precompute", (phantom, settings, sensor), 0.45))}
+                             Job("tables at rest", f"{__name__}:precompute", (phantom, settings, sensor), 0.45))}
         if settings.finite_strain and phantom.inclusions:
             pieces["compressed"] = (
                 cache_key(phantom, settings, sensor, f"tables-compressed-{COMPRESSED_STRAIN:g}"), check,
-                Job("the tables of the compressed layer", f"{__name__}:compressed_precompute",
+                Job("compressed tables", f"{__name__}:compressed_precompute",
                     (phantom, settings, sensor), 0.35))
         if settings.finite_strain:
             pieces["stiffening"] = (_stiffening_key(phantom, sensor), _check_stiffening,
-                                    Job("the finite-strain fit", f"{__name__}:_stiffening", (phantom, sensor), 0.2))
+                                    Job("finite-strain fit", f"{__name__}:_stiffening", (phantom, sensor), 0.2))
         arrays = cached_together(folder, list(pieces.values()), workers, progress)
         found = dict(zip(pieces, arrays))
         if progress:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from typing import Callable, TextIO
@@ -41,6 +42,8 @@ class TextProgressBar:
         self._last = now
         filled = int(round(fraction * self.width))
         line = f"[{'#' * filled}{' ' * (self.width - filled)}] {fraction * 100:3.0f}% {message}"
+        # a line longer than the terminal wraps, and the carriage return then redraws only its last part
+        line = line[:max(self.width + 6, shutil.get_terminal_size().columns - 1)]
         pad = max(0, len(self._shown) - len(line))
         self.stream.write("\r" + line + " " * pad)
         self._shown = line

@@ -163,7 +163,7 @@ def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) ->
             if kind == "error":
                 raise payload
             if kind == "gone":
-                raise WorkerError(f"the worker computing {jobs[index].name} stopped with exit code {code} "
+                raise WorkerError(f"the worker computing the {jobs[index].name} stopped with exit code {code} "
                                   f"before its result: {words}")
             results[index] = payload
             fractions[index] = 1.0

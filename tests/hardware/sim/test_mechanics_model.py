@@ -204,6 +204,16 @@ def test_progress_is_reported_from_zero_to_done(cache_dir):
     assert out.getvalue().endswith("\n")
 
 
+def test_the_terminal_bar_keeps_to_one_line_of_the_terminal(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "60")
+    out = io.StringIO()
+    bar = TextProgressBar(out, width=30, interval_s=0.0)
+    bar(0.25, "compressed tables: condensing the tissue onto its surface")
+    bar(1.0, "tissue model of 'uneven' ready")
+    drawn = out.getvalue().replace("\n", "\r").split("\r")
+    assert max(len(line.rstrip()) for line in drawn) <= 59 and drawn[1].endswith("25% compressed tables: co")
+
+
 def test_bad_mesh_settings_are_refused():
     with pytest.raises(ValueError, match="spacing_m.*divide the sensor pitch"):
         ContinuumTissue.load(small(), settings=MeshSettings(spacing_m=0.7e-3))

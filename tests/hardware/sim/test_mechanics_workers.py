@@ -36,7 +36,7 @@ def test_the_pieces_computed_in_workers_make_the_model_computed_here(tmp_path):
     fractions = [f for f, _ in reports]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(fractions) > 10
     # the three run at once, so each message says which it is about
-    for piece in ("the tables at rest: ", "the tables of the compressed layer: ", "the finite-strain fit: "):
+    for piece in ("tables at rest: ", "compressed tables: ", "finite-strain fit: "):
         assert any(message.startswith(piece) for _, message in reports), piece
     # and what the workers computed went to the cache: loading again computes nothing
     again = _tables(3, tmp_path / "apart")
@@ -58,7 +58,7 @@ def test_a_worker_that_dies_is_reported_with_its_last_words(monkeypatch):
     monkeypatch.setattr(workers, "_COMMAND",
                         [sys.executable, "-c", "import sys; sys.stderr.write('out of memory\\n'); sys.exit(3)"])
     jobs = [Job(f"piece {i}", "hardware.sim.mechanics.model:precompute", (PHANTOM, MESH, SENSOR)) for i in (1, 2)]
-    with pytest.raises(WorkerError, match=r"computing piece \d stopped with exit code 3 before its result: "
+    with pytest.raises(WorkerError, match=r"computing the piece \d stopped with exit code 3 before its result: "
                                           r"out of memory"):
         workers.run(jobs, workers=2)
 
