@@ -53,6 +53,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -368,7 +369,7 @@ def cached(folder: Path, key: str, compute, check) -> dict[str, np.ndarray]:
     return arrays
 
 
-def cached_together(folder: Path, pieces: list[tuple[str, object, Job]], workers: int | None,
+def cached_together(folder: Path, pieces: list[tuple[str, Callable[[dict], None], Job]], workers: int | None,
                     progress: Progress | None = None) -> list[dict[str, np.ndarray]]:
     """Each ``(key, check, job)``'s arrays as :func:`cached` gives them, the jobs of those not in the cache
     run side by side in up to ``workers`` processes (None: one per core)."""

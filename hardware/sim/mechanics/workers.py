@@ -108,8 +108,11 @@ class _Worker:
         except BaseException:
             self.stderr.close()
             raise
-        self.process.stdin.write(pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL))
-        self.process.stdin.close()
+        try:
+            with self.process.stdin as pipe:
+                pipe.write(pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL))
+        except BrokenPipeError:  # it died before reading its job: the reader reports it, with its exit code
+            pass
         self._reader = threading.Thread(target=self._read, args=(messages,), daemon=True)
         self._reader.start()
 
@@ -120,18 +123,20 @@ class _Worker:
         except Exception:  # the end of the stream, or a worker that died mid-message
             messages.put((self.index, ("gone", None)))
 
-    def last_words(self) -> str:
-        self.stderr.seek(0)
-        lines = self.stderr.read().decode("utf-8", "replace").strip().splitlines()
-        return lines[-1] if lines else "no message"
-
     def stop(self) -> None:
         if self.process.poll() is None:
             self.process.kill()
         self.process.wait()
         self._reader.join()
         self.process.stdout.close()
+        self.stderr.seek(0)
+        lines = self.stderr.read().decode("utf-8", "replace").strip().splitlines()
         self.stderr.close()
+        self._last_line = lines[-1] if lines else "no message"
+
+    def last_words(self) -> str:
+        """The last line it wrote to stderr (once stopped)."""
+        return self._last_line
 
 
 def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) -> list[Any]:
@@ -156,15 +161,12 @@ def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) ->
                     named[index](sum(f * job.weight for f, job in zip(fractions, jobs)) / total, payload[1])
                 continue
             worker = running.pop(index)
-            if kind == "gone":
-                code = worker.process.wait()
-                words = worker.last_words()
             worker.stop()
             if kind == "error":
                 raise payload
             if kind == "gone":
-                raise WorkerError(f"the worker computing the {jobs[index].name} stopped with exit code {code} "
-                                  f"before its result: {words}")
+                raise WorkerError(f"the worker computing the {jobs[index].name} stopped with exit code "
+                                  f"{worker.process.returncode} before its result: {worker.last_words()}")
             results[index] = payload
             fractions[index] = 1.0
     finally:
