@@ -13,7 +13,10 @@ How they are found from the data — written down once, here:
   p_c is taken for noise and forgotten. The extrapolated onset lies at or above z1 and is kept only
   when the descent between the crossings was real (z2 < z1); otherwise z0 = z1. An element that
   already reads above p_on when tracking starts has an unknown onset (the region must start above
-  the tissue) and stays NaN for the region.
+  the tissue) and stays NaN for the region, unless its reading then falls below p_on or to half of
+  what it was: that was the sensor's creep after the last area, decaying to nothing in air (tissue
+  under a face that descends or stands still relaxes by far less in the seconds of a descent), and
+  the element is tracked like the others on its reading above the lowest it fell to.
 * **L0**, the initial thickness under the element, is the onset height above the table:
   L0 = z0 - z_table (the table height comes from the rig's calibration, ContactSettings.table_height_m).
 * **dL**, the element's indentation, is how far the face has travelled below that element's onset:
@@ -47,6 +50,11 @@ class ContactTracker:
         self._blind_base_pa = np.empty(shape)
         self.blind_onset_m = np.empty(shape)
         self._settled = np.empty(shape, dtype=bool)  # confirmed or blind: nothing more to find
+        # a creep residual's floor: the lowest reading of a blind element, and, once it is known to have
+        # been in air (aired), what is taken off its reading while it decays further, until contact
+        self._floor_pa = np.empty(shape)
+        self._aired = np.empty(shape, dtype=bool)
+        self._offset_pa = np.empty(shape)
         self._prev_p = np.empty(shape)
         self.reset()
 
@@ -59,6 +67,9 @@ class ContactTracker:
         self._blind_base_pa.fill(0.0)
         self.blind_onset_m.fill(np.nan)
         self._settled.fill(False)
+        self._floor_pa.fill(np.inf)
+        self._aired.fill(False)
+        self._offset_pa.fill(0.0)
         self._started = False  # no frame since the reset: the next one is the baseline
         self._prev_z = np.nan
 
@@ -68,18 +79,40 @@ class ContactTracker:
         if not self._started:
             np.greater_equal(pressure_pa, p_on, out=self._blind)
             np.copyto(self._blind_base_pa, pressure_pa, where=self._blind)
+            np.copyto(self._floor_pa, pressure_pa, where=self._blind)
             self._settled[...] = self._blind
             self._prev_p[...] = pressure_pa
             self._prev_z = tsi_z_m
             self._started = True
             return
+        if self._blind.any():
+            self._air_out(pressure_pa, p_on)
+        # the creep residual of an element found in air keeps decaying until the face reaches tissue
+        decaying = self._aired & np.isnan(self._z1)
+        if decaying.any():
+            np.copyto(self._offset_pa, np.clip(np.minimum(self._offset_pa, pressure_pa), 0.0, None), where=decaying)
+        reading = pressure_pa - self._offset_pa
         if not self._settled.all():
-            self._track(pressure_pa, tsi_z_m, p_on, p_c)
+            self._track(reading, tsi_z_m, p_on, p_c)
         rising = self._blind & np.isnan(self.blind_onset_m) & (pressure_pa >= self._blind_base_pa + p_on)
         if rising.any():
             self.blind_onset_m[rising] = self._prev_z
-        self._prev_p[...] = pressure_pa
+        self._prev_p[...] = reading
         self._prev_z = tsi_z_m
+
+    def _air_out(self, pressure_pa: np.ndarray, p_on: float) -> None:
+        """Blind elements whose reading fell below p_on, or to half of what it was, were reading creep in
+        air: from here they are tracked as elements that had not yet touched, on their reading above its
+        floor."""
+        waiting = self._blind & np.isnan(self.blind_onset_m)
+        np.minimum(self._floor_pa, pressure_pa, out=self._floor_pa, where=waiting)
+        aired = waiting & ((self._floor_pa < p_on) | (self._floor_pa <= 0.5 * self._blind_base_pa))
+        if aired.any():
+            self._blind[aired] = False
+            self._settled[aired] = False
+            self._aired |= aired
+            self._offset_pa[aired] = np.clip(self._floor_pa[aired], 0.0, None)
+            self._prev_p[aired] = pressure_pa[aired] - self._offset_pa[aired]
 
     def _track(self, pressure_pa: np.ndarray, tsi_z_m: float, p_on: float, p_c: float) -> None:
         # Divisions below only run where p0 < threshold <= p, so their denominators are positive.

@@ -32,6 +32,9 @@ Z = 2
 OVERDUE_FRAME_PERIODS = 3.0  # a frame this many periods old is late: jitter stays well inside it, a stall does not
 AT_REST_M_S = 1e-3  # a robot slower than this has come to rest (its stop distance is then reported)
 STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step that matters
+# Onsets belong to the place they were found: moved sideways by a quarter of the element pitch, an element
+# lies over other tissue
+TRACKED_DRIFT_PITCHES = 0.25
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 
@@ -88,6 +91,7 @@ class ControlLoop:
         # a frame older than this is overdue: normally one arrives every period, a latency after its sample
         self._overdue_s = min(config.safety.sensor_timeout_s, OVERDUE_FRAME_PERIODS / sensor.frame_rate_hz)
         self._frame_z = math.nan  # the TSI's height when the newest frame was sampled
+        self._tracked_xy: tuple[float, float] | None = None  # where the contact tracking began (position control)
         self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
         self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
@@ -308,8 +312,15 @@ class ControlLoop:
         if not sm.force_control:
             # the ceiling holds under position control too: the operator can press the probe in by hand
             implausible = self._min_pressure_pa < -IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
-            if (p < self.config.contact.onset_threshold_pa).all() and not implausible:
-                tracker.reset()  # clear of the tissue: the next contact is a new descent, tracked from here
+            clear = (p < self.config.contact.onset_threshold_pa).all() and not implausible
+            # A sensor's residual reading after a hard press (creep) can hold an element above the threshold
+            # in air for seconds: a probe moved to the next area would then carry the last area's onsets
+            # over, and every thickness and indentation there would be another place's.
+            moved = (self._tracked_xy is None or math.dist(self._tracked_xy, pos[:2])
+                     > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m)
+            if clear or moved:
+                tracker.reset()  # the next contact is a new descent, tracked from here
+                self._tracked_xy = (pos[0], pos[1])
             tracker.update(p, pos[Z])
         _, dL, stiffness, _, self._indentation_m = element_analysis(
             p, tracker.onset_height_m, pos[Z], self.config.contact, area)

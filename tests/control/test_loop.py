@@ -359,6 +359,26 @@ def test_a_residual_reading_in_air_does_not_count_the_descent_as_indentation():
     assert not h.of(FaultRaised) and h.of(RegionDone)
 
 
+def test_onsets_are_not_carried_to_the_next_area_by_a_residual_reading():
+    """Found in the validation study (s77017-0030): after a press near saturation on a ridge, an element's
+    creep kept it above the onset threshold in air, so the tracking never restarted and three areas were
+    measured against the onsets of the one before them."""
+    h = Harness()
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE)
+    residual = np.zeros(h.loop.sensor.shape)
+    residual[0, 0] = 500.0  # one element still reads 500 Pa, lifted clear of the tissue
+    h.plant.extra_force_pa = residual
+    h.plant.surface_m = 0.021  # the next area's tissue stands 4 mm lower
+    h.send(Jog((0.008, 0.0, 0.0)))
+    h.run(5, until=lambda h: h.plant.x[0] > 0.038 - 1e-6)
+    h.send(SetSz(position_control=False))
+    h.run(40, until=lambda h: h.loop.sm.region == 1 and phase(h) == Phase.DONE)
+    onsets = h.of(LevelRecorded)[-1].record.onset_height_m
+    assert np.isnan(onsets[0, 0])  # pressed (by its residual) before the descent began: unknown
+    np.testing.assert_allclose(np.delete(onsets.ravel(), 0), 0.021, atol=5e-5)
+
+
 @pytest.mark.parametrize("damping", [80.0, 5.0])
 def test_the_indentation_ceiling_holds_under_position_control_and_the_probe_stops_at_the_fault(damping):
     """Found by the fault campaign: pressed in by hand under position control, the probe passed the
