@@ -275,10 +275,23 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
         return {
             "name": name, "paper": paper, "surface": _surface_kind(phantom),
             "regions": len(regions), "regions_done": sum(1 for r in regions if r.outcome == "done"),
+            "regions_aborted": _abort_reasons(session),
             "truths": truths, "matches": [asdict(m) for m in analysis.matches],
             "false_positives": analysis.false_positives,
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
         }
+
+
+def _abort_reasons(session) -> dict[str, int]:
+    """How many areas ended aborted, by reason (the first clause of what the controller said): an area
+    that stopped after a level or two leaves the detector little to work with, over a tumour that counts
+    as palpated."""
+    reasons: dict[str, int] = {}
+    for event in session.event_dicts():
+        if event["kind"] == "region_aborted":
+            reason = event["text"].split(":")[0].strip() or "no reason given"
+            reasons[reason] = reasons.get(reason, 0) + 1
+    return reasons
 
 
 @dataclass(frozen=True)
@@ -529,8 +542,13 @@ def _found_count(result: dict | None, source: str) -> int | None:
 
 def case_failures(result: dict, source: str = "stiffness") -> list[str]:
     """What one case got wrong in one map, a line each: every palpated tumour it missed and every false
-    positive, where they are (a study's figures say how often, these say where to look)."""
+    positive, where they are (a study's figures say how often, these say where to look), after how many
+    of its areas ended aborted, and why."""
     lines = []
+    aborted = result.get("regions_aborted") or {}
+    if aborted:
+        why = ", ".join(f"{reason.lower()} {count}" for reason, count in sorted(aborted.items(), key=lambda i: -i[1]))
+        lines.append(f"{sum(aborted.values())} of {result['regions']} areas aborted ({why})")
     for m in result.get("matches", ()):
         if m["source"] == source and not m["found"] and m["palpated"]:
             t = result["truths"][m["truth_index"]]

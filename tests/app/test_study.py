@@ -70,6 +70,7 @@ def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
             dask.close()
     assert [r["name"] for r in local_results] == [c.name for c in cases]
     assert "error" not in local_results[0], local_results[0].get("error")
+    assert local_results[0]["regions_aborted"] == {}  # every tiny area's ramp ends done
     assert _without_timings(local_results) == _without_timings(dask_results)
     kept = tmp_path / "dask" / cases[0].name
     assert kept.with_suffix(".h5").exists() and kept.with_suffix(".toml").exists()
@@ -126,6 +127,8 @@ def test_each_case_says_where_it_missed_and_where_it_raised_a_false_positive():
     # the force map's own matches (none here) decide its false positives
     assert case_failures(result, "force") == ["false positive (36.1, 15.0) mm: z 30.0, contrast +40 %, first at 1 N"]
     assert case_failures({"name": "d", "error": "PhantomError: bad"}) == []
+    result.update(regions=11, regions_aborted={"Level timed out": 1, "Pressure ceiling exceeded": 7})
+    assert case_failures(result)[0] == "8 of 11 areas aborted (pressure ceiling exceeded 7, level timed out 1)"
 
 
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
