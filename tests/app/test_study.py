@@ -10,10 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, analysis_options,
-                       case_failures, draw_phantom, kept_cases, reanalyse_study, run_study, score, study_cases,
-                       study_document, study_main)
+from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, _abort_reasons,
+                       analysis_options, case_failures, draw_phantom, kept_cases, reanalyse_study, run_study, score,
+                       study_cases, study_document, study_main)
+from control.messages import LevelRecorded, RegionAborted, RegionDone
 from hardware.sim.phantom import parse_phantom
+from session.reader import open_session
+from session.synthetic import level_record
+from session.writer import SessionRecorder
+from tests.session.test_recorder import INFO
 
 # small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
 # harness (draws, executors, scoring), not the detector, which `make study` measures
@@ -129,6 +134,19 @@ def test_each_case_says_where_it_missed_and_where_it_raised_a_false_positive():
     assert case_failures({"name": "d", "error": "PhantomError: bad"}) == []
     result.update(regions=11, regions_aborted={"Level timed out": 1, "Pressure ceiling exceeded": 7})
     assert case_failures(result)[0] == "8 of 11 areas aborted (pressure ceiling exceeded 7, level timed out 1)"
+
+
+def test_a_case_counts_its_aborted_areas_by_the_controllers_reason(tmp_path):
+    rec = SessionRecorder(tmp_path / "s.h5", INFO)
+    ceiling = "Pressure ceiling exceeded: one element read 95.1 kPa, above the 95.0 kPa limit"
+    rec.add_events([LevelRecorded(1.0, level_record(0, 0, 1.0, (0.004, 0.015))), RegionAborted(1.5, 0, ceiling),
+                    LevelRecorded(2.0, level_record(1, 0, 1.0, (0.012, 0.015))), RegionDone(2.5, 1, 1),
+                    LevelRecorded(3.0, level_record(2, 0, 1.0, (0.020, 0.015))), RegionAborted(3.5, 2, ceiling),
+                    RegionAborted(4.0, 3, "switched to position control by the operator")])
+    rec.close()
+    with open_session(tmp_path / "s.h5") as session:
+        assert _abort_reasons(session) == {"Pressure ceiling exceeded": 2,
+                                           "switched to position control by the operator": 1}
 
 
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
