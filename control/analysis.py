@@ -50,11 +50,10 @@ class ContactTracker:
         self._blind_base_pa = np.empty(shape)
         self.blind_onset_m = np.empty(shape)
         self._settled = np.empty(shape, dtype=bool)  # confirmed or blind: nothing more to find
-        # a creep residual's floor: the lowest reading of a blind element, and, once it is known to have
-        # been in air (aired), what is taken off its reading while it decays further, until contact
+        # a creep residual's floor: the lowest reading of a blind element; once it is known to have been in
+        # air (aired), the floor follows the residual down until contact and is taken off its reading
         self._floor_pa = np.empty(shape)
         self._aired = np.empty(shape, dtype=bool)
-        self._offset_pa = np.empty(shape)
         self._prev_p = np.empty(shape)
         self.reset()
 
@@ -69,7 +68,6 @@ class ContactTracker:
         self._settled.fill(False)
         self._floor_pa.fill(np.inf)
         self._aired.fill(False)
-        self._offset_pa.fill(0.0)
         self._started = False  # no frame since the reset: the next one is the baseline
         self._prev_z = np.nan
 
@@ -87,11 +85,11 @@ class ContactTracker:
             return
         if self._blind.any():
             self._air_out(pressure_pa, p_on)
-        # the creep residual of an element found in air keeps decaying until the face reaches tissue
-        decaying = self._aired & np.isnan(self._z1)
-        if decaying.any():
-            np.copyto(self._offset_pa, np.clip(np.minimum(self._offset_pa, pressure_pa), 0.0, None), where=decaying)
-        reading = pressure_pa - self._offset_pa
+        reading = pressure_pa
+        if self._aired.any():
+            # the creep residual of an element found in air keeps decaying until the face reaches tissue
+            np.minimum(self._floor_pa, pressure_pa, out=self._floor_pa, where=self._aired & np.isnan(self._z1))
+            reading = pressure_pa - self._residual_pa()
         if not self._settled.all():
             self._track(reading, tsi_z_m, p_on, p_c)
         rising = self._blind & np.isnan(self.blind_onset_m) & (pressure_pa >= self._blind_base_pa + p_on)
@@ -111,8 +109,11 @@ class ContactTracker:
             self._blind[aired] = False
             self._settled[aired] = False
             self._aired |= aired
-            self._offset_pa[aired] = np.clip(self._floor_pa[aired], 0.0, None)
-            self._prev_p[aired] = pressure_pa[aired] - self._offset_pa[aired]
+            self._prev_p[aired] = (pressure_pa - self._residual_pa())[aired]
+
+    def _residual_pa(self) -> np.ndarray:
+        """What is taken off each element's reading: an aired element's floor (never below zero)."""
+        return np.where(self._aired, np.clip(self._floor_pa, 0.0, None), 0.0)
 
     def _track(self, pressure_pa: np.ndarray, tsi_z_m: float, p_on: float, p_c: float) -> None:
         # Divisions below only run where p0 < threshold <= p, so their denominators are positive.

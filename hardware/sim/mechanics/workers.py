@@ -123,7 +123,8 @@ class _Worker:
         except Exception:  # the end of the stream, or a worker that died mid-message
             messages.put((self.index, ("gone", None)))
 
-    def stop(self) -> None:
+    def stop(self) -> str:
+        """End it and say the last line it wrote to stderr (its last words, should it have died)."""
         if self.process.poll() is None:
             self.process.kill()
         self.process.wait()
@@ -132,11 +133,7 @@ class _Worker:
         self.stderr.seek(0)
         lines = self.stderr.read().decode("utf-8", "replace").strip().splitlines()
         self.stderr.close()
-        self._last_line = lines[-1] if lines else "no message"
-
-    def last_words(self) -> str:
-        """The last line it wrote to stderr (once stopped)."""
-        return self._last_line
+        return lines[-1] if lines else "no message"
 
 
 def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) -> list[Any]:
@@ -161,12 +158,12 @@ def _run_in_workers(jobs: list[Job], workers: int, progress: Progress | None) ->
                     named[index](sum(f * job.weight for f, job in zip(fractions, jobs)) / total, payload[1])
                 continue
             worker = running.pop(index)
-            worker.stop()
+            last_words = worker.stop()
             if kind == "error":
                 raise payload
             if kind == "gone":
                 raise WorkerError(f"the worker computing the {jobs[index].name} stopped with exit code "
-                                  f"{worker.process.returncode} before its result: {worker.last_words()}")
+                                  f"{worker.process.returncode} before its result: {last_words}")
             results[index] = payload
             fractions[index] = 1.0
     finally:
