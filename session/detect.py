@@ -27,8 +27,9 @@ contrasts are made by :mod:`session.flatfield`):
   spot that comes and goes is noise, not a tumour becoming palpable); one that does not last up to the
   highest force palpated there is dropped. Its score is that of its strongest spot; its position is where a
   Gaussian blob fitted (weighted by precision) to the contrast of every element of every area within
-  ``fit_radius_m`` of that spot, at that level, peaks: the areas on both sides of a seam each see part of
-  a tumour under it, and only together do they show where it is.
+  ``fit_radius_m`` of its strongest spot inside its face (of its strongest if every spot reaches an edge),
+  at that spot's level, peaks: the areas on both sides of a seam each see part of a tumour under it, and
+  only together do they show where it is.
 * **Explained away** (:func:`explained_away`, when a forward model is given): a weaker tumour within a
   stronger one's reach is kept only if it still passes the threshold over what the stronger one's own
   mechanics makes of its face (its far field reaches the tissue's far side, and the faces beside it). Those
@@ -377,7 +378,7 @@ PLACEMENT_SWEEPS = 2
 def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Contrast, pitch_m: float,
                             params: DetectParams, said: _Said) -> list[Tumour]:
     """Each tumour placed by its own contrast over what the others' best-fitting spheres make of the faces at
-    its strongest level: a large tumour's far field slopes across a weaker one's blob and pulls its peak
+    the level that placed it: a large tumour's far field slopes across a weaker one's blob and pulls its peak
     towards it (an 8.5 mm-deep tumour 9 mm from a 12 mm-wide shallow one was placed 3.4 mm off, on the side
     towards it), and a weaker one's pulls the stronger one's too (a 4 mm-deep tumour 8 mm from a 9 mm-deep,
     11 mm-wide one was placed 1.6 mm towards it, and the weaker one, placed over that misplaced sphere,
@@ -388,8 +389,7 @@ def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Co
     for _ in range(PLACEMENT_SWEEPS if len(kept) > 1 else 0):
         for n, t in enumerate(kept):
             others = kept[:n] + kept[n + 1:]
-            lead = max(t.spots, key=lambda spot: spot.score)
-            records = groups[lead.level_index][1]
+            records = groups[_placing_spot(t.spots).level_index][1]
             by_others = said(others, list(records))
             if not any(s is not None and s[0].any() for by in by_others for s in by):
                 continue
@@ -561,14 +561,25 @@ def detect(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: Detec
         run = [track[k] for k in range(first, top + 1)]
         strongest = max(run, key=lambda cluster: cluster[0].score)
         lead = strongest[0]
-        x, y = _blob_centre(levels, contrast.contrast, contrast.sigma, groups[lead.level_index][1],
-                            [(lead.x_m, lead.y_m)], pitch_m, params.fit_radius_m)
+        placer = _placing_spot([spot for cluster in run for spot in cluster])
+        x, y = _blob_centre(levels, contrast.contrast, contrast.sigma, groups[placer.level_index][1],
+                            [(placer.x_m, placer.y_m)], pitch_m, params.fit_radius_m)
         depth = _depth_at(levels, groups[first][1], x, y, pitch_m)
         tumours.append(Tumour(x_m=x, y_m=y, depth_m=depth, first_level_N=groups[first][0], source=contrast.map,
                               score=lead.score, contrast=max(s.contrast for s in strongest),
                               levels_N=tuple(groups[k][0] for k in range(first, top + 1)),
                               spots=tuple(s for cluster in run for s in cluster)))
     return sorted(_merged(tumours, params, levels, contrast, groups, pitch_m), key=lambda t: (t.x_m, t.y_m))
+
+
+def _placing_spot(spots) -> Spot:
+    """The spot whose level places a tumour: its strongest inside its face, the strongest if all reach an
+    edge. A spot at its face's edge sees one side of what raised it, and where a stiff tumour's own area
+    stopped below the top level (the pressure ceiling), the levels above see it from the edge of the next
+    area only, often most strongly: placed at such a level, a 1.5 mm-deep tumour was put at that edge,
+    1.7 mm off, and 0.1 mm off from the strongest level its own area saw all of it."""
+    inside = [spot for spot in spots if not spot.at_edge]
+    return max(inside or spots, key=lambda spot: spot.score)
 
 
 def _places(spot: Spot) -> list[tuple[float, float]]:
@@ -591,8 +602,8 @@ def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, con
     """One tumour for tracks whose fitted centres lie within the merge radius: spots of two areas on either
     side of a tumour can start two tracks (each centroid pulled towards its own face), which the blob fit
     then places near the same tumour, each from the elements around its own place. The merged tumour is
-    fitted again, at the stronger one's level, from both places over the elements around either, and put
-    where the better fit puts it; it keeps the stronger one's score, and the levels are the union, so the
+    fitted again, at the level that placed the stronger one, from both places over the elements around
+    either, and put where the better fit puts it; it keeps the stronger one's score, and the levels are the union, so the
     first level (and the paper's depth with it) is the earlier one's."""
     out: list[Tumour] = []
     radius = params.merge_radius_m
@@ -602,8 +613,8 @@ def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, con
             out.append(t)
             continue
         kept = out[near]
-        lead = max(kept.spots, key=lambda spot: spot.score)
-        x, y = _blob_centre(levels, contrast.contrast, contrast.sigma, groups[lead.level_index][1],
+        placer = _placing_spot(kept.spots)
+        x, y = _blob_centre(levels, contrast.contrast, contrast.sigma, groups[placer.level_index][1],
                             [(kept.x_m, kept.y_m), (t.x_m, t.y_m)], pitch_m, params.fit_radius_m)
         first_N = min(kept.first_level_N, t.first_level_N)
         first = next(records for force, records in groups if force == first_N)

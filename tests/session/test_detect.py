@@ -181,6 +181,22 @@ def test_two_tracks_the_blob_fit_puts_on_one_tumour_are_one_tumour_first_seen_at
     assert one.depth_m == levels["indentation_m"][over_it_at_2N]
 
 
+def test_a_tumour_whose_own_area_stopped_early_is_placed_by_a_level_that_saw_all_of_it():
+    # Its own area (x 16-24 mm) stopped after 2 N (the pressure ceiling over a stiff tumour); at 3 and 4 N only
+    # the next area's edge column sees it, and there it is strongest. Placed from that level it was put at
+    # that edge, 2.5 mm off; the levels that saw all of it place it.
+    tumour = (0.0215, 0.015)
+    factors = (1.3, 1.3, 3.0, 3.0)
+    records = [level_record(r, k, force, (x, 0.015), tumours_xy_m=(tumour,), tumour_factor=factors[k], noise=0.02,
+                            seed=100 * r + k)
+               for r, x in enumerate(AREAS_X) for k, force in enumerate(FORCES) if not (r == 1 and k >= 2)]
+    found = found_in(levels_of(*records))
+    assert len(found) == 1
+    t = found[0]
+    assert t.levels_N == FORCES and max(t.spots, key=lambda spot: spot.score).force_N >= 3.0
+    assert math.hypot(t.x_m - tumour[0], t.y_m - tumour[1]) < 1e-3
+
+
 def test_a_tumour_beside_the_palpated_tissue_is_placed_at_its_edge_not_beyond():
     # the faces span y 0-30 mm; a stiff spot past their side raises the side columns most, and a blob fitted
     # to that rise alone peaks off the tissue, where nothing was palpated
