@@ -72,7 +72,7 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
     params = tumours["params"]
     keys = ("cell_m", "false_alarm_per_area", "accuracy", "merge_radius_m", "fit_radius_m", "depth_model_error",
             "depth_scale_error")
-    assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.01, 0.02, 4e-3, 5e-3, 0.3, 0.1]
+    assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.001, 0.02, 4e-3, 5e-3, 0.3, 0.1]
     assert params["kernel_widths_m"] == pytest.approx([2e-3, 4e-3]) and params["l0_source"] == "element"
 
 

@@ -187,7 +187,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
             return box
 
         self._cell_spin = spin("cellSpin", 0.1, 20.0, 1.0, 0.25, " mm")
-        self._false_alarm_spin = spin("falseAlarmSpin", 0.01, 50.0, DetectParams.false_alarm_per_area * 100, 0.5,
+        self._false_alarm_spin = spin("falseAlarmSpin", 0.01, 50.0, DetectParams.false_alarm_per_area * 100, 0.05,
                                       " % of areas", 2)
         self._false_alarm_spin.setToolTip("Chance that a palpated area of healthy tissue raises a spot")
         self._accuracy_spin = spin("accuracySpin", 0.1, 50.0, DetectParams.accuracy * 100, 0.5, " %", 1)
