@@ -274,12 +274,19 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
         regions = session.regions()
         return {
             "name": name, "paper": paper, "surface": _surface_kind(phantom),
-            "regions": len(regions), "regions_done": sum(1 for r in regions if r.outcome == "done"),
+            "regions": _areas_started(session), "regions_done": sum(1 for r in regions if r.outcome == "done"),
             "regions_aborted": _abort_reasons(session),
             "truths": truths, "matches": [asdict(m) for m in analysis.matches],
             "false_positives": analysis.false_positives,
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
         }
+
+
+def _areas_started(session) -> int:
+    """Areas the operator began: those that recorded a level and those that ended (aborted) before one,
+    which a sensor whose noise passed the contact thresholds did in most areas of every phantom."""
+    ended = {event["region"] for event in session.event_dicts() if event["kind"] in ("region_aborted", "region_done")}
+    return len({entry.region for entry in session.regions()} | ended)
 
 
 def _abort_reasons(session) -> dict[str, int]:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, _abort_reasons,
+from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, StudyDistribution, _abort_reasons, _areas_started,
                        analysis_options, case_failures, draw_phantom, kept_cases, reanalyse_study, run_study, score,
                        study_cases, study_document, study_main)
 from control.messages import LevelRecorded, RegionAborted, RegionDone
@@ -147,6 +147,7 @@ def test_a_case_counts_its_aborted_areas_by_the_controllers_reason(tmp_path):
     with open_session(tmp_path / "s.h5") as session:
         assert _abort_reasons(session) == {"Pressure ceiling exceeded": 2,
                                            "switched to position control by the operator": 1}
+        assert _areas_started(session) == 4  # the last ended before its first level
 
 
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
