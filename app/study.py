@@ -286,7 +286,7 @@ def _areas_started(session) -> int:
     """Areas the operator began: those that recorded a level and those that ended (aborted) before one,
     which a sensor whose noise passed the contact thresholds did in most areas of every phantom."""
     ended = {event["region"] for event in session.event_dicts() if event["kind"] in ("region_aborted", "region_done")}
-    return len({entry.region for entry in session.regions()} | ended)
+    return len({int(region) for region in session.levels["region"]} | ended)
 
 
 def _abort_reasons(session) -> dict[str, int]:

@@ -609,8 +609,8 @@ def _merged(tumours: list[Tumour], params: DetectParams, levels: np.ndarray, con
     side of a tumour can start two tracks (each centroid pulled towards its own face), which the blob fit
     then places near the same tumour, each from the elements around its own place. The merged tumour is
     fitted again, at the level that placed the stronger one, from both places over the elements around
-    either, and put where the better fit puts it; it keeps the stronger one's score, and the levels are the union, so the
-    first level (and the paper's depth with it) is the earlier one's."""
+    either, and put where the better fit puts it; it keeps the stronger one's score, and the levels are the
+    union, so the first level (and the paper's depth with it) is the earlier one's."""
     out: list[Tumour] = []
     radius = params.merge_radius_m
     for t in sorted(tumours, key=lambda t: -t.score):
