@@ -42,7 +42,7 @@ class LayerPlant:
 
     def pressure_at(self, z: float) -> np.ndarray:
         d = max(self.surface_m - z, 0.0)
-        noise = self.rng.normal(0.0, self.noise_pa, SHAPE) if self.noise_pa else 0.0
+        noise = self.rng.normal(0.0, self.noise_pa, SHAPE) if np.any(self.noise_pa) else 0.0
         return self.modulus * d / self.surface_m + self.extra_force_pa + noise
 
     def poll(self, now: float) -> None:

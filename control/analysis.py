@@ -5,6 +5,13 @@ How they are found from the data — written down once, here:
 * The probe descends under force control with its face level. For each element we watch its pressure
   against the TSI face height z (robot kinematics, interpolated at the frame's own timestamp, since the
   sensor lags the robot and runs 10-100x slower than the loop).
+* **Thresholds from the sensor's own noise.** p_on and p_c are set per element, never below the
+  configured values: p_on = max(configured p_on, 5 sigma), with sigma the element's white noise measured
+  from the frames read between areas (:class:`AirNoise`), and p_c = p_on times the configured ratio. At
+  5 sigma a single element-frame of noise crosses p_on with probability 3e-7 (a face of 60 elements read
+  100 times a second: about once in 10 minutes), and such a crossing is forgotten once it falls back;
+  p_c at 3 p_on (15 sigma) is never reached by noise. A fixed threshold on a noisier sensor (4x the
+  default's 50 Pa: 300 Pa is 1.5 sigma) took noise in air for contact and aborted 76 of 77 areas.
 * **Contact onset.** The first frame pair in which the element's pressure crosses the onset threshold
   p_on gives the crossing height z1 (linear interpolation between the two frames). Pressure near onset
   rises roughly linearly with indentation, so once the pressure also crosses the confirm threshold
@@ -34,6 +41,14 @@ import numpy as np
 
 from control.config import ContactSettings
 
+# An element's contact onset threshold stands this many of its own noise standard deviations above zero.
+ONSET_NOISE_SIGMAS = 5.0
+NOISE_WINDOW_FRAMES = 256  # the newest frames read between areas: 2.6 s at 100 frames/s
+# Frames needed before the noise is known: 31 differences give an element's sigma to about 25 %, and the
+# face's median of them (the floor under every element's) to a few %
+NOISE_MIN_FRAMES = 32
+_MAD_TO_SIGMA = 1.4826  # a normal distribution's standard deviation over its median absolute deviation
+
 
 class ContactTracker:
     """Per-element contact onset during one region's descent."""
@@ -41,6 +56,9 @@ class ContactTracker:
     def __init__(self, contact: ContactSettings, shape: tuple[int, int]):
         self.settings = contact
         self.shape = shape
+        # per element: the thresholds this descent is tracked with (see contact_thresholds)
+        self.onset_pa = np.full(shape, contact.onset_threshold_pa)
+        self.confirm_pa = np.full(shape, contact.confirm_threshold_pa)
         self.onset_height_m = np.empty(shape)
         self._z1 = np.empty(shape)
         self._confirmed = np.empty(shape, dtype=bool)
@@ -57,8 +75,11 @@ class ContactTracker:
         self._prev_p = np.empty(shape)
         self.reset()
 
-    def reset(self) -> None:
-        """Forget the descent, in place: under position control this runs on every frame clear of the tissue."""
+    def reset(self, thresholds: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Forget the descent, in place: under position control this runs on every frame clear of the tissue.
+        ``thresholds`` (onset, confirm per element): track the next descent with these."""
+        if thresholds is not None:
+            self.onset_pa[...], self.confirm_pa[...] = thresholds
         self.onset_height_m.fill(np.nan)
         self._z1.fill(np.nan)
         self._confirmed.fill(False)
@@ -72,8 +93,7 @@ class ContactTracker:
         self._prev_z = np.nan
 
     def update(self, pressure_pa: np.ndarray, tsi_z_m: float) -> None:
-        s = self.settings
-        p_on, p_c = s.onset_threshold_pa, s.confirm_threshold_pa
+        p_on, p_c = self.onset_pa, self.confirm_pa
         if not self._started:
             np.greater_equal(pressure_pa, p_on, out=self._blind)
             np.copyto(self._blind_base_pa, pressure_pa, where=self._blind)
@@ -98,7 +118,7 @@ class ContactTracker:
         self._prev_p[...] = reading
         self._prev_z = tsi_z_m
 
-    def _air_out(self, pressure_pa: np.ndarray, p_on: float) -> None:
+    def _air_out(self, pressure_pa: np.ndarray, p_on: np.ndarray) -> None:
         """Blind elements whose reading fell below p_on, or to half of what it was, were reading creep in
         air: from here they are tracked as elements that had not yet touched, on their reading above its
         floor."""
@@ -115,22 +135,22 @@ class ContactTracker:
         """What is taken off each element's reading: an aired element's floor (never below zero)."""
         return np.where(self._aired, np.clip(self._floor_pa, 0.0, None), 0.0)
 
-    def _track(self, pressure_pa: np.ndarray, tsi_z_m: float, p_on: float, p_c: float) -> None:
+    def _track(self, pressure_pa: np.ndarray, tsi_z_m: float, p_on: np.ndarray, p_c: np.ndarray) -> None:
         # Divisions below only run where p0 < threshold <= p, so their denominators are positive.
         p0, z0 = self._prev_p, self._prev_z
         dz = tsi_z_m - z0
         unknown = np.isnan(self._z1)
         first = unknown & ~self._blind & (p0 < p_on) & (pressure_pa >= p_on)
         if first.any():
-            z1 = z0 + (p_on - p0[first]) / (pressure_pa[first] - p0[first]) * dz
+            z1 = z0 + (p_on[first] - p0[first]) / (pressure_pa[first] - p0[first]) * dz
             self._z1[first] = z1
             self.onset_height_m[first] = z1
             unknown &= ~first
         conf = ~unknown & ~self._confirmed & (p0 < p_c) & (pressure_pa >= p_c)
         if conf.any():
-            z2 = z0 + (p_c - p0[conf]) / (pressure_pa[conf] - p0[conf]) * dz
+            z2 = z0 + (p_c[conf] - p0[conf]) / (pressure_pa[conf] - p0[conf]) * dz
             z1 = self._z1[conf]
-            refined = z1 + p_on * (z1 - z2) / (p_c - p_on)
+            refined = z1 + p_on[conf] * (z1 - z2) / (p_c[conf] - p_on[conf])
             self.onset_height_m[conf] = np.where(z2 < z1, refined, z1)
             self._confirmed[conf] = True
             self._settled |= conf
@@ -145,16 +165,54 @@ class ContactTracker:
         return self._blind
 
 
+class AirNoise:
+    """Each element's white noise, from the frames read while the operator holds the probe between areas.
+
+    Estimated from frame-to-frame differences (whose spread is sqrt(2) sigma for white noise) by their median
+    absolute deviation: a slow change of load (the probe lowered, a creep residual decaying) hardly moves a
+    difference, and a minority of frames pressing or lifting off tissue does not move the median."""
+
+    def __init__(self, shape: tuple[int, int], window_frames: int = NOISE_WINDOW_FRAMES):
+        self._frames = np.zeros((window_frames, *shape))
+        self._next = 0
+        self.count = 0  # frames held, up to the window
+
+    def push(self, pressure_pa: np.ndarray) -> None:
+        self._frames[self._next] = pressure_pa
+        self._next = (self._next + 1) % len(self._frames)
+        self.count = min(self.count + 1, len(self._frames))
+
+    def sigma_pa(self) -> np.ndarray | None:
+        """Per-element noise standard deviation, never below the face's median (an element's own estimate
+        from a few dozen frames can fall well short of its noise; one noisier than the rest keeps its own);
+        None until NOISE_MIN_FRAMES frames are held."""
+        if self.count < NOISE_MIN_FRAMES:
+            return None
+        frames = np.roll(self._frames, -self._next, axis=0)[-self.count:]  # oldest first
+        diffs = np.diff(frames, axis=0)
+        own = _MAD_TO_SIGMA / np.sqrt(2.0) * np.median(np.abs(diffs - np.median(diffs, axis=0)), axis=0)
+        return np.maximum(own, np.median(own))
+
+
+def contact_thresholds(contact: ContactSettings, sigma_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(onset, confirm) per element: the configured ones, raised to stand ONSET_NOISE_SIGMAS above each
+    element's noise; confirm keeps its configured ratio to onset (the onset extrapolation uses both)."""
+    onset = np.maximum(contact.onset_threshold_pa, ONSET_NOISE_SIGMAS * sigma_pa)
+    return onset, onset * (contact.confirm_threshold_pa / contact.onset_threshold_pa)
+
+
 def element_analysis(
     pressure_pa: np.ndarray,
     onset_height_m: np.ndarray,
     tsi_z_m: float,
+    onset_threshold_pa: np.ndarray | float,
     contact: ContactSettings,
     element_area_m2: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """(L0_m, dL_m, stiffness_pa, in_contact, tsi_indentation_m) for one pressure map at one height."""
+    """(L0_m, dL_m, stiffness_pa, in_contact, tsi_indentation_m) for one pressure map at one height, with
+    the onset threshold the contact was tracked with (per element, or one for all)."""
     L0 = onset_height_m - contact.table_height_m  # NaN where the onset is unknown
-    in_contact = (pressure_pa >= contact.onset_threshold_pa) & (L0 == L0)
+    in_contact = (pressure_pa >= onset_threshold_pa) & (L0 == L0)
     dL = np.where(in_contact, onset_height_m - tsi_z_m, np.nan)
     usable = in_contact & (dL >= contact.min_indentation_m) & (L0 > 0)
     force = pressure_pa * element_area_m2

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.analysis import PoseHistory, element_analysis
+from control.analysis import NOISE_MIN_FRAMES, AirNoise, PoseHistory, contact_thresholds, element_analysis
 from control.config import ControlConfig
 from control.law import HybridImpedanceLaw
 from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
@@ -35,6 +35,7 @@ STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step 
 # Onsets belong to the place they were found: moved sideways by a quarter of the element pitch, an element
 # lies over other tissue
 TRACKED_DRIFT_PITCHES = 0.25
+NOISE_REFRESH_FRAMES = 32  # the contact thresholds follow the noise measured between areas this often
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 
@@ -85,6 +86,12 @@ class ControlLoop:
         self._min_pressure_pa = 0.0
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
+        self._noise = AirNoise(sensor.shape)
+        self._noise_sigma_pa: np.ndarray | None = None  # per element, once measured
+        self._frames_since_noise = 0
+        contact = config.contact
+        self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
+                            np.full(sensor.shape, contact.confirm_threshold_pa))
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
@@ -198,15 +205,53 @@ class ControlLoop:
                 self._refuse(now_s, cmd, "force control is already on", events)
             elif sm.phase == Phase.RETRACT:
                 self._refuse(now_s, cmd, "the probe is still retracting", events)
+            elif (problem := self._contact_problem()) is not None:
+                self._refuse(now_s, cmd, problem, events)
             else:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
-                sm.start(now_s, self._x_s[Z], touching=self._max_pressure_pa >= self.config.contact.onset_threshold_pa)
+                onset, _ = self._thresholds
+                touching = bool((self.frame["pressure_pa"] >= onset).any())
+                sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching)
                 self._set_sz(now_s, False, cmd.source, events)
+                if (onset > self.config.contact.onset_threshold_pa).any():
+                    events.append(Notice(now_s, self._raised_thresholds()))
         elif sm.force_control:
             sm.abort(now_s, "switched to position control by the operator", self.law.x_r[Z], retract=False)
             self._clutch((Z,))
             self._set_sz(now_s, True, cmd.source, events)
         # during a retract z is already position controlled: the lift finishes, then z is handed back
+
+    def _refresh_thresholds(self) -> None:
+        sigma = self._noise.sigma_pa()
+        if sigma is not None:
+            self._noise_sigma_pa = sigma
+            self._thresholds = contact_thresholds(self.config.contact, sigma)
+        self._frames_since_noise = 0
+
+    def _contact_problem(self) -> str | None:
+        """Why contact could not be told from the sensor's noise in this area (None: it can)."""
+        self._refresh_thresholds()
+        if self._noise_sigma_pa is None:
+            return (f"the sensor's noise is not measured yet ({self._noise.count} of {NOISE_MIN_FRAMES} frames read "
+                    f"with the probe held between areas); wait a moment")
+        confirm = float(np.median(self._thresholds[1]))
+        ramp = self.sm.ramp
+        mean_pa = ramp.force_min_N / (self.sensor.rows * self.sensor.cols * self.sensor.element_area_m2)
+        if confirm >= mean_pa:
+            # Below this the seek at F_min could end with no element ever confirming contact, or on noise
+            return (f"the sensor's noise (median {np.median(self._noise_sigma_pa):.0f} Pa per element) puts contact "
+                    f"confirmation at {confirm / 1e3:.2f} kPa, above the face's mean pressure at the first level "
+                    f"({mean_pa / 1e3:.2f} kPa at {ramp.force_min_N:g} N): check the sensor's cable and shielding")
+        return None
+
+    def _raised_thresholds(self) -> str:
+        onset, confirm = self._thresholds
+        sigma = self._noise_sigma_pa
+        raised = onset > self.config.contact.onset_threshold_pa
+        return (f"Sensor noise between areas: median {np.median(sigma):.0f} Pa, up to {sigma.max():.0f} Pa per "
+                f"element; {raised.sum()} of {raised.size} elements track contact above the configured "
+                f"{self.config.contact.onset_threshold_pa:g} Pa onset (up to {onset.max() / 1e3:.2f} kPa onset, "
+                f"{confirm.max() / 1e3:.2f} kPa confirm).")
 
     def _raise_fault(self, now_s: float, kind: FaultKind, message: str, events: list) -> None:
         if not self.safety.latch(kind, message):
@@ -309,21 +354,26 @@ class ControlLoop:
         fr["tsi_position_m"] = pos
         fr["pressure_pa"] = p
         tracker = sm.tracker
+        if sm.phase.idle:
+            self._noise.push(p)
+            self._frames_since_noise += 1
+            if self._frames_since_noise >= NOISE_REFRESH_FRAMES:
+                self._refresh_thresholds()
         if not sm.force_control:
             # the ceiling holds under position control too: the operator can press the probe in by hand
             implausible = self._min_pressure_pa < -IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
-            clear = (p < self.config.contact.onset_threshold_pa).all() and not implausible
+            clear = (p < self._thresholds[0]).all() and not implausible
             # A sensor's residual reading after a hard press (creep) can hold an element above the threshold
             # in air for seconds: a probe moved to the next area would then carry the last area's onsets
             # over, and every thickness and indentation there would be another place's.
             moved = (self._tracked_xy is None or math.dist(self._tracked_xy, pos[:2])
                      > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m)
             if clear or moved:
-                tracker.reset()  # the next contact is a new descent, tracked from here
+                tracker.reset(self._thresholds)  # the next contact is a new descent, tracked from here
                 self._tracked_xy = (pos[0], pos[1])
             tracker.update(p, pos[Z])
         _, dL, stiffness, _, self._indentation_m = element_analysis(
-            p, tracker.onset_height_m, pos[Z], self.config.contact, area)
+            p, tracker.onset_height_m, pos[Z], tracker.onset_pa, self.config.contact, area)
         # Elements already pressed when tracking began have no onset, so no indentation; without this the
         # ceiling sees NaN and the probe may be driven to the table. Each is in at least as far as the TSI
         # went down since its reading began to rise (at once if it was pressing tissue; not the descent

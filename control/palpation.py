@@ -1,8 +1,8 @@
 """The palpation flowchart of Fig. 4 as a state machine.
 
 APPROACH (S_z = 1, the operator positions the TSI above an area)
-  -> start(): S_z = 0, force control at F_min: SEEK_CONTACT until an element's pressure passes the confirm
-     threshold (a real touch, not noise)
+  -> start(): S_z = 0, force control at F_min: SEEK_CONTACT until an element's pressure passes its confirm
+     threshold (a real touch, not noise: control/analysis.py sets it from the sensor's noise)
   -> SETTLING at level k (F_d = F_min + k dF): once the RMSE of F_d - F_ts over the settle window is below
      eps and the level has lasted the minimum settle time, record the level (pressure and force per
      element averaged over the window and each element's scatter over it, L0, dL, stiffness, TSI
@@ -82,17 +82,19 @@ class PalpationStateMachine:
     def set_ramp(self, ramp: RampSettings) -> None:
         self.ramp = ramp
 
-    def start(self, now_s: float, tsi_z_m: float, touching: bool = False) -> None:
-        """The operator switched S_z to force control above an area: begin the Fig. 4 ramp. ``touching``:
-        the probe already presses, and the contact tracked under position control carries on (a fresh
-        start would forget the onsets, and the indentation ceiling with them, of what it already presses)."""
+    def start(self, now_s: float, tsi_z_m: float, thresholds: tuple[np.ndarray, np.ndarray],
+              touching: bool = False) -> None:
+        """The operator switched S_z to force control above an area: begin the Fig. 4 ramp, tracking contact
+        with ``thresholds`` (onset, confirm per element). ``touching``: the probe already presses, and the
+        contact tracked under position control carries on with its own (a fresh start would forget the
+        onsets, and the indentation ceiling with them, of what it already presses)."""
         self.region += 1
         self.region_done = False
         self.level = 0
         self.force_desired_N = self.ramp.level_force_N(0)
         self.rmse_N = math.nan
         if not touching:
-            self.tracker.reset()
+            self.tracker.reset(thresholds)
         self._t_start = now_s
         self._t_level = now_s
         self._z_start = tsi_z_m
@@ -169,7 +171,7 @@ class PalpationStateMachine:
         self._fi = (i + 1) % FRAME_BUFFER
 
         if self.phase == Phase.SEEK_CONTACT:
-            if (pressure_pa >= self.contact.confirm_threshold_pa).any():
+            if (pressure_pa >= self.tracker.confirm_pa).any():
                 self._t_level = t_s
                 self._enter(t_s, Phase.SETTLING)
             return
@@ -188,7 +190,8 @@ class PalpationStateMachine:
         z = float(self._fz[window].mean())
         pos = self._fpos[window].mean(axis=0)
         onset = self.tracker.onset_height_m.copy()
-        L0, dL, stiffness, in_contact, indentation = element_analysis(pressure, onset, z, self.contact, self.area)
+        L0, dL, stiffness, in_contact, indentation = element_analysis(
+            pressure, onset, z, self.tracker.onset_pa, self.contact, self.area)
         record = LevelRecord(
             region=self.region,
             level=self.level,

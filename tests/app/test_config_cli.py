@@ -98,6 +98,18 @@ def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(t
     assert capsys.readouterr().out.count("done (2 levels)") == 9
 
 
+def test_a_sensor_four_times_noisier_than_the_default_still_palpates_every_area(tmp_path, capsys):
+    """The contact thresholds follow the noise the loop measures between areas: with the configured ones
+    (300 / 900 Pa, 1.5 / 4.5 sigma at 200 Pa) the noise was taken for contact in air, and the indentation
+    ceiling stopped the palpation in its first area."""
+    config = tmp_path / "noisy.toml"
+    config.write_text("[control.ramp]\nforce_max_N = 2.0\n[sim.sensor]\nnoise_std_pa = 200.0\n")
+    assert main(["simulate", "--config", str(config), "--no-record", "-v"]) == 0
+    out = capsys.readouterr().out
+    assert "9 of 9 regions done, 0 problems" in out
+    assert out.count("60 of 60 elements track contact above the configured 300 Pa onset") == 9
+
+
 def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
     """``--help`` must answer at once: importing app.cli stops at the standard library (the time itself is
     measured by ``make bench``, cli.json)."""

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from control.analysis import ContactTracker, PoseHistory, element_analysis
+from control.analysis import (NOISE_MIN_FRAMES, AirNoise, ContactTracker, PoseHistory, contact_thresholds,
+                              element_analysis)
 from control.config import ContactSettings
 
 A = 4e-6
@@ -14,7 +15,8 @@ def test_eq1_numbers():
     contact = ContactSettings(table_height_m=0.0)
     p = np.full(SHAPE, 20e3)  # F = 0.08 N per element
     onset = np.full(SHAPE, 0.025)  # L0 = 25 mm
-    L0, dL, E, in_contact, depth = element_analysis(p, onset, 0.0225, contact, A)  # dL = 2.5 mm
+    # dL = 2.5 mm
+    L0, dL, E, in_contact, depth = element_analysis(p, onset, 0.0225, contact.onset_threshold_pa, contact, A)
     assert in_contact.all()
     np.testing.assert_allclose(L0, 0.025)
     np.testing.assert_allclose(dL, 0.0025)
@@ -32,7 +34,7 @@ def test_elements_never_in_contact_are_nan_not_inf():
     onset[2, 3] = 0.0201  # known onset but dL below min_indentation: noise-dominated, NaN
     p[2, 3] = 5e3
     with np.errstate(all="raise"):
-        _, dL, E, in_contact, depth = element_analysis(p, onset, 0.020, contact, A)
+        _, dL, E, in_contact, depth = element_analysis(p, onset, 0.020, contact.onset_threshold_pa, contact, A)
     assert np.isfinite(E[1, 3]) and E[1, 3] == pytest.approx(5e3 * 0.025 / 0.005)
     assert np.isnan(E[2, 3])
     assert np.isnan(np.delete(E.ravel(), [1 * 15 + 3])).all()
@@ -41,7 +43,8 @@ def test_elements_never_in_contact_are_nan_not_inf():
 
 
 def test_no_contact_gives_nan_depth():
-    _, _, E, in_contact, depth = element_analysis(np.zeros(SHAPE), np.full(SHAPE, np.nan), 0.02, ContactSettings(), A)
+    nowhere = np.full(SHAPE, np.nan)
+    _, _, E, in_contact, depth = element_analysis(np.zeros(SHAPE), nowhere, 0.02, 300.0, ContactSettings(), A)
     assert np.isnan(depth) and np.isnan(E).all() and not in_contact.any()
 
 
@@ -105,3 +108,28 @@ def test_a_noise_blip_is_not_taken_for_contact():
     p[2, 7] = 0.0
     tracker.update(p, 0.0298)
     assert np.isnan(tracker.onset_height_m).all()
+
+
+def test_air_noise_is_each_elements_own_never_below_the_faces_median():
+    rng = np.random.default_rng(3)
+    sigma = np.full(SHAPE, 200.0)
+    sigma[1, 4] = 1000.0
+    noise = AirNoise(SHAPE)
+    drift = np.linspace(0.0, 5e3, 300)  # a creep residual decaying, the probe lowered onto nothing
+    for k in range(300):
+        assert (noise.sigma_pa() is None) == (k < NOISE_MIN_FRAMES)
+        frame = drift[k] + sigma * rng.standard_normal(SHAPE)
+        if k % 40 == 0:
+            frame += 20e3  # a frame pressing something now and then
+        noise.push(frame)
+    estimate = noise.sigma_pa()
+    assert 200.0 < np.median(estimate) < 220.0  # the pressing frames' differences raise it a little: safe side
+    # the noisy element keeps its own; the half of the face whose own estimate fell short sits on the floor
+    assert estimate[1, 4] == pytest.approx(1000.0, rel=0.2) and np.count_nonzero(estimate == estimate.min()) >= 30
+    onset, confirm = contact_thresholds(ContactSettings(onset_threshold_pa=300, confirm_threshold_pa=900),
+                                        estimate)
+    assert onset[1, 4] == 5 * estimate[1, 4] and onset.min() == 5 * estimate.min()
+    np.testing.assert_allclose(confirm, 3 * onset)
+    quiet, _ = contact_thresholds(ContactSettings(onset_threshold_pa=300, confirm_threshold_pa=900),
+                                  np.full(SHAPE, 10.0))
+    assert (quiet == 300).all()  # never below the configured thresholds

@@ -7,7 +7,7 @@ import pytest
 
 from control.config import ControlConfig, RampSettings, SafetyLimits
 from control.messages import (AbortRegion, CancelJog, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind,
-                              FaultRaised, Jog, LevelRecorded, LevelTimedOut, PhaseChanged, RegionAborted,
+                              FaultRaised, Jog, LevelRecorded, LevelTimedOut, Notice, PhaseChanged, RegionAborted,
                               RegionDone, SetRamp, SetSz, SzChanged, Tare)
 from hardware.interfaces import Phase
 
@@ -19,7 +19,7 @@ def phase(h):
 
 
 def start_region(h):
-    h.run(0.1)
+    h.run(0.4)  # the loop measures the sensor's noise before it lets force control start
     h.send(SetSz(position_control=False))
     h.run(0.01)
     assert phase(h) == Phase.SEEK_CONTACT
@@ -200,7 +200,7 @@ def test_master_stale_is_a_fault_only_with_a_master():
 
 def test_master_switch_edges_drive_sz():
     h = Harness(master=True)
-    h.run(0.1)
+    h.run(0.4)
     h.master_switch = False
     h.run(0.02)
     assert phase(h) == Phase.SEEK_CONTACT
@@ -441,3 +441,54 @@ def test_a_damaged_negative_reading_never_pulls_the_probe_down():
     h.run(0.5, until=lambda h: lowest.append(h.plant.x[2]) or False)
     assert h.of(FaultRaised)[0].kind == FaultKind.SENSOR_IMPLAUSIBLE
     assert min(lowest) > z_fault - 0.2e-3 and h.plant.x[2] > z_fault + 2e-3
+
+
+def test_force_control_waits_until_the_sensor_noise_is_measured():
+    h = Harness()
+    h.run(0.1)  # ten frames
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    (refused,) = h.of(CommandRefused)
+    assert "noise is not measured yet (10 of 32 frames" in refused.reason and phase(h) == Phase.APPROACH
+    start_region(h)
+
+
+def test_a_noisier_sensor_tracks_contact_above_its_own_noise():
+    """At 4x the simulated sensor's default noise (200 Pa) the configured 300 Pa onset is 1.5 sigma: noise in
+    air passed it, the onsets were found in air and the indentation ceiling stopped nearly every area. The
+    thresholds now stand 5 sigma above each element's noise, and the ramp finds the surface."""
+    h = Harness(plant=LayerPlant(noise_pa=200.0))
+    start_region(h)
+    (notice,) = [e for e in h.of(Notice) if e.message.startswith("Sensor noise")]
+    assert "60 of 60 elements track contact above the configured 300 Pa onset" in notice.message
+    onset, confirm = h.loop.sm.tracker.onset_pa, h.loop.sm.tracker.confirm_pa
+    assert 800 < onset.min() and onset.max() < 2000 and np.allclose(confirm, 3 * onset)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE)
+    assert not h.of(RegionAborted) and not h.of(FaultRaised)
+    for record in (e.record for e in h.of(LevelRecorded)):
+        error = np.abs(record.L0_m - 0.025)  # each onset is found from two crossings of a noisy reading
+        assert error.max() < 1e-3 and np.median(error) < 0.2e-3
+
+
+def test_one_noisy_element_keeps_its_own_threshold():
+    noise = np.full((4, 15), 50.0)
+    noise[2, 7] = 2000.0  # a broken element; the default sensor's noise elsewhere
+    h = Harness(plant=LayerPlant(noise_pa=noise))
+    start_region(h)
+    onset = h.loop.sm.tracker.onset_pa
+    others = np.delete(onset.ravel(), 2 * 15 + 7)  # 40 frames give their own noise to within a few tens of %
+    assert onset[2, 7] > 5e3 and others.min() == 300.0 and others.max() < 450.0
+    h.run(40, until=lambda h: phase(h) == Phase.DONE)
+    assert not h.of(RegionAborted) and not h.of(FaultRaised)
+    L0 = h.of(LevelRecorded)[-1].record.L0_m
+    assert np.isfinite(np.delete(L0.ravel(), 2 * 15 + 7)).all()
+
+
+def test_a_sensor_too_noisy_to_tell_contact_is_refused():
+    h = Harness(plant=LayerPlant(noise_pa=1500.0))
+    h.run(0.4)
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    (refused,) = h.of(CommandRefused)
+    assert "above the face's mean pressure at the first level (4.17 kPa at 1 N)" in refused.reason
+    assert phase(h) == Phase.APPROACH and h.loop.law.sz == 1

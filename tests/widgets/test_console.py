@@ -48,9 +48,13 @@ def console(qtbot, tmp_path, bridge):
     qtbot.waitExposed(window)
     window.activateWindow()
     qtbot.waitUntil(window.isActiveWindow)
+    seen = []
+    bridge.snapshot.connect(lambda snap: seen.append(float(snap.tick["t_s"])))
     with qtbot.waitSignal(bridge.started, timeout=WAIT_MS):
         bridge.start()
     qtbot.waitUntil(lambda: window.findChild(SzSwitch, "szSwitch").state() is not None, timeout=WAIT_MS)
+    # the loop refuses force control until it has measured the sensor's noise (32 frames at 100 frames/s)
+    qtbot.waitUntil(lambda: seen and seen[-1] >= 0.5, timeout=WAIT_MS)
     return window
 
 
