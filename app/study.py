@@ -472,6 +472,20 @@ def _median(values: list[float]) -> float | None:
     return float(statistics.median(values)) if values else None
 
 
+def _depth_figures(found: list[dict]) -> dict[str, float | None]:
+    """Both depth estimates of the ``found`` matches against the truth: median error, median signed error
+    (estimate minus truth: negative reads shallow), and how often the model's 90 % interval covers it."""
+    rule = [(m["depth_estimate_m"] - m["depth_m"]) * 1e3 for m in found if _finite(m["depth_estimate_m"])]
+    model = [(m["depth_model_m"] - m["depth_m"]) * 1e3 for m in found if _finite(m.get("depth_model_m"))]
+    covered = [m["depth_low_m"] <= m["depth_m"] <= m["depth_high_m"] for m in found
+               if _finite(m.get("depth_low_m")) and _finite(m.get("depth_high_m"))]
+    return {"depth_err_rule_median_mm": _median([abs(e) for e in rule]),
+            "depth_err_model_median_mm": _median([abs(e) for e in model]),
+            "depth_bias_rule_median_mm": _median(rule),
+            "depth_bias_model_median_mm": _median(model),
+            "depth_interval_coverage_pct": _pct(sum(covered), len(covered))}
+
+
 def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
     """The study's figures for one map (``source``), over the drawn phantoms; the paper's phantoms apart."""
     failed = [r for r in results if "error" in r]
@@ -482,17 +496,12 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
     found = [(r, m, t) for r, m, t in truths if m["found"]]
     bands = {}
     for lo, hi in DEPTH_BANDS_M:
-        inside = [(m, t) for _, m, t in truths if lo <= t["depth_m"] < hi]
+        inside = [m for _, m, t in truths if lo <= t["depth_m"] < hi]
         bands[f"{lo * 1e3:.0f}-{hi * 1e3:.0f}mm"] = {
-            "tumours": len(inside), "found": sum(1 for m, _ in inside if m["found"]),
-            "sensitivity_pct": _pct(sum(1 for m, _ in inside if m["found"]), len(inside))}
+            "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
+            "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
+            **_depth_figures([m for m in inside if m["found"]])}
     shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
-    rule_errors = [abs(m["depth_estimate_m"] - m["depth_m"]) * 1e3 for _, m, _ in found
-                   if m["depth_estimate_m"] is not None and math.isfinite(m["depth_estimate_m"])]
-    model_errors = [abs(m["depth_model_m"] - m["depth_m"]) * 1e3 for _, m, _ in found
-                    if m.get("depth_model_m") is not None and math.isfinite(m["depth_model_m"])]
-    covered = [m["depth_low_m"] <= m["depth_m"] <= m["depth_high_m"] for _, m, _ in found
-               if _finite(m.get("depth_low_m")) and _finite(m.get("depth_high_m"))]
     paper = {r["name"]: r for r in results if r["paper"]}
     return {
         "phantoms": len(drawn),
@@ -506,9 +515,7 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
                                                     if not r["truths"]),
         "loc_err_p90_mm": _quantile([m["error_xy_m"] * 1e3 for _, m, _ in found], 0.9),
         "loc_err_median_mm": _median([m["error_xy_m"] * 1e3 for _, m, _ in found]),
-        "depth_err_rule_median_mm": _median(rule_errors),
-        "depth_err_model_median_mm": _median(model_errors),
-        "depth_interval_coverage_pct": _pct(sum(covered), len(covered)),
+        **_depth_figures([m for _, m, _ in found]),
         "paper_flat_found": _found_count(paper.get("paper-flat"), source),
         "paper_uneven_found": _found_count(paper.get("paper-uneven"), source),
         "paper_false_positives": (sum(r["false_positives"].get(source, 0) for r in paper.values())
@@ -576,13 +583,20 @@ def _fmt(value, unit: str = "", decimals: int = 1) -> str:
     return "—" if value is None else f"{value:.{decimals}f}{unit}"
 
 
+def _depth_cell(figures: dict, estimate: str) -> str:
+    error, bias = figures[f"depth_err_{estimate}_median_mm"], figures[f"depth_bias_{estimate}_median_mm"]
+    return "—" if error is None else f"{error:.2f} ({bias:+.2f}) mm"
+
+
 def print_summary(figures: dict[str, dict], wall_s: float, out=None) -> None:
     out = out or sys.stdout
     for source, f in figures.items():
         print(f"\n{source} map: {f['tumours']} tumours in {f['phantoms']} phantoms", file=out)
-        print("  depth band   tumours  found  sensitivity", file=out)
+        print("  depth band   tumours  found  sensitivity   depth error (bias), rule / model   covered", file=out)
         for band, b in f["by_depth"].items():
-            print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}", file=out)
+            print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}   "
+                  f"{_depth_cell(b, 'rule'):>15} / {_depth_cell(b, 'model'):<15} "
+                  f"{_fmt(b['depth_interval_coverage_pct'], ' %'):>7}", file=out)
         print(f"  sensitivity {_fmt(f['sensitivity_pct'], ' %')} (<= 6 mm: {_fmt(f['sensitivity_le6mm_pct'], ' %')}), "
               f"false positives {_fmt(f['false_positives_per_phantom'], ' per phantom', 2)}", file=out)
         print(f"  localisation p90 {_fmt(f['loc_err_p90_mm'], ' mm', 2)}, depth error median: paper's rule "

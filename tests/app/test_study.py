@@ -109,11 +109,20 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
     f = score(results)
     assert f["phantoms"] == 2 and f["tumours"] == 3  # the unpalpated one does not count against anyone
     assert f["sensitivity_pct"] == pytest.approx(200 / 3) and f["sensitivity_le6mm_pct"] == 100.0
-    assert f["by_depth"]["0-3mm"] == {"tumours": 1, "found": 1, "sensitivity_pct": 100.0}
+    assert f["by_depth"]["0-3mm"] == {"tumours": 1, "found": 1, "sensitivity_pct": 100.0,
+                                      "depth_err_rule_median_mm": pytest.approx(0.5),
+                                      "depth_err_model_median_mm": pytest.approx(0.2),
+                                      "depth_bias_rule_median_mm": pytest.approx(0.5),
+                                      "depth_bias_model_median_mm": pytest.approx(0.2),
+                                      "depth_interval_coverage_pct": 100.0}
+    assert f["by_depth"]["3-6mm"]["depth_bias_rule_median_mm"] == pytest.approx(-3.0)  # the rule reads shallow
+    assert f["by_depth"]["3-6mm"]["depth_interval_coverage_pct"] == 0.0
     assert f["by_depth"]["9-12mm"]["sensitivity_pct"] == 0.0
+    assert f["by_depth"]["9-12mm"]["depth_err_model_median_mm"] is None  # none found, nothing to say
     assert f["false_positives_per_phantom"] == 0.5
     assert f["depth_err_rule_median_mm"] == pytest.approx(1.75)  # 0.5 and 3.0 mm
     assert f["depth_err_model_median_mm"] == pytest.approx(0.6)  # 0.2 and 1.0 mm
+    assert f["depth_bias_rule_median_mm"] == pytest.approx(-1.25)  # +0.5 and -3.0 mm
     assert f["depth_interval_coverage_pct"] == 50.0  # the second interval misses the truth
     assert f["paper_flat_found"] == 1 and f["paper_uneven_found"] is None and f["paper_false_positives"] == 2
 
