@@ -48,6 +48,7 @@ NOISE_WINDOW_FRAMES = 256  # the newest frames read between areas: 2.6 s at 100 
 # face's median of them (the floor under every element's) to a few %
 NOISE_MIN_FRAMES = 32
 _MAD_TO_SIGMA = 1.4826  # a normal distribution's standard deviation over its median absolute deviation
+_OUTLIER_SIGMAS = 5.0  # a frame-to-frame difference beyond this many standard deviations is not the noise
 
 
 class ContactTracker:
@@ -168,9 +169,10 @@ class ContactTracker:
 class AirNoise:
     """Each element's white noise, from the frames read while the operator holds the probe between areas.
 
-    Estimated from frame-to-frame differences (whose spread is sqrt(2) sigma for white noise) by their median
-    absolute deviation: a slow change of load (the probe lowered, a creep residual decaying) hardly moves a
-    difference, and a minority of frames pressing or lifting off tissue does not move the median."""
+    Estimated from frame-to-frame differences (whose spread is sqrt(2) sigma for white noise): a slow change
+    of load (the probe lowered, a creep residual decaying) hardly moves a difference, and the differences
+    further from their median than 5 sigma (by their median absolute deviation), the frames pressing or
+    lifting off tissue, are set aside."""
 
     def __init__(self, shape: tuple[int, int], window_frames: int = NOISE_WINDOW_FRAMES):
         self._frames = np.zeros((window_frames, *shape))
@@ -190,7 +192,14 @@ class AirNoise:
             return None
         frames = np.roll(self._frames, -self._next, axis=0)[-self.count:]  # oldest first
         diffs = np.diff(frames, axis=0)
-        own = _MAD_TO_SIGMA / np.sqrt(2.0) * np.median(np.abs(diffs - np.median(diffs, axis=0)), axis=0)
+        centred = diffs - np.median(diffs, axis=0)
+        # The median absolute deviation of a converter's readings moves in whole steps (at 50 Pa of noise on
+        # 24 Pa steps it gave 51 Pa or 77 Pa): it only sets aside the frames that pressed or lifted off, and
+        # the standard deviation of the rest is the estimate.
+        band = _OUTLIER_SIGMAS * _MAD_TO_SIGMA * np.median(np.abs(centred), axis=0)
+        kept = np.abs(centred) <= band
+        spread = np.sqrt(np.sum(np.where(kept, centred, 0.0) ** 2, axis=0) / np.maximum(kept.sum(axis=0) - 1, 1))
+        own = spread / np.sqrt(2.0)
         return np.maximum(own, np.median(own))
 
 
