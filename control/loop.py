@@ -35,7 +35,6 @@ STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step 
 # Onsets belong to the place they were found: moved sideways by a quarter of the element pitch, an element
 # lies over other tissue
 TRACKED_DRIFT_PITCHES = 0.25
-NOISE_REFRESH_FRAMES = 32  # the contact thresholds follow the noise measured between areas this often
 NOISY_ELEMENT_FACTOR = 2.0  # an element this many times noisier than the face's median is named to the operator
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
@@ -89,7 +88,6 @@ class ControlLoop:
         self._indentation_m = math.nan
         self._noise = AirNoise(sensor.shape)
         self._noise_sigma_pa: np.ndarray | None = None  # per element, once measured
-        self._frames_since_noise = 0
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
                             np.full(sensor.shape, contact.confirm_threshold_pa))
@@ -228,11 +226,9 @@ class ControlLoop:
         if sigma is not None:
             self._noise_sigma_pa = sigma
             self._thresholds = contact_thresholds(self.config.contact, sigma)
-        self._frames_since_noise = 0
 
     def _contact_problem(self) -> str | None:
         """Why contact could not be told from the sensor's noise in this area (None: it can)."""
-        self._refresh_thresholds()
         if self._noise_sigma_pa is None:
             return (f"the sensor's noise is not measured yet ({self._noise.count} of {NOISE_MIN_FRAMES} frames read "
                     f"with the probe held between areas); wait a moment")
@@ -367,9 +363,7 @@ class ControlLoop:
         tracker = sm.tracker
         if sm.phase.idle:
             self._noise.push(p)
-            self._frames_since_noise += 1
-            if self._frames_since_noise >= NOISE_REFRESH_FRAMES:
-                self._refresh_thresholds()
+            self._refresh_thresholds()  # the estimate moved on by a few elements (AirNoise)
         if not sm.force_control:
             # the ceiling holds under position control too: the operator can press the probe in by hand
             implausible = self._min_pressure_pa < -IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
