@@ -15,7 +15,7 @@ simulate: bootstrap
 	$(PY) -m app simulate
 
 test: bootstrap
-	QT_QPA_PLATFORM=offscreen $(PY) -m pytest
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -n auto
 	$(VENV)/bin/lint-imports
 
 bench: bootstrap
