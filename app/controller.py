@@ -432,23 +432,31 @@ class _EventSender:
         self._conn.close()
 
 
+def loop_cpu() -> int | None:
+    """The CPU the loop pins itself to when it may (the last one this process may use), or None (one CPU, or
+    no pinning on this OS): other heavy work keeps off it."""
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[-1] if len(cpus) >= 2 else None
+
+
 def _claim_realtime(options: PacingOptions) -> tuple[bool, int | None, str]:
     """SCHED_FIFO and a CPU of our own when permitted. Returns (rt_priority, cpu, warning)."""
     warnings = []
     cpu = None
     if options.pin_cpu:
+        mine = loop_cpu()
         if not hasattr(os, "sched_setaffinity"):
             warnings.append("CPU pinning is not available on this OS")
+        elif mine is None:
+            warnings.append("only one CPU is available, so the loop shares it with the GUI")
         else:
-            cpus = sorted(os.sched_getaffinity(0))
-            if len(cpus) < 2:
-                warnings.append("only one CPU is available, so the loop shares it with the GUI")
-            else:
-                try:
-                    os.sched_setaffinity(0, {cpus[-1]})
-                    cpu = cpus[-1]
-                except OSError as err:
-                    warnings.append(f"could not pin the loop to CPU {cpus[-1]} ({err.strerror})")
+            try:
+                os.sched_setaffinity(0, {mine})
+                cpu = mine
+            except OSError as err:
+                warnings.append(f"could not pin the loop to CPU {mine} ({err.strerror})")
     rt = False
     if options.realtime:
         if not hasattr(os, "sched_setscheduler"):

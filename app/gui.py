@@ -130,6 +130,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     from PySide6 import QtCore, QtWidgets
 
     from app.bridge import ControllerBridge
+    from app.live_physics import LivePhysics
     from app.rigs import plan_for_rig, prepare_rig
     from hardware.sim.mechanics.progress import TextProgressBar
     from widgets.live_window import LiveWindow
@@ -149,6 +150,8 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     recording = SessionRecording(bridge, info)
     wire_recording(window, recording)
     wire_depth_model(window, info)
+    physics = LivePhysics(info, window, plan.phantom_extent_m if plan is not None else None)
+    window.set_live_physics(physics)
     window.setWindowTitle(f"Palpation Console — {rig.backend} rig, phantom {rig.phantom}")
     if autopilot is None:
         autopilot = screenshot is not None
@@ -173,6 +176,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
         return app.exec()
     finally:
         window.save_settings()  # quitting does not close the window, so its closeEvent never saved them
+        physics.close()
         bridge.shutdown()  # drains the controller's last rows into the recording and closes its file
         recording.close()  # in case the driver never started
 

@@ -113,12 +113,14 @@ class SurfaceBlock:
         return digest.hexdigest()[:16]
 
 
-def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float) -> tuple[SurfaceBlock, tuple]:
+def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float,
+                     extent_m: tuple[float, float, float, float] | None = None) -> tuple[SurfaceBlock, tuple]:
     """(the block of the measured surface, (x0, y0) of its origin in the tissue frame): the
-    onsets of every palpated area placed where its elements were, over the union of their footprints,
-    smoothed over about one element (an onset comes from noisy frames). Where an element never touched the
-    surface is taken a millimetre below the lowest it was found under that area; between areas nobody
-    measured, the nearest measurement stands."""
+    onsets of every palpated area placed where its elements were, over the union of their footprints (and of
+    ``extent_m``, (x0, x1, y0, y1), where the tissue is known to reach further), smoothed over about one
+    element (an onset comes from noisy frames). Where an element never touched the surface is taken a
+    millimetre below the lowest it was found under that area; between areas nobody measured, and beyond
+    them, the nearest measurement stands."""
     from scipy import ndimage
 
     rows, cols = levels.dtype["onset_height_m"].shape
@@ -126,6 +128,9 @@ def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float) 
     centres = levels["tsi_position_m"][:, None, None, :2] + offsets[None]
     lo = centres.reshape(-1, 2).min(axis=0) - pitch_m / 2
     hi = centres.reshape(-1, 2).max(axis=0) + pitch_m / 2
+    if extent_m is not None:
+        lo = np.minimum(lo, (extent_m[0], extent_m[2]))
+        hi = np.maximum(hi, (extent_m[1], extent_m[3]))
     nx = int(np.ceil((hi[0] - lo[0]) / GRID_M - 1e-6)) + 1
     ny = int(np.ceil((hi[1] - lo[1]) / GRID_M - 1e-6)) + 1
     if nx * ny > MAX_BLOCK_NODES:
@@ -227,15 +232,25 @@ class BlockResponse(HomogeneousTissue):
 
     @classmethod
     def rebuild(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
-        levels = session.levels
+        return cls.from_levels(session.levels, session, cache_dir, progress)
+
+    @classmethod
+    def from_levels(cls, levels: np.ndarray, described: Session | SessionInfo, cache_dir=None,
+                    progress: Progress | None = None,
+                    extent_m: tuple[float, float, float, float] | None = None) -> BlockResponse:
+        """The block rebuilt from ``levels`` of the session ``described`` (recorded, or being recorded: the
+        live maps ask for the areas palpated so far), reaching over ``extent_m`` too where the tissue is known
+        to: the live maps' last area is not at the tissue's end, and modelled as if it were, its far edge
+        rows read as a tumour (the paper's flat phantom, 8 areas of 9: a spot at x = 64 mm, z 5.9)."""
         if not len(levels):
             raise ValueError("the session recorded no level: there is no palpated area to model")
         shape = tuple(levels.dtype["pressure_pa"].shape)
-        table = float(session.calibration.get("table_height_m", 0.0))
-        block, origin = measured_surface(levels, session.pitch_m, table)
+        table = float(described.calibration.get("table_height_m", 0.0))
+        pitch = float(described.calibration["pitch_m"])
+        block, origin = measured_surface(levels, pitch, table, extent_m)
         compliance, nodes = _block_compliance(block, cache_dir, progress)
-        return cls(block, origin, compliance, nodes, _cover_of(session), session.pitch_m, shape,
-                   _block_stiffening(block, shape, session.pitch_m, cache_dir), table)
+        return cls(block, origin, compliance, nodes, _cover_of(described), pitch, shape,
+                   _block_stiffening(block, shape, pitch, cache_dir), table)
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
         shape = levels["pressure_pa"].shape

@@ -3,10 +3,15 @@ stitched again (:mod:`session.stitch`, the same placement, overlap averaging and
 and the exported maps) when someone asks for them after a new level arrived.
 
 With them come the contrast maps and the tumours found so far, by the same flat field and detection as
-the reviewer (:mod:`session.flatfield`, :mod:`session.detect`). Live there is no finite-element physics
-(it would be rebuilt for every new area); the face's pattern comes from a reference palpation when one is
-loaded, else from the other areas palpated at the same level, which needs ``MIN_VOUCHING`` + 1 areas
-before it says anything (:meth:`LiveMaps.flat_field_ready`).
+the reviewer (:mod:`session.flatfield`, :mod:`session.detect`). The face's pattern comes from a reference
+palpation when one is loaded, else from the other areas palpated at the same level, which needs
+``MIN_VOUCHING`` + 1 areas before it says anything (:meth:`LiveMaps.flat_field_ready`). Where the
+composition root can compute the physics (the homogeneous block rebuilt from the areas palpated so far,
+10-15 s of finite elements, in the background after each area), it says so (:attr:`LiveMaps.physics_expected`)
+and the maps wait for it (:meth:`LiveMaps.set_physics`): without it the other areas' pattern does not hold
+where the tissue ends, and on the paper's flat phantom the two end areas' corners read as four tumours with
+scores of 5 to 15. Contrast and findings then come from the records the physics covers; an area palpated
+since is analysed when its physics arrives (:meth:`LiveMaps.pending`).
 
 The same pattern flat-fields the live frames (:meth:`LiveMaps.frame_contrast`): a frame is compared with
 the pattern of the recorded level nearest its force (the reference's, or the median over the areas
@@ -27,7 +32,7 @@ from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS, DepthModel
 from session.detect import SOURCES, DetectParams, Tumour, detect, evidence_by_width, significant_peaks, threshold
-from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
+from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Pattern, Reference, contrast
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, level_groups, stitch
 
@@ -71,6 +76,8 @@ class LiveMaps:
         self.reference: Reference | None = None
         self.detect_params = DetectParams()
         self.depth_model: DepthModel | None = None  # gives findings_in its model-based depths
+        self.physics_expected = False  # the contrast waits for set_physics (module docstring)
+        self._physics: tuple[int, dict[str, Pattern], str] | None = None  # records covered, pattern per map, how
 
     def add(self, record: LevelRecord) -> None:
         self._rows.append(level_row(record))  # [1] is the region
@@ -86,18 +93,20 @@ class LiveMaps:
         """The maps of every level recorded so far; None before the first."""
         if self._dirty:
             self._dirty = False
-            levels = np.array(self._rows, dtype=LEVEL_DTYPE)
+            levels = self.levels()
             extra = None
             self._tumours = []
             self._stiffness = None
             self._frame_patterns = {}
-            if self.flat_field_ready():
-                contrasts = {s: contrast(levels, s, reference=self.reference, accuracy=self.detect_params.accuracy)
-                             for s in SOURCES}
-                extra = {CONTRAST_MAPS[s]: c.contrast for s, c in contrasts.items()}
+            analysed = self._analysed()
+            if analysed:
+                some = levels[:analysed]
+                contrasts = {s: self._contrast(some, s) for s in SOURCES}
+                later = np.full((len(levels) - analysed,) + levels.dtype["pressure_pa"].shape, np.nan)
+                extra = {CONTRAST_MAPS[s]: np.concatenate([c.contrast, later]) for s, c in contrasts.items()}
                 self._tumours = [t for s in SOURCES
-                                 for t in detect(levels, contrasts[s], self._sensor.pitch_m, self.detect_params)]
-                self._stiffness = levels, contrasts["stiffness"]
+                                 for t in detect(some, contrasts[s], self._sensor.pitch_m, self.detect_params)]
+                self._stiffness = some, contrasts["stiffness"]
                 self._frame_patterns = {s: self._frame_pattern(levels, s) for s in SOURCES}
             self._result = stitch(levels, self._sensor.pitch_m, self._sensor.element_area_m2, self._params,
                                   self._min_indentation_m, extra)
@@ -153,10 +162,53 @@ class LiveMaps:
         scatter = np.sqrt(np.nan_to_num(scatter, nan=0.0) ** 2 + np.nan_to_num(frame_noise, nan=0.0) ** 2)
         return _FramePattern(forces, baseline, scatter)
 
+    def _contrast(self, levels: np.ndarray, map_name: str) -> Contrast:
+        accuracy = self.detect_params.accuracy
+        if self._physics is None or self.reference is not None:  # a live reference holds the whole pattern
+            return contrast(levels, map_name, reference=self.reference, accuracy=accuracy)
+        _, patterns, description = self._physics
+        n, pattern = len(levels), patterns[map_name]
+        modes = None if pattern.modes is None else pattern.modes[:n]
+        return contrast(levels, map_name, pattern.share[:n], pattern.sigma[:n], None, accuracy, description, modes)
+
+    def _analysed(self) -> int:
+        """How many records (the first ones) the contrast and the findings come from; 0: none yet."""
+        if self.reference is not None:
+            return len(self._rows)
+        if not self.physics_expected:
+            return len(self._rows) if len(self._regions) > MIN_VOUCHING else 0
+        if self._physics is None:
+            return 0
+        covered = self._physics[0]
+        return covered if len({row[1] for row in self._rows[:covered]}) > MIN_VOUCHING else 0
+
+    def set_physics(self, records: int, patterns: dict[str, Pattern], description: str) -> None:
+        """The pattern homogeneous tissue gives each map (``patterns[map]``, :class:`session.flatfield.Physics`)
+        on the first ``records`` level records, as computed from them (``description`` says how)."""
+        if not 0 < records <= len(self._rows) or set(patterns) != set(SOURCES):
+            raise ValueError(f"physics for {records} records of {len(self._rows)}, maps {sorted(patterns)}")
+        if any(len(p.share) != records for p in patterns.values()):
+            raise ValueError(f"physics patterns do not cover the {records} records they are for")
+        self._physics = (records, patterns, description)
+        self._dirty = True
+
+    def drop_physics(self) -> None:
+        """No physics after all (it could not be computed): the pattern comes from the areas alone."""
+        self.physics_expected = False
+        self._physics = None
+        self._dirty = True
+
+    def pending(self, region: int) -> bool:
+        """Whether area ``region``'s records wait for their physics to be analysed."""
+        covered = self._analysed()
+        return covered < len(self._rows) and any(row[1] == region for row in self._rows[covered:]) and (
+            self.physics_expected and self.reference is None)
+
     def flat_field_ready(self) -> bool:
         """Whether the probe's pattern can be taken out yet: a reference is loaded, or enough areas were
-        palpated for each one's baseline to come from the others."""
-        return self.reference is not None or len(self._regions) > MIN_VOUCHING
+        palpated for each one's baseline to come from the others (and, where it is expected, their physics
+        was computed)."""
+        return self._analysed() > 0
 
     def tumours(self) -> list[Tumour]:
         """The tumours found so far (as of the last :meth:`stitched`)."""
@@ -181,12 +233,16 @@ class LiveMaps:
         self.reference = reference
         self._dirty = True
 
+    def levels(self) -> np.ndarray:
+        """Every level recorded so far (``session.format.LEVEL_DTYPE``)."""
+        return np.array(self._rows, dtype=LEVEL_DTYPE)
+
     def reference_from_levels(self, description: str) -> Reference:
         """The levels recorded so far as a reference palpation of tumour-free tissue (the face's whole
         pattern, no physics); raises FlatFieldError before the first level."""
         if not self._rows:
             raise FlatFieldError("no level recorded yet: palpate tumour-free tissue first")
-        levels = np.array(self._rows, dtype=LEVEL_DTYPE)
+        levels = self.levels()
         ones = np.ones(levels["pressure_pa"].shape)
         return Reference.from_levels(levels, ones, np.zeros_like(ones), description, physics=False)
 

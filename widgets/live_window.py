@@ -44,7 +44,7 @@ from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop,
                               LevelRecorded, LevelTimedOut, Notice, RegionAborted, RegionDone, SetGains, SetRamp, SetSz,
                               Tare)
 from control.telemetry import LiveSnapshot, LoopHealth
-from hardware.interfaces import TactileConstraints
+from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
 from session.export import depth_model_text
 from session.flatfield import FlatFieldError, Reference
@@ -157,6 +157,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._state = ConsoleState(self._config)
         self._new_session = True  # the next tick is t = 0 in the messages: each run is a session of its own
         self._fault_shown: tuple[int, str] | None = None
+        self._physics = None  # the live flat field's physics (set_live_physics), if the composition root has it
+        self._findings_pending: set[int] = set()  # areas done whose findings wait for that physics
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
 
@@ -699,11 +701,43 @@ class LiveWindow(QtWidgets.QMainWindow):
         elif isinstance(event, LevelTimedOut):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
         elif isinstance(event, RegionDone):
+            self._ask_physics()
             self._tell_findings(event.region)
         elif isinstance(event, RegionAborted):
+            self._ask_physics()
             self.statusBar().showMessage(f"Region {event.region + 1} aborted: {event.reason}", STATUS_MESSAGE_MS)
         elif isinstance(event, (Notice, CommandApplied)):
             self.statusBar().showMessage(event.message, STATUS_MESSAGE_MS)
+
+    def set_live_physics(self, physics) -> None:
+        """The physics of the live flat field (``app.live_physics.LivePhysics``: ``request(levels)``, signals
+        ``ready(records, patterns, description)`` and ``failed(reason)``), asked for after every area; the
+        contrast, the tumours and each area's findings wait for it."""
+        self._physics = physics
+        physics.ready.connect(self._physics_ready)
+        physics.failed.connect(self._physics_failed)
+        self._tissue.expect_physics(True)
+
+    def _ask_physics(self) -> None:
+        if self._physics is not None and self._tissue.record_count():
+            self._physics.request(self._tissue.levels())
+
+    def _physics_ready(self, records: int, patterns: dict, description: str) -> None:
+        self._tissue.set_physics(records, patterns, description)
+        self._tell_pending_findings()
+
+    def _physics_failed(self, reason: str) -> None:
+        self._physics = None
+        self._tissue.expect_physics(False)
+        self._messages.add(f"Tissue model of the palpated areas unavailable: {reason}; the probe's pattern now comes "
+                           "from the areas alone (the tissue's ends may read as tumours)", Severity.WARNING)
+        self._tell_pending_findings()
+
+    def _tell_pending_findings(self) -> None:
+        for region in sorted(self._findings_pending):
+            if not self._tissue.findings_pending(region):
+                self._findings_pending.discard(region)
+                self._tell_findings(region)
 
     def set_depth_model(self, model) -> None:
         """Give the findings told at "region done" a model-based depth (:class:`session.analysis.DepthModel`;
@@ -759,6 +793,12 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     def _tell_findings(self, region: int) -> None:
         """At "region done": what that area showed, in the messages and under the flowchart's flag."""
+        if self._tissue.findings_pending(region):
+            self._findings_pending.add(region)
+            text = f"Area {region + 1}: findings once the tissue model of the areas palpated is computed (10-15 s)"
+            self._messages.add(text)
+            self._flow.show_findings(text)
+            return
         findings = self._tissue.findings_in(region)
         f_max = self._ramp_editor.applied().force_max_N
         if findings is None:
@@ -787,6 +827,8 @@ class LiveWindow(QtWidgets.QMainWindow):
     # ---- display -------------------------------------------------------------------------------------
 
     def _show_tick(self, tick: np.ndarray) -> None:
+        if self._physics is not None:
+            self._physics.hold(not Phase(int(tick["phase"])).idle)
         self._flow.show_tick(tick)
         self._set_text(self._force_desired, _fmt(tick["force_desired_N"], "N"))
         self._set_text(self._force_measured, _fmt(tick["force_measured_N"], "N"))

@@ -22,6 +22,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
+from session.flatfield import MIN_VOUCHING
 from session.live import LiveMaps
 from session.stitch import StitchResult
 from widgets.colormaps import CONTOUR_COLORMAP, contrast_range
@@ -182,6 +183,27 @@ class WholeTissueView(QtWidgets.QWidget):
         self.refresh()
         return self._maps.findings_in(region) if self._maps.flat_field_ready() else None
 
+    def expect_physics(self, expected: bool) -> None:
+        """Whether the contrast waits for the physics (:meth:`set_physics`), or does without it."""
+        if expected:
+            self._maps.physics_expected = True
+        else:
+            self._maps.drop_physics()
+        self.refresh()
+
+    def set_physics(self, records: int, patterns: dict, description: str) -> None:
+        """The physics of the first ``records`` levels (:meth:`session.live.LiveMaps.set_physics`)."""
+        self._maps.set_physics(records, patterns, description)
+        self.refresh()
+
+    def findings_pending(self, region: int) -> bool:
+        """Whether area ``region`` waits for its physics before its findings can be told."""
+        return self._maps.pending(region)
+
+    def levels(self):
+        """Every level recorded so far."""
+        return self._maps.levels()
+
     def spot_count(self) -> int:
         return len(self._spots.data)
 
@@ -309,7 +331,10 @@ class WholeTissueView(QtWidgets.QWidget):
         if math.isfinite(level.tsi_indentation_m):
             text += f" · mean depth {level.tsi_indentation_m * 1e3:.1f} mm"
         if not self._maps.flat_field_ready():
-            text += " · contrast and tumours from the 4th area on (or with a reference palpation)"
+            if self._maps.physics_expected and regions > MIN_VOUCHING:
+                text += " · contrast and tumours once the tissue model of the areas palpated is computed"
+            else:
+                text += " · contrast and tumours from the 4th area on (or with a reference palpation)"
         else:
             text += f" · {sum(1 for t in self._maps.tumours() if t.source == 'stiffness')} tumour(s) so far"
         return text

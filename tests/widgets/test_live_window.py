@@ -526,18 +526,20 @@ def test_a_double_click_on_the_tissue_sends_the_probe_there_only_off_the_tissue(
     assert len(controller.sent) == 1 and "a fault holds the robot" in window.statusBar().currentMessage()
 
 
-def test_region_done_says_what_the_area_showed(window, controller):
-    import math
-    import re
-
+def area(region, x, tumour=False):
+    """The events of an area palpated at three levels and done, over a tumour 1.5x as stiff if ``tumour``."""
     from control.messages import RegionDone
     from session.synthetic import level_record
 
-    def area(region, x, tumour=False):
-        records = [level_record(region, k, f, (x, 0.015), noise=0.02, seed=31 * region + k, t_s=10.0 * region + k,
-                                tumours_xy_m=((x, 0.015),) if tumour else (), tumour_factor=1.5)
-                   for k, f in enumerate((1.0, 2.0, 3.0))]
-        return [LevelRecorded(r.t_s, r) for r in records] + [RegionDone(10.0 * region + 3, region, 3)]
+    records = [level_record(region, k, f, (x, 0.015), noise=0.02, seed=31 * region + k, t_s=10.0 * region + k,
+                            tumours_xy_m=((x, 0.015),) if tumour else (), tumour_factor=1.5)
+               for k, f in enumerate((1.0, 2.0, 3.0))]
+    return [LevelRecorded(r.t_s, r) for r in records] + [RegionDone(10.0 * region + 3, region, 3)]
+
+
+def test_region_done_says_what_the_area_showed(window, controller):
+    import math
+    import re
 
     push(controller, make_tick(t_s=1.0), events=area(0, 0.012))
     assert "findings from the 4th area on" in label(window, "regionFindings").text()
@@ -564,6 +566,60 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert tissue.spot_count() == 1
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
+
+
+def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_when_it_fails(window, controller):
+    from types import SimpleNamespace
+
+    class Physics(QtCore.QObject):  # what the composition root gives (app.live_physics), answered by hand here
+        ready = QtCore.Signal(int, object, str)
+        failed = QtCore.Signal(str)
+
+        def __init__(self):
+            super().__init__()
+            self.asked = []
+
+        def request(self, levels):
+            self.asked.append(levels)
+
+        def hold(self, held):
+            self.held = held
+
+        def answer(self):  # homogeneous tissue pressing every element alike, exactly known
+            levels = self.asked.pop(0)
+            ones = np.ones(levels["pressure_pa"].shape)
+            flat = SimpleNamespace(share=ones, sigma=0.0 * ones, modes=None)
+            self.ready.emit(len(levels), {"stiffness": flat, "force": flat}, "a test's flat block")
+
+    physics = Physics()
+    window.set_live_physics(physics)
+    tissue = window.findChild(WholeTissueView)
+    for phase, held in ((Phase.SETTLING, True), (Phase.DONE, False), (Phase.SEEK_CONTACT, True),
+                        (Phase.APPROACH, False)):
+        push(controller, make_tick(phase=phase))
+        assert physics.held is held  # its solves wait while the loop controls force
+    for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
+        push(controller, make_tick(t_s=1.0 + region), events=area(region, x, tumour=region == 3))
+    assert [len(levels) for levels in physics.asked] == [3, 6, 9, 12]  # after every area, every level so far
+    assert label(window, "regionFindings").text().startswith("Area 4: findings once the tissue model")
+    physics.asked = physics.asked[-1:]
+    assert tissue.spot_count() == 0  # nothing is judged without it
+    physics.answer()
+    assert label(window, "regionFindings").text().startswith("Area 4: stiffness map: tumour at x 36")
+    assert tissue.spot_count() == 1
+    assert sum(line.startswith("Area 4: stiffness map") for line in
+               (line.split("  ", 1)[-1].strip() for line in window.messages().lines())) == 1
+
+    push(controller, make_tick(t_s=6.0), events=area(4, 0.044))
+    assert label(window, "regionFindings").text().startswith("Area 5: findings once the tissue model")
+    assert tissue.spot_count() == 1  # the areas the physics covers are still judged
+    physics.failed.emit("the palpated areas span too much")
+    assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
+    assert any("Tissue model of the palpated areas unavailable: the palpated areas span too much" in line
+               for line in window.messages().lines())
+    push(controller, make_tick(t_s=7.0), events=area(5, 0.052))
+    assert len(physics.asked) == 1  # not asked again once it failed
+    assert label(window, "regionFindings").text() == "Area 6: nothing significant up to 7 N"
 
 
 def test_a_reference_palpation_is_saved_from_the_console_and_gives_findings_from_the_first_area(
