@@ -95,6 +95,9 @@ class WholeTissueView(QtWidgets.QWidget):
         layout.addWidget(self._summary)
         self._refresh_levels()
         self._show()
+        # Until someone chooses a map, the view turns to the stiffness contrast once it can be had: the raw
+        # maps' brightest cells are the face's edge rows, striped at every seam between areas.
+        self._contrast_when_ready = True
 
     # ---- construction --------------------------------------------------------------------------------
 
@@ -152,7 +155,10 @@ class WholeTissueView(QtWidgets.QWidget):
             return
         self._result = self._maps.stitched()
         self._refresh_levels()
-        self._show()
+        if self._contrast_when_ready and self._maps.flat_field_ready():
+            self.set_quantity("stiffness_contrast")  # shows it
+        else:
+            self._show()
 
     def result(self) -> StitchResult | None:
         return self._result
@@ -216,6 +222,7 @@ class WholeTissueView(QtWidgets.QWidget):
     def set_quantity(self, field: str) -> None:
         if field not in self._buttons:
             raise ValueError(f"unknown whole-tissue map {field!r} (known: {', '.join(self._buttons)})")
+        self._contrast_when_ready = False
         if field == self._quantity:
             return
         self._quantity = field

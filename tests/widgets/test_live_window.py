@@ -545,6 +545,8 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert "findings from the 4th area on" in label(window, "regionFindings").text()
     for region, x in ((1, 0.020), (2, 0.028)):
         push(controller, make_tick(t_s=1.0 + region), events=area(region, x))
+    tissue = window.findChild(WholeTissueView)
+    assert tissue.quantity() == "pressure_pa"
     asked = []
 
     class DepthModel:  # what the composition root gives (app.depth_model); it sees what the reviewer's would
@@ -560,8 +562,7 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert found and math.hypot(float(found[1]) - 36.0, float(found[2]) - 15.0) < 1.0
     assert asked and all(records == 12 and map_name == "stiffness" for _, records, map_name in asked)
     assert any(line.endswith(text) for line in window.messages().lines())
-    tissue = window.findChild(WholeTissueView)
-    tissue.set_quantity("stiffness_contrast")
+    assert tissue.quantity() == "stiffness_contrast"  # turned to once it could be had, nobody having chosen
     assert np.nanmax(tissue.shown_values()) > 0.3  # over homogeneous tissue, over the tumour
     assert tissue.spot_count() == 1
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
@@ -594,6 +595,7 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     physics = Physics()
     window.set_live_physics(physics)
     tissue = window.findChild(WholeTissueView)
+    tissue.set_quantity("stiffness_pa")  # the operator's choice stands once the contrast can be had
     for phase, held in ((Phase.SETTLING, True), (Phase.DONE, False), (Phase.SEEK_CONTACT, True),
                         (Phase.APPROACH, False)):
         push(controller, make_tick(phase=phase))
@@ -620,6 +622,7 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     push(controller, make_tick(t_s=7.0), events=area(5, 0.052))
     assert len(physics.asked) == 1  # not asked again once it failed
     assert label(window, "regionFindings").text() == "Area 6: nothing significant up to 7 N"
+    assert tissue.quantity() == "stiffness_pa"
 
 
 def test_a_reference_palpation_is_saved_from_the_console_and_gives_findings_from_the_first_area(
