@@ -9,8 +9,8 @@ palpation when one is loaded, else from the other areas palpated at the same lev
 composition root can compute the physics (the homogeneous block rebuilt from the areas palpated so far,
 10-15 s of finite elements, in the background after each area), it says so (:attr:`LiveMaps.physics_expected`)
 and the maps wait for it (:meth:`LiveMaps.set_physics`): without it the other areas' pattern does not hold
-where the tissue ends, and on the paper's flat phantom the two end areas' corners read as four tumours with
-scores of 5 to 15. Contrast and findings then come from the records the physics covers; an area palpated
+where the tissue ends, and on the paper's flat phantom the corners of the areas at its ends read as six
+tumours with scores of 5 to 15. Contrast and findings then come from the records the physics covers; an area palpated
 since is analysed when its physics arrives (:meth:`LiveMaps.pending`).
 
 The same pattern flat-fields the live frames (:meth:`LiveMaps.frame_contrast`): a frame is compared with
@@ -200,9 +200,9 @@ class LiveMaps:
 
     def pending(self, region: int) -> bool:
         """Whether area ``region``'s records wait for their physics to be analysed."""
-        covered = self._analysed()
-        return covered < len(self._rows) and any(row[1] == region for row in self._rows[covered:]) and (
-            self.physics_expected and self.reference is None)
+        if not self.physics_expected or self.reference is not None:
+            return False
+        return any(row[1] == region for row in self._rows[self._analysed():])
 
     def flat_field_ready(self) -> bool:
         """Whether the probe's pattern can be taken out yet: a reference is loaded, or enough areas were

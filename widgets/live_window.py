@@ -47,7 +47,7 @@ from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
 from session.export import depth_model_text
-from session.flatfield import FlatFieldError, Reference
+from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.flowchart import FlowchartPanel
 from widgets.health import VERDICT, HealthPanel, health_summary
@@ -795,7 +795,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         """At "region done": what that area showed, in the messages and under the flowchart's flag."""
         if self._tissue.findings_pending(region):
             self._findings_pending.add(region)
-            text = f"Area {region + 1}: findings once the tissue model of the areas palpated is computed (10-15 s)"
+            text = (f"Area {region + 1}: findings once {MIN_VOUCHING + 1} areas are palpated and the tissue model "
+                    "of the areas is computed")
             self._messages.add(text)
             self._flow.show_findings(text)
             return

@@ -603,17 +603,18 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
         push(controller, make_tick(t_s=1.0 + region), events=area(region, x, tumour=region == 3))
     assert [len(levels) for levels in physics.asked] == [3, 6, 9, 12]  # after every area, every level so far
-    assert label(window, "regionFindings").text().startswith("Area 4: findings once the tissue model")
+    assert label(window, "regionFindings").text().startswith("Area 4: findings once 4 areas are palpated")
     physics.asked = physics.asked[-1:]
     assert tissue.spot_count() == 0  # nothing is judged without it
     physics.answer()
     assert label(window, "regionFindings").text().startswith("Area 4: stiffness map: tumour at x 36")
     assert tissue.spot_count() == 1
-    assert sum(line.startswith("Area 4: stiffness map") for line in
-               (line.split("  ", 1)[-1].strip() for line in window.messages().lines())) == 1
+    told = [line.split("  ", 1)[-1].strip() for line in window.messages().lines()]
+    assert sum(line.startswith("Area 4: stiffness map") for line in told) == 1
+    assert all(f"Area {n}: nothing significant up to 7 N" in told for n in (1, 2, 3))  # the first areas' too
 
     push(controller, make_tick(t_s=6.0), events=area(4, 0.044))
-    assert label(window, "regionFindings").text().startswith("Area 5: findings once the tissue model")
+    assert label(window, "regionFindings").text().startswith("Area 5: findings once 4 areas are palpated")
     assert tissue.spot_count() == 1  # the areas the physics covers are still judged
     physics.failed.emit("the palpated areas span too much")
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
