@@ -83,7 +83,7 @@ class LivePhysics(QtCore.QObject):
         self._context = multiprocessing.get_context("spawn")  # a fork of the GUI would copy Qt's threads' state
         self._worker: tuple[multiprocessing.Process, object] | None = None  # process, the console's end of the pipe
         self._records = 0  # of the request under way; 0: none
-        self._wanted: np.ndarray | None = None  # levels asked for while a request was under way
+        self._wanted: np.ndarray | None = None  # levels asked for while a request was under way, or held
         self._held = False
         self._timer = QtCore.QTimer(self)
         self._timer.setInterval(POLL_MS)
@@ -95,17 +95,25 @@ class LivePhysics(QtCore.QObject):
 
     def hold(self, held: bool) -> None:
         """Stop the worker where it is (``held``) or let it go on: the console holds it while the loop controls
-        force, for its solves stalled the loop's ticks (module docstring)."""
-        if held == self._held:
+        force, for its solves stalled the loop's ticks (module docstring). Nothing is sent to a held worker
+        nor read from it: the console would wait on a pipe that only a running worker empties or fills, and
+        only the console can let it run again."""
+        if held == self._held or not hasattr(signal, "SIGSTOP"):
             return
         self._held = held
-        if self._worker is not None and hasattr(signal, "SIGSTOP"):
-            os.kill(self._worker[0].pid, signal.SIGSTOP if held else signal.SIGCONT)
+        if self._worker is not None:
+            try:
+                os.kill(self._worker[0].pid, signal.SIGSTOP if held else signal.SIGCONT)
+            except ProcessLookupError:
+                pass  # it ended: the next poll or request says so
+        if not held and not self.busy and self._wanted is not None:
+            levels, self._wanted = self._wanted, None
+            self._send(levels)
 
     def request(self, levels: np.ndarray) -> None:
         if not len(levels):
             return
-        if self.busy:
+        if self.busy or self._held:
             self._wanted = levels
             return
         self._send(levels)
@@ -129,13 +137,18 @@ class LivePhysics(QtCore.QObject):
             process.start()
             theirs.close()  # the worker holds the only other end: its death reads as the end of the pipe
             self._worker = (process, pipe)
-            if self._held and hasattr(signal, "SIGSTOP"):
-                os.kill(process.pid, signal.SIGSTOP)
-        self._worker[1].send(levels)
+        try:
+            self._worker[1].send(levels)
+        except OSError as err:  # it ended since its last answer (killed for memory, say)
+            self.close()
+            self.failed.emit(f"its process could not be reached ({err})")
+            return
         self._records = len(levels)
         self._timer.start()
 
     def _poll(self) -> None:
+        if self._held:
+            return
         process, pipe = self._worker
         try:
             if not pipe.poll():
@@ -147,7 +160,7 @@ class LivePhysics(QtCore.QObject):
         self._timer.stop()
         if status == "ok":
             self.ready.emit(records, *payload)
-            if self._wanted is not None:
+            if self._wanted is not None and not self._held:
                 levels, self._wanted = self._wanted, None
                 self._send(levels)
         else:

@@ -83,3 +83,30 @@ def test_areas_that_cannot_be_modelled_are_said_so_and_nothing_is_left_running(q
         physics.close()
     assert "no element of this session ever touched the tissue" in answered.args[0]
     assert not physics.busy
+
+
+def test_a_held_worker_is_sent_nothing_and_one_killed_under_way_is_said_so(qtbot, flat_session):
+    levels, info = flat_session
+    unmodelled = levels[:3].copy()
+    unmodelled["onset_height_m"] = np.nan  # answered at once, with a reason
+    physics = LivePhysics(info)
+    try:
+        physics.hold(True)
+        physics.request(unmodelled)
+        assert not physics.busy  # kept until the loop leaves force control
+        physics.hold(False)
+        assert physics.busy
+        process = physics._worker[0]
+        process.kill()
+        process.join()
+        physics.hold(True)
+        physics.request(unmodelled)  # kept for later
+        with qtbot.waitSignal(physics.failed, timeout=60_000) as answered:
+            physics.hold(False)
+        assert "ended without an answer" in answered.args[0]
+        assert not physics.busy
+        with qtbot.waitSignal(physics.failed, timeout=60_000) as answered:
+            physics.request(unmodelled)  # another worker
+        assert "no element of this session ever touched the tissue" in answered.args[0]
+    finally:
+        physics.close()
