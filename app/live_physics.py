@@ -1,7 +1,7 @@
 """The live maps' physics (:mod:`session.live`): homogeneous tissue rebuilt from the areas palpated so far, as
 the reviewer's analysis rebuilds it from the whole session (:meth:`app.physics.BlockResponse.from_levels`).
 
-Its finite elements take 10-15 s a time on this project's 2-core machine, longer than an area takes to
+Its finite elements take 14-20 s a time on this project's 2-core machine, longer than an area takes to
 palpate, and mostly in Python, which would hold the GUI's interpreter: they run in a worker process, at a
 lower priority than the console and off the 1 kHz loop's CPU. One runs at a time; the areas palpated
 meanwhile wait for the next, which takes every level recorded by then. Each area's block is new (its
@@ -28,23 +28,21 @@ from PySide6 import QtCore
 
 from app.controller import loop_cpu
 from app.physics import BlockResponse
-from session.detect import SOURCES
+from session.analysis import expected_patterns
 from session.info import SessionInfo
 
 Extent = tuple[float, float, float, float]  # (x0, x1, y0, y1) in m
-POLL_MS = 100  # how often the console looks for the answer: a tenth of a second on 10-15 s is nothing
+POLL_MS = 100  # how often the console looks for the answer: a tenth of a second on 14-20 s is nothing
 NICENESS = 10  # below the console: the operator's display never waits for the tissue model
 
 
 def patterns_of(levels: np.ndarray, info: SessionInfo, extent_m: Extent | None = None) -> tuple[dict, str]:
-    """({map: its pattern on every record of ``levels``}, how the tissue was obtained) for the tissue that
-    reaches over ``extent_m`` (if known) and the palpated areas; raises ValueError where the areas cannot be
-    modelled (the stiffness map on the measured surface, the force map on a flat one, as
-    :meth:`session.analysis.SessionAnalysis.run` takes them)."""
+    """({map: its pattern on every record of ``levels``} as the reviewer's analysis takes them, how the tissue
+    was obtained) for the tissue that reaches over ``extent_m`` (if known) and the palpated areas; raises
+    ValueError where the areas cannot be modelled."""
     with tempfile.TemporaryDirectory(prefix="palpation-live-") as cache:
         tissue = BlockResponse.from_levels(levels, info, cache, extent_m=extent_m)
-        return ({source: tissue.pattern(levels, measured_surface=source == "stiffness") for source in SOURCES},
-                tissue.description)
+        return expected_patterns(tissue, levels), tissue.description
 
 
 def _serve(connection, info: SessionInfo, extent_m: Extent | None) -> None:

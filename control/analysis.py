@@ -232,11 +232,16 @@ def _row_medians(values: np.ndarray) -> np.ndarray:
     return 0.5 * (parted[:, half - 1] + parted[:, half])
 
 
-def contact_thresholds(contact: ContactSettings, sigma_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def contact_thresholds(contact: ContactSettings, sigma_pa: np.ndarray,
+                       out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(onset, confirm) per element: the configured ones, raised to stand ONSET_NOISE_SIGMAS above each
-    element's noise; confirm keeps its configured ratio to onset (the onset extrapolation uses both)."""
-    onset = np.maximum(contact.onset_threshold_pa, ONSET_NOISE_SIGMAS * sigma_pa)
-    return onset, onset * (contact.confirm_threshold_pa / contact.onset_threshold_pa)
+    element's noise; confirm keeps its configured ratio to onset (the onset extrapolation uses both). ``out``:
+    written in place (the loop does this on every frame between areas)."""
+    onset, confirm = out if out is not None else (np.empty(sigma_pa.shape), np.empty(sigma_pa.shape))
+    np.multiply(sigma_pa, ONSET_NOISE_SIGMAS, out=onset)
+    np.maximum(onset, contact.onset_threshold_pa, out=onset)
+    np.multiply(onset, contact.confirm_threshold_pa / contact.onset_threshold_pa, out=confirm)
+    return onset, confirm
 
 
 def element_analysis(

@@ -87,7 +87,6 @@ class ControlLoop:
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
         self._noise = AirNoise(sensor.shape)
-        self._noise_sigma_pa: np.ndarray | None = None  # per element, once measured
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
                             np.full(sensor.shape, contact.confirm_threshold_pa))
@@ -224,12 +223,12 @@ class ControlLoop:
     def _refresh_thresholds(self) -> None:
         sigma = self._noise.sigma_pa()
         if sigma is not None:
-            self._noise_sigma_pa = sigma
-            self._thresholds = contact_thresholds(self.config.contact, sigma)
+            contact_thresholds(self.config.contact, sigma, out=self._thresholds)
 
     def _contact_problem(self) -> str | None:
         """Why contact could not be told from the sensor's noise in this area (None: it can)."""
-        if self._noise_sigma_pa is None:
+        sigma = self._noise.sigma_pa()  # what the thresholds were last made from: no frame was read since
+        if sigma is None:
             return (f"the sensor's noise is not measured yet ({self._noise.count} of {NOISE_MIN_FRAMES} frames read "
                     f"with the probe held between areas); wait a moment")
         confirm = float(np.median(self._thresholds[1]))
@@ -237,7 +236,7 @@ class ControlLoop:
         mean_pa = ramp.force_min_N / (self.sensor.rows * self.sensor.cols * self.sensor.element_area_m2)
         if confirm >= mean_pa:
             # Below this the seek at F_min could end with no element ever confirming contact, or on noise
-            return (f"the sensor's noise (median {np.median(self._noise_sigma_pa):.0f} Pa per element) puts contact "
+            return (f"the sensor's noise (median {np.median(sigma):.0f} Pa per element) puts contact "
                     f"confirmation at {confirm / 1e3:.2f} kPa, above the face's mean pressure at the first level "
                     f"({mean_pa / 1e3:.2f} kPa at {ramp.force_min_N:g} N): check the sensor's cable and shielding")
         return None
@@ -247,7 +246,7 @@ class ControlLoop:
         noisier than the configured thresholds allow for, or that some elements are far noisier than the rest.
         An element raised a few % above the configuration by its estimate's own scatter is not news."""
         onset, confirm = self._thresholds
-        sigma = self._noise_sigma_pa
+        sigma = self._noise.sigma_pa()
         configured = self.config.contact.onset_threshold_pa
         said = []
         typical = float(np.median(sigma))

@@ -19,7 +19,7 @@ import numpy as np
 
 from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
                             match_ground_truth, over_each_other)
-from session.flatfield import Contrast, Physics, Reference, contrast
+from session.flatfield import Contrast, Pattern, Physics, Reference, contrast
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
 
@@ -68,12 +68,11 @@ class SessionAnalysis:
         params = params or AnalysisParams()
         levels = session.levels
         contrasts = {}
+        patterns = expected_patterns(physics, levels) if physics is not None and len(levels) else {}
         for source in SOURCES:
             share = sigma = modes = None
-            if physics is not None and len(levels):
-                # the stiffness map is compared with the measured surface, the force map with a flat one
-                pattern = physics.pattern(levels, measured_surface=source == "stiffness")
-                share, sigma, modes = pattern.share, pattern.sigma, pattern.modes
+            if source in patterns:
+                share, sigma, modes = patterns[source].share, patterns[source].sigma, patterns[source].modes
             contrasts[source] = contrast(levels, source, share, sigma, reference, params.detect.accuracy,
                                          physics.description if physics is not None else "", modes)
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
@@ -118,6 +117,12 @@ class SessionAnalysis:
     def truth_of(self, detection: int) -> TruthMatch | None:
         """The true tumour a detection (index into :attr:`tumours`) was matched to, if any."""
         return next((m for m in self.matches if m.found and m.detection == detection), None)
+
+
+def expected_patterns(physics: Physics, levels: np.ndarray) -> dict[str, Pattern]:
+    """What homogeneous tissue gives each map on every record: the stiffness map is compared with the surface
+    the onsets measured, the force map with a flat one (the face's own pattern)."""
+    return {source: physics.pattern(levels, measured_surface=source == "stiffness") for source in SOURCES}
 
 
 def _truth_known(session: Session) -> bool:

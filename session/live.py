@@ -7,7 +7,7 @@ the reviewer (:mod:`session.flatfield`, :mod:`session.detect`). The face's patte
 palpation when one is loaded, else from the other areas palpated at the same level, which needs
 ``MIN_VOUCHING`` + 1 areas before it says anything (:meth:`LiveMaps.flat_field_ready`). Where the
 composition root can compute the physics (the homogeneous block rebuilt from the areas palpated so far,
-10-15 s of finite elements, in the background after each area), it says so (:attr:`LiveMaps.physics_expected`)
+14-20 s of finite elements, in the background after each area), it says so (:attr:`LiveMaps.physics_expected`)
 and the maps wait for it (:meth:`LiveMaps.set_physics`): without it the other areas' pattern does not hold
 where the tissue ends, and on the paper's flat phantom the corners of the areas at its ends read as six
 tumours with scores of 5 to 15. Contrast and findings then come from the records the physics covers; an area palpated
