@@ -38,10 +38,12 @@ NICENESS = 10  # below the console: the operator's display never waits for the t
 
 def patterns_of(levels: np.ndarray, info: SessionInfo, extent_m: Extent | None = None) -> tuple[dict, str]:
     """({map: its pattern on every record of ``levels``} as the reviewer's analysis takes them, how the tissue
-    was obtained) for the tissue that reaches over ``extent_m`` (if known) and the palpated areas; raises
-    ValueError where the areas cannot be modelled."""
+    was obtained) for the tissue that reaches over ``extent_m`` and the palpated areas, and ends there; without
+    ``extent_m``, over the areas palpated so far, where it ends not known. Raises ValueError where the areas
+    cannot be modelled."""
     with tempfile.TemporaryDirectory(prefix="palpation-live-") as cache:
-        tissue = BlockResponse.from_levels(levels, info, cache, extent_m=extent_m)
+        tissue = BlockResponse.from_levels(levels, info, cache, extent_m=extent_m,
+                                           ends_known=extent_m is not None)
         return expected_patterns(tissue, levels), tissue.description
 
 
@@ -90,6 +92,11 @@ class LivePhysics(QtCore.QObject):
     @property
     def busy(self) -> bool:
         return self._records > 0
+
+    @property
+    def ends_known(self) -> bool:
+        """Whether the tissue is known to end where the plan says (else it may go on beyond the areas)."""
+        return self._extent_m is not None
 
     def hold(self, held: bool) -> None:
         """Stop the worker where it is (``held``) or let it go on: the console holds it while the loop controls

@@ -190,9 +190,10 @@ class HomogeneousTissue(ABC):
         self._cover = _cover(cover_spread_m, shape, pitch_m)
 
     @classmethod
-    def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
+    def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None,
+                      ends_known: bool = True) -> BlockResponse:
         """The block rebuilt from ``session`` (raises ValueError if no element ever touched)."""
-        return BlockResponse.rebuild(session, cache_dir, progress)
+        return BlockResponse.rebuild(session, cache_dir, progress, ends_known)
 
     @classmethod
     def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
@@ -218,10 +219,13 @@ class BlockResponse(HomogeneousTissue):
 
     def __init__(self, block: SurfaceBlock, origin_xy_m: tuple[float, float], compliance: np.ndarray,
                  nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int],
-                 finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0):
+                 finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0,
+                 ends_known: bool = True):
+        ends = "" if ends_known else "; where the tissue ends not known"
         super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}: the palpated extent "
-                         f"and the measured surface, finite elements{_finite(finite_strain)})", cover_spread_m,
-                         pitch_m, shape)
+                         f"and the measured surface, finite elements{_finite(finite_strain)}{ends})",
+                         cover_spread_m, pitch_m, shape)
+        self.ends_known = ends_known
         self.block = block
         self.origin_xy_m = origin_xy_m
         self.finite_strain = finite_strain
@@ -231,17 +235,21 @@ class BlockResponse(HomogeneousTissue):
         self._faces: dict[tuple[int, int], _Face] = {}
 
     @classmethod
-    def rebuild(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
-        return cls.from_levels(session.levels, session, cache_dir, progress)
+    def rebuild(cls, session: Session, cache_dir=None, progress: Progress | None = None,
+                ends_known: bool = True) -> BlockResponse:
+        return cls.from_levels(session.levels, session, cache_dir, progress, ends_known=ends_known)
 
     @classmethod
     def from_levels(cls, levels: np.ndarray, described: Session | SessionInfo, cache_dir=None,
                     progress: Progress | None = None,
-                    extent_m: tuple[float, float, float, float] | None = None) -> BlockResponse:
+                    extent_m: tuple[float, float, float, float] | None = None,
+                    ends_known: bool = True) -> BlockResponse:
         """The block rebuilt from ``levels`` of the session ``described`` (recorded, or being recorded: the
         live maps ask for the areas palpated so far), reaching over ``extent_m`` too where the tissue is known
         to: the live maps' last area is not at the tissue's end, and modelled as if it were, its far edge
-        rows read as a tumour (the paper's flat phantom, 8 areas of 9: a spot at x = 64 mm, z 5.9)."""
+        rows read as a tumour (the paper's flat phantom, 8 areas of 9: a spot at x = 64 mm, z 5.9). Without
+        ``ends_known`` the block's ends are not taken to be the tissue's (:meth:`_extent_modes`): the live
+        maps of a session whose tissue no plan describes, whose last area is where the operator has got to."""
         if not len(levels):
             raise ValueError("the session recorded no level: there is no palpated area to model")
         shape = tuple(levels.dtype["pressure_pa"].shape)
@@ -250,7 +258,7 @@ class BlockResponse(HomogeneousTissue):
         block, origin = measured_surface(levels, pitch, table, extent_m)
         compliance, nodes = _block_compliance(block, cache_dir, progress)
         return cls(block, origin, compliance, nodes, _cover_of(described), pitch, shape,
-                   _block_stiffening(block, shape, pitch, cache_dir), table)
+                   _block_stiffening(block, shape, pitch, cache_dir), table, ends_known)
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
         shape = levels["pressure_pa"].shape
@@ -302,20 +310,34 @@ class BlockResponse(HomogeneousTissue):
         over a free end is loaded very differently from one a millimetre inside it (a face edge flush with
         the end rides on a free edge; one a little short of it presses a punch's edge into the tissue). Where
         the face reaches an end of the block, the change of every element's share if the tissue went on by
-        that much (the face that far inside the block) is one standard deviation of that uncertainty."""
+        that much (the face that far inside the block) is one standard deviation of that uncertainty.
+
+        Where the ends are not known (``ends_known`` false), the tissue may as well go on by another area:
+        the slack is the face's own length along that axis, and a face up to that far from an end feels it
+        too (on the flat phantom's block of its first eight areas, the face an area short of the end changes
+        by up to 12 % with it, the one two areas short by 2 %). Taken to end a millimetre beyond the face,
+        the live maps' newest area read its far edge as a tumour after four of the flat phantom's first
+        eight areas (z 6-10); taken to go on by 4 mm more on every side, as often (the free end's effect
+        reaches further into 20 mm of tissue), and at the tissue's real end the face's other edge read as
+        one. The README's "live findings" and docs/session-format.md ``--physics partial`` say what this
+        costs and gains on the validation study's phantoms."""
         modes = []
         rows, cols = self.shape
         reach = ((self.block.length_m, rows * self.pitch_m), (self.block.width_m, cols * self.pitch_m))
         lo = self._face_lo(row)
         for axis, (extent, span) in enumerate(reach):
+            if self.ends_known:
+                slack, within = EXTENT_SLACK_M, EXTENT_SLACK_M / 2
+            else:
+                slack, within = span, span + EXTENT_SLACK_M / 2
             near_end = lo[axis] * GRID_M
             far_end = extent - near_end - span
             for gap, inward in ((near_end, 1.0), (far_end, -1.0)):
                 other = far_end if inward > 0 else near_end
-                if gap > EXTENT_SLACK_M / 2 or other < EXTENT_SLACK_M:  # not at this end, or no room to move
+                if gap > within or other < slack:  # not near this end, or no room to move
                     continue
                 moved = row.copy()
-                moved["tsi_position_m"][axis] += inward * EXTENT_SLACK_M
+                moved["tsi_position_m"][axis] += inward * slack
                 modes.append(_change_of_pattern(self._share(moved, heights), base))
         return modes
 
@@ -676,6 +698,8 @@ def _cover(spread_m: float, shape: tuple[int, int], pitch_m: float):
 
 PHYSICS = {
     "rebuilt": "homogeneous tissue rebuilt from the session's own measurements (any session)",
+    "partial": "the same, for part of a tissue palpated: where the tissue ends not known, it may go on beyond the "
+               "areas by another area",
     "phantom": "the simulated phantom without its tumours (simulated sessions only)",
     "none": "no physics: the face's pattern is left to the baseline alone",
 }
@@ -686,8 +710,8 @@ def physics_for(session: Session, name: str = "rebuilt", cache_dir=None,
     """The physics :data:`PHYSICS` names for ``session``; raises ValueError saying why it cannot be had."""
     if name == "none":
         return None
-    if name == "rebuilt":
-        return HomogeneousTissue.reconstructed(session, cache_dir, progress)
+    if name in ("rebuilt", "partial"):
+        return HomogeneousTissue.reconstructed(session, cache_dir, progress, ends_known=name == "rebuilt")
     if name == "phantom":
         return HomogeneousTissue.from_phantom(session, cache_dir, progress)
     raise ValueError(f"unknown physics {name!r}; choose from {', '.join(PHYSICS)}")

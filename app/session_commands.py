@@ -275,6 +275,8 @@ def review_parser() -> argparse.ArgumentParser:
 def physics_options() -> dict:
     """The reviewer's flat-field physics choices (label -> factory), the default first."""
     return {"rebuilt from the session": lambda session: physics_for(session, "rebuilt"),
+            "rebuilt, part of the tissue palpated (its ends not known)":
+                lambda session: physics_for(session, "partial"),
             "simulated phantom (simulated sessions)": lambda session: physics_for(session, "phantom")}
 
 

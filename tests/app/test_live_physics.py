@@ -42,6 +42,24 @@ def _stiffness_spots(maps: LiveMaps) -> list[tuple[float, float]]:
     return [(t.x_m, t.y_m) for t in maps.tumours() if t.source == "stiffness"]
 
 
+def _judged(levels, records, patterns, description) -> list[tuple[float, float]]:
+    """The stiffness map's spots once the physics answered for ``records`` of ``levels``."""
+    maps = _maps(levels)
+    maps.physics_expected = True
+    maps.set_physics(records, patterns, description)
+    return _stiffness_spots(maps)
+
+
+def _answer(qtbot, physics: LivePhysics, levels, signal: str = "ready") -> tuple:
+    """What ``physics`` says to ``levels`` (its ``signal``'s arguments); its worker is closed after."""
+    try:
+        with qtbot.waitSignal(getattr(physics, signal), timeout=120_000) as answered:
+            physics.request(levels)
+    finally:
+        physics.close()
+    return answered.args
+
+
 def _near_a_tumour(xy) -> bool:
     return min(math.dist(xy, t) for t in TUMOURS_XY_M) < 2e-3
 
@@ -63,12 +81,21 @@ def test_with_the_physics_computed_aside_the_live_maps_find_the_tumours_and_not_
         physics.close()
     records, patterns, description = answered.args
     assert records == len(levels) and "rebuilt from the session" in description
-    maps = _maps(levels)
-    maps.physics_expected = True
-    maps.set_physics(records, patterns, description)
-    found = _stiffness_spots(maps)
+    found = _judged(levels, records, patterns, description)
     assert all(_near_a_tumour(xy) for xy in found)
     assert all(any(math.dist(xy, t) < 2e-3 for xy in found) for t in TUMOURS_XY_M)
+
+
+def test_without_a_plan_the_newest_areas_far_edge_is_not_read_as_a_tumour(qtbot, flat_session):
+    # A real rig has no plan: where the tissue ends is not known. Taken to end where the areas palpated so far
+    # do, after six areas the sixth's far edge (x = 48 mm) read as two tumours, z 6.5 and 7.1.
+    levels, info = flat_session
+    levels = levels[levels["region"] < 6]
+    records, patterns, description = _answer(qtbot, LivePhysics(info), levels)
+    assert "where the tissue ends not known" in description
+    found = _judged(levels, records, patterns, description)
+    assert all(_near_a_tumour(xy) for xy in found)
+    assert all(any(math.dist(xy, t) < 2e-3 for xy in found) for t in TUMOURS_XY_M[:2])
 
 
 def test_areas_that_cannot_be_modelled_are_said_so_and_nothing_is_left_running(qtbot, flat_session):
@@ -76,12 +103,8 @@ def test_areas_that_cannot_be_modelled_are_said_so_and_nothing_is_left_running(q
     unmodelled = levels[:3].copy()
     unmodelled["onset_height_m"] = np.nan  # no element ever touched
     physics = LivePhysics(info)
-    try:
-        with qtbot.waitSignal(physics.failed, timeout=60_000) as answered:
-            physics.request(unmodelled)
-    finally:
-        physics.close()
-    assert "no element of this session ever touched the tissue" in answered.args[0]
+    reason, = _answer(qtbot, physics, unmodelled, "failed")
+    assert "no element of this session ever touched the tissue" in reason
     assert not physics.busy
 
 

@@ -107,3 +107,36 @@ def test_the_sink_in_the_rebuild_adds_is_itself_an_uncertainty_shared_between_el
     assert np.all(next_over > 0.05 ** 2) and np.all(beside > 2 * next_over)
     assert np.all(unsure[0, 1:3, 3:5] > unsure[1, 1:3, 3:5])
     assert np.all(unsure[np.isfinite(unsure)] >= -1e-12)
+
+
+def test_where_the_tissue_ends_is_not_known_it_may_go_on_by_another_area(tmp_path):
+    # Five flat areas side by side along x: the first and the last are at the block's ends. The live maps
+    # without a plan do not know whether the tissue ends there (the newest area is where the operator has
+    # got to), and taken to end there, the newest area's far edge read as a tumour.
+    records = []
+    for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
+        levels = levels_of(level_record(region, 0, 1.0, (x, 0.015), thickness_m=BASE_M))
+        levels["tsi_position_m"][0, 2] = 0.019
+        levels["onset_height_m"] = BASE_M
+        levels["dL_m"] = BASE_M - 0.019
+        records.append(levels)
+    levels = np.concatenate(records)
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    known, unknown = (BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), ends_known=ends)
+                      for ends in (True, False))
+    sure, unsure = known.pattern(levels), unknown.pattern(levels)
+    np.testing.assert_allclose(unsure.share, sure.share)
+    # the middle area is two areas from either end: nothing to doubt, nor where the face spans the width
+    assert not sure.modes[2].any() and not unsure.modes[2].any()
+    # the face an area short of an end feels where the tissue ends only if it is not known: by several %
+    assert not sure.modes[[1, 3]].any()
+    assert 0.03 < np.abs(unsure.modes[1]).max() < 0.5 and 0.03 < np.abs(unsure.modes[3]).max() < 0.5
+    for end, row in ((0, 0), (4, 3)):  # each end area's row over the block's end
+        # a millimetre more of tissue changes the end row's share by over half; another area's length, by
+        # several times, and the whole face's by a fifth and more
+        assert np.abs(sure.modes[end][:, row]).max() > 0.5
+        assert np.all(np.abs(unsure.modes[end]).max(axis=(0, 2)) > 0.2)
+        assert np.abs(unsure.modes[end][:, row]).max() > 4 * np.abs(sure.modes[end][:, row]).max()
+    assert "where the tissue ends not known" in unknown.description
+    assert "not known" not in known.description

@@ -128,3 +128,10 @@ def test_an_output_that_fails_while_written_is_reported(recorded, tmp_path, caps
     (tmp_path / "taken.png").mkdir()  # a folder where the picture should go
     assert stitch_main([str(recorded[0]), "--physics", "none", "-o", str(tmp_path / "taken.png")]) == 1
     assert "Qt could not save the image" in capsys.readouterr().err
+
+
+def test_part_of_a_tissue_is_analysed_with_where_it_ends_not_known(recorded, tmp_path):
+    out = tmp_path / "maps.json"
+    assert stitch_main([str(recorded[0]), "--physics", "partial", "--no-depth-model", "--json", str(out)]) == 0
+    flat_field = json.loads(out.read_text())["flat_field"]
+    assert "rebuilt from the session" in flat_field and "where the tissue ends not known" in flat_field
