@@ -46,6 +46,7 @@ from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop,
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
+from session.detect import DetectParams
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
@@ -159,6 +160,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._fault_shown: tuple[int, str] | None = None
         self._physics = None  # the live flat field's physics (set_live_physics), if the composition root has it
         self._findings_pending: set[int] = set()  # areas done whose findings wait for that physics
+        self._told: dict[int, list] = {}  # areas whose findings were told: the tumours told for each
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
 
@@ -725,6 +727,7 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _physics_ready(self, records: int, patterns: dict, description: str) -> None:
         self._tissue.set_physics(records, patterns, description)
         self._tell_pending_findings()
+        self._tell_later_findings()
 
     def _physics_failed(self, reason: str) -> None:
         self._physics = None
@@ -807,14 +810,28 @@ class LiveWindow(QtWidgets.QMainWindow):
                     "other areas), or load a reference palpation")
         elif not findings:
             text = f"Area {region + 1}: nothing significant up to {f_max:g} N"
+            if self._physics is not None and not self._physics.ends_known:
+                text += (" so far (where the tissue ends is not known: a tumour near this area's edges may show "
+                         "once the areas beside it are palpated)")
         else:
-            text = f"Area {region + 1}: " + "; ".join(
-                f"{t.source} map: tumour at x {t.x_m * 1e3:.1f} mm, y {t.y_m * 1e3:.1f} mm, first at "
-                f"{t.first_level_N:g} N, depth {t.depth_m * 1e3:.1f} mm (paper's rule)"
-                + (f", {depth_model_text(t)} mm (model, 90 % interval)" if math.isfinite(t.depth_model_m) else "")
-                + f", z {t.score:.1f}" for t in findings)
+            text = f"Area {region + 1}: " + "; ".join(_finding_text(t) for t in findings)
+        if findings is not None:
+            self._told[region] = list(findings)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
+
+    def _tell_later_findings(self) -> None:
+        """Tumours that areas already told of show only now (the areas beside them palpated since, or the
+        tissue model of more of them): said once each, in the messages."""
+        merge = DetectParams.merge_radius_m
+        for region, told in self._told.items():
+            for tumour in self._tissue.findings_in(region) or []:
+                if any(t.source == tumour.source and math.dist((t.x_m, t.y_m), (tumour.x_m, tumour.y_m)) < merge
+                       for t in told):
+                    continue
+                told.append(tumour)
+                self._messages.add(f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}",
+                                   Severity.WARNING)
 
     def _show_settings(self) -> None:
         """The S_z switch, ramp and gains as the controller has them, with what is pending or refused."""
@@ -943,3 +960,11 @@ def _bool(value, default: bool) -> bool:
     if isinstance(value, bool):
         return value
     return str(value).lower() == "true"
+
+
+def _finding_text(t) -> str:
+    """One tumour as the messages tell it (``session.detect.Tumour``, with its model-based depth if any)."""
+    return (f"{t.source} map: tumour at x {t.x_m * 1e3:.1f} mm, y {t.y_m * 1e3:.1f} mm, first at "
+            f"{t.first_level_N:g} N, depth {t.depth_m * 1e3:.1f} mm (paper's rule)"
+            + (f", {depth_model_text(t)} mm (model, 90 % interval)" if math.isfinite(t.depth_model_m) else "")
+            + f", z {t.score:.1f}")
