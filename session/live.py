@@ -24,6 +24,7 @@ tissue as one in a record. What stays is decided on the records, not the frames.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -215,12 +216,16 @@ class LiveMaps:
         self.stitched()
         return list(self._tumours)
 
-    def findings_in(self, region: int) -> list[Tumour]:
+    def findings_in(self, region: int, told: Sequence[Tumour] = ()) -> list[Tumour]:
         """The tumours found so far that area ``region`` saw (one of their spots lies in its records), with
         their model-based depth when a :attr:`depth_model` is set (as the reviewer's analysis does it: from
-        the stiffness contrast, which has the surface's relief taken out)."""
+        the stiffness contrast, which has the surface's relief taken out). Those ``told`` of already (the
+        same map's, within the merge radius) are left out."""
         self.stitched()
-        seen = [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)]
+        radius = self.detect_params.merge_radius_m
+        seen = [t for t in self._tumours if any(self._rows[spot.record][1] == region for spot in t.spots)
+                and not any(k.source == t.source and math.dist((k.x_m, k.y_m), (t.x_m, t.y_m)) < radius
+                            for k in told)]
         if self.depth_model is None or self._stiffness is None:
             return seen
         levels, stiffness = self._stiffness

@@ -46,7 +46,6 @@ from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop,
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
-from session.detect import DetectParams
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
@@ -823,13 +822,11 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _tell_later_findings(self) -> None:
         """Tumours that areas already told of show only now (the areas beside them palpated since, or the
         tissue model of more of them): said once each, in the messages."""
-        merge = DetectParams.merge_radius_m
-        for region, told in self._told.items():
-            for tumour in self._tissue.findings_in(region) or []:
-                if any(t.source == tumour.source and math.dist((t.x_m, t.y_m), (tumour.x_m, tumour.y_m)) < merge
-                       for t in told):
-                    continue
+        told = [t for tumours in self._told.values() for t in tumours]
+        for region in sorted(self._told):
+            for tumour in self._tissue.findings_in(region, told) or []:
                 told.append(tumour)
+                self._told[region].append(tumour)
                 self._messages.add(f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}",
                                    Severity.WARNING)
 

@@ -184,10 +184,11 @@ class WholeTissueView(QtWidgets.QWidget):
         """What gives the findings their model-based depth (:class:`session.analysis.DepthModel`), or None."""
         self._maps.depth_model = model
 
-    def findings_in(self, region: int) -> list | None:
-        """The tumours found so far that area ``region`` saw; None while the flat field cannot be had."""
+    def findings_in(self, region: int, told=()) -> list | None:
+        """The tumours found so far that area ``region`` saw, but those ``told`` of already; None while the
+        flat field cannot be had."""
         self.refresh()
-        return self._maps.findings_in(region) if self._maps.flat_field_ready() else None
+        return self._maps.findings_in(region, told) if self._maps.flat_field_ready() else None
 
     def expect_physics(self, expected: bool) -> None:
         """Whether the contrast waits for the physics (:meth:`set_physics`), or does without it."""
