@@ -192,8 +192,9 @@ class HomogeneousTissue(ABC):
     @classmethod
     def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None,
                       ends_known: bool = True) -> BlockResponse:
-        """The block rebuilt from ``session`` (raises ValueError if no element ever touched)."""
-        return BlockResponse.rebuild(session, cache_dir, progress, ends_known)
+        """The block rebuilt from ``session`` (raises ValueError if no element ever touched); without
+        ``ends_known``, a session of part of a tissue, where it ends not known."""
+        return BlockResponse.from_levels(session.levels, session, cache_dir, progress, ends_known=ends_known)
 
     @classmethod
     def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
@@ -233,11 +234,6 @@ class BlockResponse(HomogeneousTissue):
         self._compliance = compliance
         self._nodes = nodes_xy_m
         self._faces: dict[tuple[int, int], _Face] = {}
-
-    @classmethod
-    def rebuild(cls, session: Session, cache_dir=None, progress: Progress | None = None,
-                ends_known: bool = True) -> BlockResponse:
-        return cls.from_levels(session.levels, session, cache_dir, progress, ends_known=ends_known)
 
     @classmethod
     def from_levels(cls, levels: np.ndarray, described: Session | SessionInfo, cache_dir=None,

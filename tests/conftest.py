@@ -12,7 +12,7 @@ try:
 except ImportError:  # Windows: each worker computes the model itself
     fcntl = None
 
-import app  # noqa: F401  (its BLAS thread setting must come before any test module loads numpy)
+import app  # noqa: F401  (its BLAS thread and huge-page settings must come before any test module loads numpy)
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 

@@ -159,7 +159,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._fault_shown: tuple[int, str] | None = None
         self._physics = None  # the live flat field's physics (set_live_physics), if the composition root has it
         self._findings_pending: set[int] = set()  # areas done whose findings wait for that physics
-        self._told: dict[int, list] = {}  # areas whose findings were told: the tumours told for each
+        self._told_areas: set[int] = set()  # areas whose findings were told
+        self._told: list = []  # the tumours told of, in any area
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
 
@@ -815,18 +816,17 @@ class LiveWindow(QtWidgets.QMainWindow):
         else:
             text = f"Area {region + 1}: " + "; ".join(_finding_text(t) for t in findings)
         if findings is not None:
-            self._told[region] = list(findings)
+            self._told_areas.add(region)
+            self._told += findings
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
 
     def _tell_later_findings(self) -> None:
         """Tumours that areas already told of show only now (the areas beside them palpated since, or the
         tissue model of more of them): said once each, in the messages."""
-        told = [t for tumours in self._told.values() for t in tumours]
-        for region in sorted(self._told):
-            for tumour in self._tissue.findings_in(region, told) or []:
-                told.append(tumour)
-                self._told[region].append(tumour)
+        for region in sorted(self._told_areas):
+            for tumour in self._tissue.findings_in(region, self._told) or []:
+                self._told.append(tumour)
                 self._messages.add(f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}",
                                    Severity.WARNING)
 
