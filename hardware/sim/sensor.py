@@ -9,11 +9,17 @@ the sample index as ``seq`` (a jump in ``seq`` is a frame the host never saw). P
    integrated over the 2 mm elements: it softens the rigid face's edge peaks; total force is kept);
 2. creep ``c``: the dielectric relaxes under load, a first-order rise towards ``creep_fraction * p``
    with time constant ``creep_time_constant_s`` (and back when unloaded);
-3. the raw reading ``offset + gain * (p + c) + noise``: a per-element zero offset and sensitivity fixed
-   by the sensor's own seed, white noise from the run's seed;
-4. quantisation to the converter step and saturation of the converter at ``[0, full_scale +
+3. hysteresis ``p h (1 + s)``, ``h = 2 * hysteresis_fraction``: the dielectric reads higher on unloading
+   than on loading. Each element keeps a memory ``s`` in [-1, 1] that its load's relative change moves,
+   whatever the rate: rising from ``p0`` to ``p1`` gives ``s = -1 + (s + 1) p0 / p1``, falling gives
+   ``s = 1 + (s - 1) p1 / p0``. The array is calibrated on loading (``s = -1`` reads ``p``); unloading
+   from full scale reads ``p (1 + 2 h (1 - p / FS))``, a gap widest at half scale, where it is ``h FS / 2``
+   = ``hysteresis_fraction * FS``, the datasheet's figure;
+4. the raw reading ``offset + gain * (p + hysteresis + c) + noise``: a per-element zero offset and
+   sensitivity fixed by the sensor's own seed, white noise from the run's seed;
+5. quantisation to the converter step and saturation of the converter at ``[0, full_scale +
    zero_offset]``, so a tared element saturates at about full scale;
-5. minus the tare (the raw reading taken as zero), giving the calibrated, tared pressure.
+6. minus the tare (the raw reading taken as zero), giving the calibrated, tared pressure.
 
 On connection the array takes its first frame as zero, as acquisition software does on start-up, unless
 an unloaded array could not give it (:func:`~hardware.interfaces.tare_problem`: the probe starts pressed
@@ -63,6 +69,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
         self._next_index: int | None = None
         self._creep_pa = np.zeros(shape)
         self._creep_t: float | None = None
+        self._memory = np.ones(shape)  # hysteresis: unloaded last
+        self._memory_load_pa = np.zeros(shape)
         self._zero_pa: np.ndarray | None = None
         self._latest: TactileFrame | None = None
         self._latest_raw: np.ndarray | None = None
@@ -147,6 +155,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
             creep *= decay
             creep += (s.creep_fraction * (1.0 - decay)) * p
         self._creep_t = t_s
+        self._hysteresis(p)
+        p *= 1.0 + 2.0 * s.hysteresis_fraction * (1.0 + self._memory)
         raw = np.add(p, creep, out=p)
         raw *= self._gain
         raw += self._offset_pa
@@ -157,6 +167,20 @@ class SimTactileSensor(SimDevice, TactileSensor):
             np.round(raw, out=raw)
             raw *= s.quantisation_pa
         return np.clip(raw, 0.0, self._raw_max_pa, out=raw)
+
+    def _hysteresis(self, p: np.ndarray) -> None:
+        """Move each element's hysteresis memory by its load's relative change since the last frame."""
+        before = self._memory_load_pa
+        # the share of the memory a change keeps, p0 / p1 rising and p1 / p0 falling: the smaller load over
+        # the larger (an element unloaded throughout keeps it all)
+        larger = np.maximum(p, before)
+        kept = np.divide(np.minimum(p, before), larger, out=np.ones_like(p), where=larger > 0)
+        target = np.where(p > before, -1.0, 1.0)
+        memory = self._memory
+        memory -= target
+        memory *= kept
+        memory += target
+        before[...] = p
 
     def _through_cover(self, p: np.ndarray) -> np.ndarray:
         """Spread each element's load to its neighbours along both axes; edge elements keep what would

@@ -29,7 +29,8 @@ class SensorSimSettings(Settings):
     """The capacitive tactile array and its electronics.
 
     ``seed`` fixes the sensor as manufactured (per-element gains and zero offsets: the same physical
-    array in every run); the noise of a run comes from the rig's seed.
+    array in every run); the noise of a run comes from the rig's seed. Where each default comes from, and
+    which are our assumptions: docs/phantoms.md, section 2, assumption 12.
     """
 
     full_scale_pa: float = 100e3  # the ADC saturates here (above the element's zero offset)
@@ -42,6 +43,12 @@ class SensorSimSettings(Settings):
     zero_offset_spread_pa: float = 200.0  # its standard deviation across elements
     creep_fraction: float = 0.03  # final relative rise of the reading under a constant load
     creep_time_constant_s: float = 2.0
+    # The widest gap between the reading on unloading and on loading over a cycle from zero to full scale and
+    # back, as a fraction of full scale (how datasheets state it). No datasheet of the paper's array that we
+    # could reach gives it; a review of tactile sensing for minimally invasive surgery rates capacitive
+    # sensors' hysteresis "high" beside optical and piezoelectric ones (Frontiers in Robotics and AI
+    # 8:705662, 2022, Table 2), so the default is a pessimistic 5 %, not zero.
+    hysteresis_fraction: float = 0.05
     cover_spread_m: float = 0.5e-3  # the elastomer cover spreads load sideways by about its thickness
     seed: int = 0
 
@@ -49,12 +56,13 @@ class SensorSimSettings(Settings):
         for name in ("full_scale_pa", "frame_rate_hz", "creep_time_constant_s"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
-                     "zero_offset_spread_pa", "creep_fraction", "cover_spread_m"):
+                     "zero_offset_spread_pa", "creep_fraction", "hysteresis_fraction", "cover_spread_m"):
             object.__setattr__(self, name, non_negative(name, getattr(self, name)))
         _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
         _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
         _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")
         _at_most("creep_fraction", self.creep_fraction, 0.5, "capacitive arrays creep by a few %")
+        _at_most("hysteresis_fraction", self.hysteresis_fraction, 0.25, "beyond that the reading is not a pressure")
         _at_most("cover_spread_m", self.cover_spread_m, 2e-3, "a cover thicker than an element blurs beyond it")
         _at_most("quantisation_pa", self.quantisation_pa, self.full_scale_pa / 16, "at least 4 bits over full scale")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:

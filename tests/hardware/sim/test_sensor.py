@@ -15,7 +15,8 @@ from hardware.sim.world import SimWorld
 T0 = 40.0
 MS = 1e-3
 AREA = TactileConstraints().element_area_m2
-IDEAL = dict(noise_std_pa=0.0, quantisation_pa=0.0, gain_spread=0.0, creep_fraction=0.0, cover_spread_m=0.0)
+IDEAL = dict(noise_std_pa=0.0, quantisation_pa=0.0, gain_spread=0.0, creep_fraction=0.0, hysteresis_fraction=0.0,
+             cover_spread_m=0.0)
 
 
 class KnownLoad:
@@ -196,6 +197,38 @@ def test_creep_rises_by_its_fraction_with_its_time_constant_and_recovers():
     assert residue[0] > 0.9 * alpha * p0  # the dielectric has not relaxed yet ...
     assert np.all(np.diff(residue) < 0)  # ... and does so steadily
     assert residue[-1] < 0.12 * residue[0]
+
+
+def _reading_through_a_cycle(hysteresis, loads_pa, step_s):
+    """The reading of element (0, 0) at each load of ``loads_pa``, held for ``step_s`` each."""
+    sensor = make_sensor(**{**IDEAL, "hysteresis_fraction": hysteresis})
+    run(sensor, T0, 0.05)
+    readings, t = [], T0 + 0.051
+    for p in loads_pa:
+        sensor.world.tissue.force_N[:] = p * AREA
+        frames, _ = run(sensor, t, step_s)
+        readings.append(frames[-1].pressure_pa[0, 0])
+        t += step_s + MS
+    return np.array(readings)
+
+
+def test_hysteresis_reads_high_on_unloading_by_its_datasheet_gap_whatever_the_rate():
+    fs = TactileConstraints().full_scale_pa
+    up = np.linspace(0.0, fs, 11)
+    cycle = np.concatenate([up, up[-2::-1]])
+    slow = _reading_through_a_cycle(0.05, cycle, 0.05)
+    loading, unloading = slow[:11], slow[10:][::-1]
+    assert loading == pytest.approx(up, abs=1e-6)  # calibrated on loading
+    gap = (unloading - loading) / fs
+    assert gap.max() == pytest.approx(0.05, rel=1e-9)  # the datasheet's figure ...
+    assert up[np.argmax(gap)] == pytest.approx(fs / 2)  # ... widest at half scale
+    assert gap[0] == gap[-1] == 0.0  # the loop closes at zero and at full scale
+    fast = _reading_through_a_cycle(0.05, cycle, 0.02)
+    assert fast == pytest.approx(slow, rel=1e-12)
+    # a partial unloading (a force level's overshoot settling) takes the memory only part of the way:
+    # 20 % less load moves it from -1 to -0.6, and reloading by 25 % back to -0.68
+    dip = _reading_through_a_cycle(0.05, [0.0, 0.5 * fs, 0.4 * fs, 0.5 * fs], 0.05)
+    assert dip[1:] == pytest.approx([0.5 * fs, 0.4 * fs * (1 + 0.1 * 0.4), 0.5 * fs * (1 + 0.1 * 0.32)], rel=1e-9)
 
 
 def loaded_frames(settings_seed=0, run_seed=0, sim_span_s=0.1, **sensor):
