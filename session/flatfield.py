@@ -17,9 +17,10 @@ How (written down once, here):
     palpated at that level (an area never vouches for itself) of measured / (scale * share), each area
     weighted by how sure its share is, which tolerates a minority of areas with tumours. An element fewer
     than ``MIN_VOUCHING`` other areas are sure of (a bump under most of them) takes the median of its part
-    of the face, and that part's spread as its uncertainty. With physics it
-    stays within ``BASELINE_RANGE`` of one; without, it is the whole pattern of the face (and a tumour that
-    lies under the same elements of most areas is taken for part of it: say so, use physics).
+    of the face, and that part's spread as its uncertainty. With physics it stays within
+    ``BASELINE_RANGE`` of its part of the face's level (the edge rows', the inside's), and that level
+    within ``PART_RANGE`` of one; without, it is the whole pattern of the face (and a tumour that lies
+    under the same elements of most areas is taken for part of it: say so, use physics).
   - ``scale`` is the record's own level (the tissue's modulus there, the force actually reached): the
     median over its elements of measured / (baseline * share), robust to the elements over a tumour.
 
@@ -61,9 +62,17 @@ MAPS = ("stiffness", "force")
 ACCURACY = 0.02  # see DetectParams.accuracy
 MIN_VOUCHING = 3  # records an element's session baseline needs (the median of three outvotes one tumour)
 # An element's baseline is its sensitivity relative to the array's and the physics' systematic error there,
-# which calibration and the model keep within this: a larger departure from one is a tumour the areas
-# share (the paper's three tumours lie under the same elements of three areas), not the array.
+# which calibration and the model keep within this of its part of the face's level (:func:`_face_parts`):
+# a larger departure is a tumour the areas share (the paper's three tumours lie under the same elements of
+# three areas), not the array.
 BASELINE_RANGE = 0.15
+# The physics' systematic error is mostly a part's (the edge rows stiffen faster than the inside at finite
+# strain, by about a tenth at 5 N): a part's level may leave one by up to about three times that.
+PART_RANGE = 0.3
+# A part needs this many elements for a level of its own: the side columns and the corners (four elements
+# each, where the tissue's free sides make the physics least sure) stay about one, or a tumour near the
+# side, lifting one of the four, moved their level and was found 2-3 mm off or missed.
+MIN_PART_LEVEL = 10
 REFERENCE_FORMAT = "palpation-console-reference"
 
 
@@ -239,7 +248,7 @@ def _session_baseline(measured: np.ndarray, share: np.ndarray, share_sigma: np.n
     its uncertainty (zero where vouched): the physics' systematic error is mostly a part's (at finite strain
     the edge rows stiffen faster than the inside, by about a tenth at 5 N), and an element left at one
     there read 8 % harder than healthy tissue in three areas in a row. ``bounded``: the physics gave the
-    face's pattern, and the baseline only corrects it (within ``BASELINE_RANGE``)."""
+    face's pattern, and the baseline only corrects it (:func:`_within_parts`)."""
     ratio = measured / share
     trusted = _trusted(share_sigma) & np.isfinite(ratio)
     sigma = np.nan_to_num(share_sigma, nan=np.inf)
@@ -257,8 +266,25 @@ def _session_baseline(measured: np.ndarray, share: np.ndarray, share_sigma: np.n
         base = base / np.median(base[vouched]) if vouched.any() else base
         base, spread = _unvouched(base, vouched, BASELINE_RANGE if bounded else 1.0)
         if bounded:
-            base = np.clip(base, 1.0 / (1.0 + BASELINE_RANGE), 1.0 + BASELINE_RANGE)
+            base = _within_parts(base)
     return base, scale, spread
+
+
+def _within_parts(base: np.ndarray) -> np.ndarray:
+    """``base`` with each element within ``BASELINE_RANGE`` of its part of the face's median, and that
+    median within ``PART_RANGE`` of one (of one itself, in a part of fewer than ``MIN_PART_LEVEL``
+    elements). Bounded about one everywhere, an edge row's element whose sensitivity was a few percent
+    above its row's, on a level where the physics missed the row by a tenth, read 6-10 % harder than
+    healthy tissue in every area (a false tumour on a held-out phantom of the study)."""
+    parts = _face_parts(base.shape)
+    out = base.copy()
+    for part in np.unique(parts):
+        here = parts == part
+        centre = 1.0
+        if here.sum() >= MIN_PART_LEVEL:
+            centre = float(np.clip(np.median(base[here]), 1.0 / (1.0 + PART_RANGE), 1.0 + PART_RANGE))
+        out[here] = np.clip(base[here], centre / (1.0 + BASELINE_RANGE), centre * (1.0 + BASELINE_RANGE))
+    return out
 
 
 def _robust_spread(deviations: np.ndarray, floor: float) -> float:
