@@ -81,6 +81,13 @@ class MessagesPane(QtWidgets.QWidget):
         self._list.setUniformItemSizes(False)
         self._list.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.ExtendedSelection)
         self._list.setVerticalScrollMode(QtWidgets.QAbstractItemView.ScrollMode.ScrollPerPixel)
+        # Follow the newest line unless the operator scrolled up to read an older one. Kept as a state the
+        # operator's scrolling sets, not read off the scroll bar when a line arrives: the list lays its
+        # wrapped lines out later (and not at all before it is shown), so the bar lags behind the lines.
+        self._follow = True
+        bar = self._list.verticalScrollBar()
+        bar.valueChanged.connect(self._scrolled)
+        bar.rangeChanged.connect(self._grown)
         font = self._list.font()
         font.setPointSizeF(max(font.pointSizeF(), 10.5))
         self._list.setFont(font)
@@ -107,13 +114,18 @@ class MessagesPane(QtWidgets.QWidget):
         item = QtWidgets.QListWidgetItem(f"{stamp}{loop}   {text}")
         item.setForeground(QtGui.QBrush(QtGui.QColor(COLOURS[severity])))
         item.setData(QtCore.Qt.ItemDataRole.UserRole, severity.value)
-        bar = self._list.verticalScrollBar()
-        at_bottom = bar.value() >= bar.maximum() - 2
         self._list.addItem(item)
         while self._list.count() > self._max:
             self._list.takeItem(0)
-        if at_bottom:  # follow the newest line unless the operator scrolled up to read an older one
+        if self._follow:
             self._list.scrollToBottom()
+
+    def _scrolled(self, value: int) -> None:
+        self._follow = value >= self._list.verticalScrollBar().maximum() - 2
+
+    def _grown(self, _minimum: int, maximum: int) -> None:
+        if self._follow:
+            self._list.verticalScrollBar().setValue(maximum)
 
     def add_event(self, event) -> None:
         described = describe_event(event)

@@ -479,6 +479,30 @@ def test_every_message_pane_line_is_bounded(qtbot):
     assert [line.split()[-1] for line in pane.lines()] == ["3", "4", "5", "6", "7"]
 
 
+def test_the_message_pane_follows_the_newest_line_until_the_operator_scrolls_up(qtbot):
+    # The console's pane was left showing its first lines, and the region-done findings arrived out of
+    # sight: the lines of start-up were added before the pane was laid out, so the scroll bar grew only
+    # when it was shown, with the view at the top, and every later line found it "scrolled up".
+    pane = MessagesPane()
+    qtbot.addWidget(pane)
+    for k in range(20):
+        pane.add(f"start-up line {k}: recording the session to a long path that wraps over two lines")
+    pane.resize(300, 150)
+    pane.show()
+    qtbot.waitExposed(pane)
+    bar = pane.findChild(QtWidgets.QListWidget, "messageList").verticalScrollBar()
+    pane.add("Area 1: stiffness map: tumour at (12.1, 15.0) mm, first at 2 N, depth 2.0 mm")
+    qtbot.waitUntil(lambda: bar.maximum() > 0 and bar.value() == bar.maximum())
+    bar.setValue(0)  # the operator scrolls up to read an old line: it stays in view
+    before = bar.maximum()
+    pane.add("one more")
+    qtbot.waitUntil(lambda: bar.maximum() > before)
+    assert bar.value() == 0
+    bar.setValue(bar.maximum())  # and back at the bottom, the pane follows again
+    pane.add("and another")
+    qtbot.waitUntil(lambda: bar.value() == bar.maximum())
+
+
 def test_the_health_chip_sums_up_the_loop_and_the_devices(window, controller):
     chip = label(window, "healthChip")
     assert chip.text() == "loop: no report yet" and chip.property("level") == "watch"
