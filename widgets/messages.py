@@ -117,7 +117,7 @@ class MessagesPane(QtWidgets.QWidget):
         self._list.addItem(item)
         while self._list.count() > self._max:
             self._list.takeItem(0)
-        if self._follow:
+        if self._follow:  # now as well: it lays the new line out, so the bar is current when the operator scrolls
             self._list.scrollToBottom()
 
     def _scrolled(self, value: int) -> None:
