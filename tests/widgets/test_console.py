@@ -29,6 +29,8 @@ CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force
                        master=MasterMapping(jog_speed_m_s=0.04))
 SPEC = RigSpec(master="none")
 SPEED = 8.0  # simulated seconds per second: about what this machine's CPU sustains with the window open
+# For a test that must see something the rig does only briefly: at SPEED a busy window can miss all of it
+real_time = pytest.mark.parametrize("bridge", [1.0], indirect=True)
 WAIT_MS = 30_000
 
 
@@ -91,7 +93,7 @@ def wait(qtbot, console, condition) -> None:
 
 # Real time: at fast-forward speed a loaded machine can finish the whole region before the test sees S_z = 0,
 # leaving nothing to abort; in real time the seek alone takes seconds.
-@pytest.mark.parametrize("bridge", [1.0], indirect=True)
+@real_time
 def test_sz_switch_hands_z_to_force_control_and_back(qtbot, console):
     switch = find(console, SzSwitch, "szSwitch")
     assert switch.state() is True and text(console, "phaseLabel") == "APPROACH"
@@ -166,7 +168,7 @@ def test_tare_is_confirmed_and_only_offered_off_the_tissue(qtbot, console):
 
 # Real time: at fast-forward speed the face is pressed for an eighth of a second, and a window busy for that
 # long (the first test of a worker, or a loaded machine) showed no frame of it at all.
-@pytest.mark.parametrize("bridge", [1.0], indirect=True)
+@real_time
 def test_locked_colour_range_holds_while_frames_stream(qtbot, console, bridge):
     pressure = find(console, TactileMapWidget, "pressureMap")
     click(qtbot, pressure, "lockRange", QtWidgets.QCheckBox)
