@@ -232,9 +232,9 @@ def test_no_estimate_without_an_area_over_the_tumour(library):
 
 def test_the_library_builder_writes_what_the_loader_reads(tmp_path):
     grid = LibraryGrid(thickness_m=(0.006, 0.008), depth_m=(1e-3, 2e-3), diameter_m=(2e-3, 3e-3),
-                       modulus_ratio=(3.0, 6.0), offset_x_m=(0.0, 4e-3), length_m=0.016)
+                       modulus_ratio=(3.0, 6.0), offset_x_m=(4e-3,), length_m=0.016)
     lib = load_library(build_library(tmp_path / "small.npz", grid))
-    assert lib.inclusion.shape[:5] == (2, 2, 2, 2, 2)
+    assert lib.inclusion.shape[:5] == (2, 2, 2, 2, 1)
     assert np.isfinite(lib.inclusion[1, 0, 0, 0]).all()
 
 
