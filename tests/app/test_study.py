@@ -159,6 +159,22 @@ def test_a_case_counts_its_aborted_areas_by_the_controllers_reason(tmp_path):
         assert _areas_started(session) == 4  # the last ended before its first level
 
 
+class _LastFirst:
+    """An executor that finishes its cases in the reverse of the order given, here in this process."""
+
+    def run(self, fn, items, *args):
+        return reversed([fn(item, *args) for item in items])
+
+    def close(self):
+        pass
+
+
+def test_results_come_back_in_the_order_of_the_cases_whatever_order_they_finish_in(tmp_path):
+    cases = [type(c)(c.name, {"phantom": {"name": "x"}}, 0, 0, tissue="winkler") for c in tiny_cases(3, seed=4)]
+    results, _ = run_study(cases, _LastFirst(), tmp_path, analysis=NO_PHYSICS)
+    assert [r["name"] for r in results] == [c.name for c in cases]
+
+
 def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
     case = tiny_cases(1, seed=4)[0]
     broken = type(case)(case.name, {"phantom": {"name": "x"}}, 0, 0, tissue="winkler")
