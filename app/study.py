@@ -39,6 +39,9 @@ import tomli_w
 from hardware.settings import ConfigError
 
 DEPTH_BANDS_M = ((0.0, 3e-3), (3e-3, 6e-3), (6e-3, 9e-3), (9e-3, 12.5e-3))
+# the paper's comparison of the two maps turns on the surface: on even thickness they see the same
+# within-face pattern, where the thickness varies only Eq. 1 tells a tumour from thicker tissue
+SURFACES = ("flat", "sloped", "bumpy")
 SHALLOW_M = 6e-3  # the goal's "tumours whose top is at most 6 mm deep"
 
 
@@ -501,6 +504,15 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
             "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
             "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
             **_depth_figures([m for m in inside if m["found"]])}
+    surfaces = {}
+    for kind in SURFACES:
+        phantoms = [r for r in drawn if r["surface"] == kind]
+        inside = [m for r, m, _ in truths if r["surface"] == kind]
+        surfaces[kind] = {
+            "phantoms": len(phantoms), "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
+            "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
+            "false_positives_per_phantom": (sum(r["false_positives"].get(source, 0) for r in phantoms)
+                                            / len(phantoms) if phantoms else None)}
     shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
     paper = {r["name"]: r for r in results if r["paper"]}
     return {
@@ -509,6 +521,7 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
         "sensitivity_pct": _pct(len(found), len(truths)),
         "sensitivity_le6mm_pct": _pct(sum(1 for m in shallow if m["found"]), len(shallow)),
         "by_depth": bands,
+        "by_surface": surfaces,
         "false_positives_per_phantom": (sum(r["false_positives"].get(source, 0) for r in drawn) / len(drawn)
                                         if drawn else None),
         "false_positives_tumour_free_phantoms": sum(r["false_positives"].get(source, 0) for r in drawn
@@ -597,6 +610,11 @@ def print_summary(figures: dict[str, dict], wall_s: float, out=None) -> None:
             print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}   "
                   f"{_depth_cell(b, 'rule'):>15} / {_depth_cell(b, 'model'):<15} "
                   f"{_fmt(b['depth_interval_coverage_pct'], ' %'):>7}", file=out)
+        print("  surface     phantoms tumours  found  sensitivity   false positives per phantom", file=out)
+        for kind, s in f["by_surface"].items():
+            print(f"  {kind:>10} {s['phantoms']:>9} {s['tumours']:>7} {s['found']:>6}  "
+                  f"{_fmt(s['sensitivity_pct'], ' %'):>10}   {_fmt(s['false_positives_per_phantom'], '', 2):>10}",
+                  file=out)
         print(f"  sensitivity {_fmt(f['sensitivity_pct'], ' %')} (<= 6 mm: {_fmt(f['sensitivity_le6mm_pct'], ' %')}), "
               f"false positives {_fmt(f['false_positives_per_phantom'], ' per phantom', 2)}", file=out)
         print(f"  localisation p90 {_fmt(f['loc_err_p90_mm'], ' mm', 2)}, depth error median: paper's rule "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -84,9 +85,9 @@ def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
     assert set(ACCURACY_KEYS) <= set(doc) and doc["phantoms"] == 1 and doc["study_wall_s"] == 1.0
 
 
-def _result(name, truths, matches, fps, paper=False):
-    return {"name": name, "paper": paper, "regions": 3, "regions_done": 3, "truths": truths, "matches": matches,
-            "false_positives": {"stiffness": fps, "force": 0}, "tumours": []}
+def _result(name, truths, matches, fps, paper=False, surface="flat"):
+    return {"name": name, "paper": paper, "surface": surface, "regions": 3, "regions_done": 3, "truths": truths,
+            "matches": matches, "false_positives": {"stiffness": fps, "force": 0}, "tumours": []}
 
 
 def _match(i, depth, found, error=0.0, rule=None, model=None, low=None, high=None, palpated=True):
@@ -103,7 +104,7 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
                  _match(1, 10e-3, False)], fps=1),
         _result("b", [{**truth, "depth_m": 5e-3}, {**truth, "depth_m": 4e-3}],
                 [_match(0, 5e-3, True, 2e-3, rule=2e-3, model=6e-3, low=5.5e-3, high=7e-3),
-                 _match(1, 4e-3, False, palpated=False)], fps=0),
+                 _match(1, 4e-3, False, palpated=False)], fps=0, surface="bumpy"),
         _result("paper-flat", [{**truth, "depth_m": 2e-3}], [_match(0, 2e-3, True, 0.5e-3)], fps=2, paper=True),
     ]
     f = score(results)
@@ -125,6 +126,13 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
     assert f["depth_bias_rule_median_mm"] == pytest.approx(-1.25)  # +0.5 and -3.0 mm
     assert f["depth_interval_coverage_pct"] == 50.0  # the second interval misses the truth
     assert f["paper_flat_found"] == 1 and f["paper_uneven_found"] is None and f["paper_false_positives"] == 2
+    # by surface, the paper's phantom apart: where the two maps part ways
+    assert f["by_surface"] == {
+        "flat": {"phantoms": 1, "tumours": 2, "found": 1, "sensitivity_pct": 50.0, "false_positives_per_phantom": 1.0},
+        "sloped": {"phantoms": 0, "tumours": 0, "found": 0, "sensitivity_pct": None,
+                   "false_positives_per_phantom": None},
+        "bumpy": {"phantoms": 1, "tumours": 1, "found": 1, "sensitivity_pct": 100.0,
+                  "false_positives_per_phantom": 0.0}}
 
 
 def test_each_case_says_where_it_missed_and_where_it_raised_a_false_positive():
@@ -198,6 +206,7 @@ def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys,
                        "--physics", "none"]) == 0
     printed = capsys.readouterr().out
     assert "stiffness map: 1 tumours in 1 phantoms" in printed and "[1/1] s2-0000" in printed
+    assert re.search(r"flat +1 +1 +1 +100\.0 % +0\.00\n", printed)  # by surface: found, no false positive
     doc = json.loads((out / "study.json").read_text())
     assert set(ACCURACY_KEYS) | {"study_wall_s", "maps", "cases"} <= set(doc)
     found = [m for m in doc["cases"][0]["matches"] if m["found"] and m["source"] == "stiffness"]
