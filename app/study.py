@@ -100,7 +100,7 @@ def draw_phantom(rng: np.random.Generator, name: str, dist: StudyDistribution = 
             "name": name, "length_m": length, "width_m": dist.width_m, "thickness_m": thickness,
             "youngs_modulus_pa": tissue_pa, "poisson_ratio": dist.poisson_ratio,
         }
-        kind = ("flat", "sloped", "bumpy")[int(rng.choice(3, p=np.asarray(dist.surface_odds)))]
+        kind = SURFACES[int(rng.choice(3, p=np.asarray(dist.surface_odds)))]
         if kind == "sloped":
             gx, gy = round(_uniform(rng, dist.slope_x), 3), round(_uniform(rng, dist.slope_y), 3)
             # tilted about the phantom's centre, so the base thickness is its mean height
@@ -489,6 +489,10 @@ def _depth_figures(found: list[dict]) -> dict[str, float | None]:
             "depth_interval_coverage_pct": _pct(sum(covered), len(covered))}
 
 
+def _false_positives_per_phantom(results: list[dict], source: str) -> float | None:
+    return sum(r["false_positives"].get(source, 0) for r in results) / len(results) if results else None
+
+
 def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
     """The study's figures for one map (``source``), over the drawn phantoms; the paper's phantoms apart."""
     failed = [r for r in results if "error" in r]
@@ -511,8 +515,7 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
         surfaces[kind] = {
             "phantoms": len(phantoms), "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
             "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
-            "false_positives_per_phantom": (sum(r["false_positives"].get(source, 0) for r in phantoms)
-                                            / len(phantoms) if phantoms else None)}
+            "false_positives_per_phantom": _false_positives_per_phantom(phantoms, source)}
     shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
     paper = {r["name"]: r for r in results if r["paper"]}
     return {
@@ -522,8 +525,7 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
         "sensitivity_le6mm_pct": _pct(sum(1 for m in shallow if m["found"]), len(shallow)),
         "by_depth": bands,
         "by_surface": surfaces,
-        "false_positives_per_phantom": (sum(r["false_positives"].get(source, 0) for r in drawn) / len(drawn)
-                                        if drawn else None),
+        "false_positives_per_phantom": _false_positives_per_phantom(drawn, source),
         "false_positives_tumour_free_phantoms": sum(r["false_positives"].get(source, 0) for r in drawn
                                                     if not r["truths"]),
         "loc_err_p90_mm": _quantile([m["error_xy_m"] * 1e3 for _, m, _ in found], 0.9),
