@@ -100,7 +100,7 @@ def draw_phantom(rng: np.random.Generator, name: str, dist: StudyDistribution = 
             "name": name, "length_m": length, "width_m": dist.width_m, "thickness_m": thickness,
             "youngs_modulus_pa": tissue_pa, "poisson_ratio": dist.poisson_ratio,
         }
-        kind = SURFACES[int(rng.choice(3, p=np.asarray(dist.surface_odds)))]
+        kind = SURFACES[int(rng.choice(len(SURFACES), p=np.asarray(dist.surface_odds)))]
         if kind == "sloped":
             gx, gy = round(_uniform(rng, dist.slope_x), 3), round(_uniform(rng, dist.slope_y), 3)
             # tilted about the phantom's centre, so the base thickness is its mean height

@@ -94,7 +94,7 @@ def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(t
     out = capsys.readouterr().out
     assert out.count("done (2 levels)") == 9 and "Recording" not in out
     assert not list(sessions_dir().glob("*.h5"))
-    given = []  # before the subcommand, as before (what it palpates with is what the run above showed)
+    given = []  # given before the subcommand, the file is what simulate is handed (it palpated with it above)
     monkeypatch.setattr("app.simulate.simulate", lambda config, **options: given.append(config) or 0)
     assert main(["--config", str(config), "simulate", "--no-record"]) == 0
     assert [c.control.ramp.force_max_N for c in given] == [2.0]
