@@ -27,10 +27,10 @@ study: bootstrap
 	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --out build/study \
 		--json build/bench/accuracy.json --plot build/bench/accuracy.png
 
-# The model-based depth's library of finite-element solves (app/depth_model.py), shipped in resources/:
+# The model-based depth's library of finite-element solves (session/depth.py), shipped beside it:
 # rebuild it after a change to the continuum mechanics (about 15 minutes on two cores).
 depth-library: bootstrap
-	$(PY) -m app.depth_model --out resources/depth_library.npz
+	$(PY) -m session.depth --out session/depth_library.npz
 
 clean:
 	rm -rf $(VENV) build .pytest_cache

@@ -96,22 +96,51 @@ def cmd_simulate(args) -> int:
     return simulate(_config(args), max_time_s=args.max_time_s, verbose=args.verbose, record=not args.no_record)
 
 
-# name: (entry point, help, what --config gives it; None: it reads no configuration)
+def _review(argv: list[str]) -> int:
+    from app.session_commands import review_main
+
+    return review_main(argv)
+
+
+def _stitch(argv: list[str]) -> int:
+    from app.session_commands import stitch_main
+
+    return stitch_main(argv)
+
+
+def _slave(argv: list[str]) -> int:
+    from app.slave import slave_main
+
+    return slave_main(argv)
+
+
+def _devices(argv: list[str]) -> int:
+    from app.devices import main as devices_main
+
+    return devices_main(argv)
+
+
+def _study(argv: list[str]) -> int:
+    from app.study import study_main
+
+    return study_main(argv)
+
+
+# name: (entry point, help, what --config gives it; None: it reads no configuration). Each entry imports its
+# command when it runs, so that --help stays quick, and imports it by name, so that the contracts see it.
 DELEGATED = {
-    "review": ("app.session_commands.review_main", "open a recorded session read-only in the reviewer", None),
-    "stitch": ("app.session_commands.stitch_main", "stitch a session into whole-tissue maps and find the tumours",
-               None),
-    "slave": ("hardware.udp.server.slave_main", "run the slave side of the UDP master/slave link",
-              "its simulated robot's [sim] table"),
-    "devices": ("hardware.discovery.main", "list the tactile sensors, masters and links this machine can see",
+    "review": (_review, "open a recorded session read-only in the reviewer", None),
+    "stitch": (_stitch, "stitch a session into whole-tissue maps and find the tumours", None),
+    "slave": (_slave, "run the slave side of the UDP master/slave link", "its simulated robot's [sim] table"),
+    "devices": (_devices, "list the tactile sensors, masters and links this machine can see",
                 "also probe the [hardware] devices it names"),
-    "study": ("app.study.study_main", "validate tumour detection and depth on seeded simulated phantoms",
+    "study": (_study, "validate tumour detection and depth on seeded simulated phantoms",
               "the [control] and [sim] settings every phantom is palpated with"),
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
-    config_help = "a TOML file overriding resources/config/default.toml"
+    config_help = "a TOML file overriding the shipped defaults (palpation-console's app/default.toml)"
     parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
     parser.add_argument("--config", type=Path, help=config_help)
     # the same option after the subcommand (``simulate --config FILE``); SUPPRESS keeps a value given before it
@@ -137,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("simulate", help="palpate a phantom headlessly, print every recorded level and record "
                          "the session", parents=[config_after])
-    sim.add_argument("--phantom", help="phantom name (resources/phantoms) or TOML file")
+    sim.add_argument("--phantom", help="a shipped phantom's name (flat, uneven) or a TOML file")
     sim.add_argument("--seed", type=int, help="random seed of the simulated sensor")
     sim.add_argument("--max-time-s", type=float, default=600.0, help="give up after this much simulated time")
     sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
@@ -169,22 +198,19 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     delegated = _delegated(argv)
     if delegated is not None:  # these subcommands own their argparse
-        import importlib
-
         command, sub_argv = delegated
         entry, _, config_use = DELEGATED[command]
         if config_use is None and any(a == "--config" or a.startswith("--config=") for a in sub_argv):
             print(f"error: {command} reads no configuration file: it works from what the session recorded and "
                   f"its own options (palpation-console {command} --help)", file=sys.stderr)
             return 2
-        module, name = entry.rsplit(".", 1)
-        return getattr(importlib.import_module(module), name)(sub_argv)
+        return entry(sub_argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args([*argv, "run"])
     from hardware.interfaces import DeviceError
-    from hardware.sim.phantom import PhantomError
+    from tissue.phantom import PhantomError
 
     try:
         return args.func(args)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +11,8 @@ from app.rigs import BACKENDS, RigSpec
 from control.config import ControlConfig
 from hardware.settings import ConfigError, read_toml
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "resources" / "config" / "default.toml"
+# shipped as package data beside this module, in a checkout and in an installed wheel alike
+DEFAULT_CONFIG = Path(str(resources.files(__package__).joinpath("default.toml")))
 COMMAND_LINE = "command line"  # the source of load_config's overrides, as errors and session files name it
 
 

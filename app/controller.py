@@ -45,6 +45,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from app.realtime import claim_realtime
 from app.rigs import RigSpec, build_rig, prepare_rig
 from app.ring import RingHandle, SharedRing
 from app.runtime import make_loop, run_tick
@@ -432,60 +433,6 @@ class _EventSender:
         self._conn.close()
 
 
-def loop_cpu() -> int | None:
-    """The CPU the loop pins itself to when it may (the last one this process may use), or None (one CPU, or
-    no pinning on this OS): other heavy work keeps off it."""
-    if not hasattr(os, "sched_getaffinity"):
-        return None
-    cpus = sorted(os.sched_getaffinity(0))
-    return cpus[-1] if len(cpus) >= 2 else None
-
-
-def _claim_realtime(options: PacingOptions) -> tuple[bool, int | None, str]:
-    """SCHED_FIFO and a CPU of our own when permitted. Returns (rt_priority, cpu, warning)."""
-    warnings = []
-    cpu = None
-    if options.pin_cpu:
-        mine = loop_cpu()
-        if not hasattr(os, "sched_setaffinity"):
-            warnings.append("CPU pinning is not available on this OS")
-        elif mine is None:
-            warnings.append("only one CPU is available, so the loop shares it with the GUI")
-        else:
-            try:
-                os.sched_setaffinity(0, {mine})
-                cpu = mine
-            except OSError as err:
-                warnings.append(f"could not pin the loop to CPU {mine} ({err.strerror})")
-    rt = False
-    if options.realtime:
-        if not hasattr(os, "sched_setscheduler"):
-            warnings.append("real-time priority (SCHED_FIFO) is not available on this OS; expect late ticks")
-        else:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.rt_priority))
-                rt = True
-            except OSError as err:
-                warnings.append(
-                    f"real-time priority (SCHED_FIFO) was refused ({err.strerror}); expect late ticks. Grant "
-                    "CAP_SYS_NICE or an rtprio limit (/etc/security/limits.conf) to the user running the console")
-    if not rt and sys.platform.startswith("linux"):
-        _set_timer_slack_ns(1)
-    return rt, cpu, "; ".join(warnings)
-
-
-def _set_timer_slack_ns(ns: int) -> None:
-    # Normal threads get 50 us of timer slack on every sleep; 1 ns brings the wake-up median from ~110 to
-    # ~65 us late here. RT threads have no slack anyway. Failure only costs precision, so it is not fatal.
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(29, ctypes.c_ulong(ns), 0, 0, 0)  # PR_SET_TIMERSLACK
-    except (OSError, AttributeError):
-        pass
-
-
 class _Stats:
     """Timing statistics for LoopHealth: since start, and over the current report window."""
 
@@ -610,7 +557,8 @@ class _ControllerChild:
         self.loop = make_loop(self.config, self.rig)
         self.rig.open()  # closes whatever it opened if one device fails
         self.opened = True
-        self.rt_info = _claim_realtime(self.options)
+        claim = claim_realtime(self.options.realtime, self.options.rt_priority, self.options.pin_cpu)
+        self.rt_info = (claim.realtime, claim.cpu, claim.warning)
         self.sender.start()
         # numpy's percentile costs ~10 ms on its first call (lazy imports): pay it before the first tick.
         np.percentile(np.zeros(8), 99)
@@ -694,7 +642,8 @@ def pacing_floor(options: PacingOptions, period_s: float, seconds: float) -> Pac
     """Pace empty ticks exactly as the controller paces its own, with the same priority and CPU. No tick
     does any work, so their lateness is what this machine's scheduler and hypervisor add: the best the
     loop can do here. Meant for a process of its own (it changes the calling thread's scheduling)."""
-    rt, cpu, _ = _claim_realtime(options)
+    claim = claim_realtime(options.realtime, options.rt_priority, options.pin_cpu)
+    rt, cpu = claim.realtime, claim.cpu
     spin_s = options.rt_spin_s if rt else options.spin_s
     n = max(1, round(seconds / period_s))
     started, late = np.empty(n), np.empty(n)

@@ -15,9 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.config import AppConfig
-from app.depth_model import LIBRARY_PATH, DepthModel, DepthModelError
+from session.depth import LIBRARY_PATH, DepthModel, DepthModelError
 from app.recording import SessionRecording, session_info
-from hardware.sim.mechanics.progress import Progress
+from tissue.mechanics.progress import Progress
 from session.info import sessions_dir
 
 
@@ -132,7 +132,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     from app.bridge import ControllerBridge
     from app.live_physics import LivePhysics
     from app.rigs import plan_for_rig, prepare_rig
-    from hardware.sim.mechanics.progress import TextProgressBar
+    from tissue.mechanics.progress import TextProgressBar
     from widgets.live_window import LiveWindow
 
     rig = console_rig(config)

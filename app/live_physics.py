@@ -1,5 +1,5 @@
 """The live maps' physics (:mod:`session.live`): homogeneous tissue rebuilt from the areas palpated so far, as
-the reviewer's analysis rebuilds it from the whole session (:meth:`app.physics.BlockResponse.from_levels`).
+the reviewer's analysis rebuilds it from the whole session (:meth:`session.physics.BlockResponse.from_levels`).
 
 Its finite elements take 14-20 s a time on this project's 2-core machine, longer than an area takes to
 palpate, and mostly in Python, which would hold the GUI's interpreter: they run in a worker process, at a
@@ -28,8 +28,8 @@ import tempfile
 import numpy as np
 from PySide6 import QtCore
 
-from app.controller import loop_cpu
-from app.physics import BlockResponse
+from app.realtime import loop_cpu
+from session.physics import BlockResponse
 from session.analysis import expected_patterns
 from session.info import SessionInfo
 

@@ -29,7 +29,7 @@ def session_info(config: AppConfig, rig: Rig | None = None, spec: RigSpec | None
     rig = rig if rig is not None else build_rig(spec)
     phantom = None
     if spec.backend == "sim":
-        from hardware.sim.phantom import load_phantom
+        from tissue.phantom import load_phantom
 
         phantom = load_phantom(spec.phantom).source
     full_config = {

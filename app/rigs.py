@@ -27,7 +27,7 @@ SIM_MASTERS = ("scripted", "none")
 @dataclass(frozen=True)
 class RigSpec:
     backend: str = "sim"
-    phantom: str = "flat"  # simulated rigs: a phantom name from resources/phantoms or a path to a TOML file
+    phantom: str = "flat"  # simulated rigs: a phantom name from tissue/phantoms or a path to a TOML file
     sim: dict[str, Any] = field(default_factory=dict)  # simulated rigs: SimSettings overrides
     seed: int = 0
     master: str = "scripted"  # simulated rigs: one of SIM_MASTERS
@@ -84,7 +84,7 @@ def plan_for_rig(spec: RigSpec, config: ControlConfig,
     height; None for other backends (no phantom file to take the areas from)."""
     if spec.backend != "sim":
         return None
-    from hardware.sim.phantom import load_phantom
+    from tissue.phantom import load_phantom
     from hardware.sim.settings import SimSettings
 
     operator = SimSettings.from_mapping(dict(spec.sim)).operator

@@ -12,8 +12,8 @@ import os
 import sys
 from pathlib import Path
 
-from app.depth_model import DepthModel, DepthModelError
-from app.physics import PHYSICS, physics_for
+from session.depth import DepthModel, DepthModelError
+from session.physics import PHYSICS, physics_for
 from session.analysis import AnalysisParams, SessionAnalysis
 from session import export
 from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams, widths_from_mm, widths_text_mm

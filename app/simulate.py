@@ -14,7 +14,7 @@ from app.rigs import build_rig
 from control.messages import (CommandApplied, CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice,
                               RegionAborted, RegionDone)
 from hardware.settings import ConfigError
-from hardware.sim.mechanics.progress import TextProgressBar
+from tissue.mechanics.progress import TextProgressBar
 from session.info import new_session_path
 from session.writer import RecorderError, SessionRecorder
 

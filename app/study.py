@@ -1,11 +1,11 @@
 """The validation study: how well the console finds tumours and their depth, on phantoms nobody tuned for.
 
 ``palpation-console study`` draws phantoms from a documented, seeded distribution
-(:class:`StudyDistribution`), palpates each one with the simulated rig on the fast-forward driver exactly as
+(:class:`tissue.generator.StudyDistribution`), palpates each one with the simulated rig on the fast-forward driver exactly as
 ``simulate`` does (the scripted operator, the default ramp, every area of the phantom), records it to a
 session file, analyses that file with the same pipeline the reviewer and the ``stitch`` command use
 (:class:`session.analysis.SessionAnalysis`, default parameters), and scores what was found against the
-phantom's ground truth (:func:`score`). The paper's two phantoms can be added to the set (``--paper``).
+phantom's ground truth (:func:`session.scoring.score`). The paper's two phantoms can be added to the set (``--paper``).
 
 Phantoms are independent, so they run in parallel through one executor interface (:class:`Executor`): local
 worker processes by default, or a Dask distributed cluster (``--scheduler ADDRESS``; ``pip install
@@ -37,115 +37,9 @@ import numpy as np
 import tomli_w
 
 from hardware.settings import ConfigError
+from session.scoring import case_failures, print_summary, score
+from tissue.generator import StudyDistribution, draw_phantom, surface_kind
 
-DEPTH_BANDS_M = ((0.0, 3e-3), (3e-3, 6e-3), (6e-3, 9e-3), (9e-3, 12.5e-3))
-# the paper's comparison of the two maps turns on the surface: on even thickness they see the same
-# within-face pattern, where the thickness varies only Eq. 1 tells a tumour from thicker tissue
-SURFACES = ("flat", "sloped", "bumpy")
-SHALLOW_M = 6e-3  # the goal's "tumours whose top is at most 6 mm deep"
-
-
-# ---- the distribution ------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class StudyDistribution:
-    """Where the study's phantoms come from (all ranges uniform unless said otherwise; lengths in m).
-
-    The phantom is a silicone block on the table like the paper's, as wide as the TSI is long (the TSI
-    spans it, as in Section IV-A), palpated in 8 mm strips along its length. Its surface is flat, sloped
-    (a plane tilted along x and y) or bumpy (one or two half-cylinders along x over part of the length,
-    like the paper's uneven phantom), each with the probability given. It holds 0 to 3 spherical tumours
-    (each count equally likely) at a depth (surface to the sphere's top) of 1-12 mm, 5-12 mm across and
-    3-12 times stiffer than the tissue (log-uniform), anywhere inside the block that keeps 1 mm of tissue
-    between tumours and 2 mm above the table. The tissue's modulus is log-uniform around the paper's
-    20 kPa. A draw that the phantom schema refuses is drawn again.
-    """
-
-    length_m: tuple[float, float] = (0.056, 0.088)
-    width_m: float = 0.030
-    thickness_m: tuple[float, float] = (0.020, 0.032)
-    youngs_modulus_pa: tuple[float, float] = (15e3, 30e3)  # log-uniform
-    poisson_ratio: float = 0.49
-    surface_odds: tuple[float, float, float] = (0.4, 0.3, 0.3)  # flat, sloped, bumpy
-    slope_x: tuple[float, float] = (-0.10, 0.10)  # rise per unit length along x
-    slope_y: tuple[float, float] = (-0.05, 0.05)
-    bump_radius_m: tuple[float, float] = (0.003, 0.006)
-    tumours: tuple[int, int] = (0, 3)
-    depth_m: tuple[float, float] = (1e-3, 12e-3)
-    diameter_m: tuple[float, float] = (5e-3, 12e-3)
-    modulus_ratio: tuple[float, float] = (3.0, 12.0)  # log-uniform
-    min_gap_m: float = 1e-3  # tissue between two tumours
-    table_clearance_m: float = 2e-3  # tissue under a tumour
-
-
-def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
-    return float(rng.uniform(bounds[0], bounds[1]))
-
-
-def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
-    return float(math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
-
-
-def draw_phantom(rng: np.random.Generator, name: str, dist: StudyDistribution = StudyDistribution(),
-                 attempts: int = 200) -> dict[str, Any]:
-    """One phantom from ``dist`` as a phantom file's table (see docs/phantoms.md), valid by construction."""
-    from hardware.sim.phantom import PhantomError, parse_phantom
-
-    for _ in range(attempts):
-        length = round(_uniform(rng, dist.length_m), 4)
-        thickness = round(_uniform(rng, dist.thickness_m), 4)
-        tissue_pa = round(_log_uniform(rng, dist.youngs_modulus_pa), -2)
-        table: dict[str, Any] = {
-            "name": name, "length_m": length, "width_m": dist.width_m, "thickness_m": thickness,
-            "youngs_modulus_pa": tissue_pa, "poisson_ratio": dist.poisson_ratio,
-        }
-        kind = SURFACES[int(rng.choice(len(SURFACES), p=np.asarray(dist.surface_odds)))]
-        if kind == "sloped":
-            gx, gy = round(_uniform(rng, dist.slope_x), 3), round(_uniform(rng, dist.slope_y), 3)
-            # tilted about the phantom's centre, so the base thickness is its mean height
-            table["surface"] = [{"kind": "slope", "gradient": [gx, gy], "origin_m": [length / 2, dist.width_m / 2],
-                                 "x_range_m": [0.0, length]}]
-        elif kind == "bumpy":
-            table["surface"] = []
-            for _ in range(int(rng.integers(1, 3))):
-                radius = round(_uniform(rng, dist.bump_radius_m), 4)
-                start = round(float(rng.uniform(0.0, 0.5)) * length, 4)
-                end = round(min(length, start + float(rng.uniform(0.3, 0.7)) * length), 4)
-                centre = round(float(rng.choice([radius, dist.width_m - radius])), 4)
-                table["surface"].append({"kind": "half_cylinder", "centre_y_m": centre, "radius_m": radius,
-                                         "x_range_m": [start, end]})
-        table["inclusions"] = []
-        for _ in range(int(rng.integers(dist.tumours[0], dist.tumours[1] + 1))):
-            diameter = round(_uniform(rng, dist.diameter_m), 4)
-            radius = diameter / 2
-            table["inclusions"].append({
-                "centre_xy_m": [round(_uniform(rng, (radius, length - radius)), 4),
-                                round(_uniform(rng, (radius, dist.width_m - radius)), 4)],
-                "diameter_m": diameter,
-                "youngs_modulus_pa": round(tissue_pa * _log_uniform(rng, dist.modulus_ratio), -2),
-                "depth_m": round(_uniform(rng, dist.depth_m), 4),
-            })
-        data = {"phantom": table}
-        try:
-            phantom = parse_phantom(data, name)
-        except PhantomError:
-            continue
-        if _room_around_tumours(phantom, dist):
-            table["description"] = (f"study phantom, {kind} surface, {len(table['inclusions'])} tumour(s), "
-                                    f"E = {tissue_pa / 1e3:.1f} kPa")
-            return data
-    raise RuntimeError(f"no valid phantom after {attempts} draws: the distribution leaves no room")
-
-
-def _room_around_tumours(phantom, dist: StudyDistribution) -> bool:
-    for i, a in enumerate(phantom.inclusions):
-        if a.z_m - a.radius_m < dist.table_clearance_m:
-            return False
-        for b in phantom.inclusions[:i]:
-            if math.dist((a.x_m, a.y_m, a.z_m), (b.x_m, b.y_m, b.z_m)) < a.radius_m + b.radius_m + dist.min_gap_m:
-                return False
-    return True
 
 
 # ---- one case ------------------------------------------------------------------------------------------
@@ -183,7 +77,7 @@ def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution 
         cases.append(StudyCase(name, phantom, int(rng.integers(2**31)), int(rng.integers(2**31)),
                                **{"force_max_N": ramp_for(phantom), **overrides}))
     if paper:
-        from hardware.sim.phantom import PHANTOM_DIR
+        from tissue.phantom import PHANTOM_DIR
 
         for name in ("flat", "uneven"):
             data = tomllib.loads((PHANTOM_DIR / f"{name}.toml").read_text(encoding="utf-8"))
@@ -218,7 +112,7 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
 
     A top-level function of plain arguments, so any executor can ship it to a worker."""
     from hardware.interfaces import DeviceError
-    from hardware.sim.phantom import PhantomError
+    from tissue.phantom import PhantomError
     from session.reader import SessionFileError
 
     try:
@@ -231,7 +125,7 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
               analysis: dict[str, Any]) -> dict[str, Any]:
     from app.config import load_config, merge_tables
     from app.recording import record_simulation
-    from hardware.sim.phantom import load_phantom
+    from tissue.phantom import load_phantom
     from hardware.sim.rig import build_sim_rig, build_tissue
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -276,7 +170,7 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
                    "modulus_ratio": t["youngs_modulus_pa"] / tissue_pa} for t in session.ground_truth]
         regions = session.regions()
         return {
-            "name": name, "paper": paper, "surface": _surface_kind(phantom),
+            "name": name, "paper": paper, "surface": surface_kind(phantom),
             "regions": _areas_started(session), "regions_done": sum(1 for r in regions if r.outcome == "done"),
             "regions_aborted": _abort_reasons(session),
             "truths": truths, "matches": [asdict(m) for m in analysis.matches],
@@ -317,7 +211,7 @@ class KeptCase:
 def kept_cases(folder: Path) -> list[KeptCase]:
     """The cases of a study's output folder (each ``NAME.h5`` beside its ``NAME.toml``), by name; raises
     ConfigError naming what is missing or unreadable. One of the paper's phantoms is told by its content."""
-    from hardware.sim.phantom import PHANTOM_DIR
+    from tissue.phantom import PHANTOM_DIR
 
     if not folder.is_dir():
         raise ConfigError("--reanalyse", f"{folder} is not a folder")
@@ -351,13 +245,6 @@ def reanalyse_case(case: KeptCase, analysis: dict[str, Any]) -> dict[str, Any]:
         return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
     result.update(analyse_s=time.perf_counter() - started, session=case.session)
     return result
-
-
-def _surface_kind(phantom: dict[str, Any]) -> str:
-    features = phantom["phantom"].get("surface", [])
-    if not features:
-        return "flat"
-    return "sloped" if features[0]["kind"] == "slope" else "bumpy"
 
 
 # ---- where cases run -------------------------------------------------------------------------------------
@@ -456,179 +343,7 @@ def _gathered(cases, results: Iterator[dict], progress) -> tuple[list[dict], flo
     return [by_name[c.name] for c in cases], time.perf_counter() - started
 
 
-# ---- scoring -----------------------------------------------------------------------------------------------
-
-
-def _pct(numerator: float, denominator: float) -> float | None:
-    return 100.0 * numerator / denominator if denominator else None
-
-
-def _quantile(values: list[float], q: float) -> float | None:
-    return float(np.quantile(values, q)) if values else None
-
-
-def _finite(value) -> bool:
-    return value is not None and math.isfinite(value)
-
-
-def _median(values: list[float]) -> float | None:
-    return float(statistics.median(values)) if values else None
-
-
-def _depth_figures(found: list[dict]) -> dict[str, float | None]:
-    """Both depth estimates of the ``found`` matches against the truth: median error, median signed error
-    (estimate minus truth: negative reads shallow), and how often the model's 90 % interval covers it."""
-    rule = [(m["depth_estimate_m"] - m["depth_m"]) * 1e3 for m in found if _finite(m["depth_estimate_m"])]
-    model = [(m["depth_model_m"] - m["depth_m"]) * 1e3 for m in found if _finite(m.get("depth_model_m"))]
-    covered = [m["depth_low_m"] <= m["depth_m"] <= m["depth_high_m"] for m in found
-               if _finite(m.get("depth_low_m")) and _finite(m.get("depth_high_m"))]
-    return {"depth_err_rule_median_mm": _median([abs(e) for e in rule]),
-            "depth_err_model_median_mm": _median([abs(e) for e in model]),
-            "depth_bias_rule_median_mm": _median(rule),
-            "depth_bias_model_median_mm": _median(model),
-            "depth_interval_coverage_pct": _pct(sum(covered), len(covered))}
-
-
-def _false_positives_per_phantom(results: list[dict], source: str) -> float | None:
-    return sum(r["false_positives"].get(source, 0) for r in results) / len(results) if results else None
-
-
-def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
-    """The study's figures for one map (``source``), over the drawn phantoms; the paper's phantoms apart."""
-    failed = [r for r in results if "error" in r]
-    results = [r for r in results if "error" not in r]
-    drawn = [r for r in results if not r["paper"]]
-    truths = [(r, m, r["truths"][m["truth_index"]]) for r in drawn for m in r["matches"]
-              if m["source"] == source and m["palpated"]]
-    found = [(r, m, t) for r, m, t in truths if m["found"]]
-    bands = {}
-    for lo, hi in DEPTH_BANDS_M:
-        inside = [m for _, m, t in truths if lo <= t["depth_m"] < hi]
-        bands[f"{lo * 1e3:.0f}-{hi * 1e3:.0f}mm"] = {
-            "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
-            "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
-            **_depth_figures([m for m in inside if m["found"]])}
-    surfaces = {}
-    for kind in SURFACES:
-        phantoms = [r for r in drawn if r["surface"] == kind]
-        inside = [m for r, m, _ in truths if r["surface"] == kind]
-        surfaces[kind] = {
-            "phantoms": len(phantoms), "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
-            "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
-            "false_positives_per_phantom": _false_positives_per_phantom(phantoms, source)}
-    shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
-    paper = {r["name"]: r for r in results if r["paper"]}
-    return {
-        "phantoms": len(drawn),
-        "tumours": len(truths),
-        "sensitivity_pct": _pct(len(found), len(truths)),
-        "sensitivity_le6mm_pct": _pct(sum(1 for m in shallow if m["found"]), len(shallow)),
-        "by_depth": bands,
-        "by_surface": surfaces,
-        "false_positives_per_phantom": _false_positives_per_phantom(drawn, source),
-        "false_positives_tumour_free_phantoms": sum(r["false_positives"].get(source, 0) for r in drawn
-                                                    if not r["truths"]),
-        "loc_err_p90_mm": _quantile([m["error_xy_m"] * 1e3 for _, m, _ in found], 0.9),
-        "loc_err_median_mm": _median([m["error_xy_m"] * 1e3 for _, m, _ in found]),
-        **_depth_figures([m for _, m, _ in found]),
-        "paper_flat_found": _found_count(paper.get("paper-flat"), source),
-        "paper_uneven_found": _found_count(paper.get("paper-uneven"), source),
-        "paper_false_positives": (sum(r["false_positives"].get(source, 0) for r in paper.values())
-                                  if paper else None),
-        "regions_not_done": sum(r["regions"] - r["regions_done"] for r in results),
-        "failed_cases": len(failed),
-        "froc": froc(drawn, source),
-    }
-
-
-def froc(results: list[dict], source: str, scores: Iterable[float] = (3.0, 3.5, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0)
-         ) -> list[dict[str, float | None]]:
-    """Sensitivity against false positives per phantom as the least score a detection needs rises from the
-    analysis' own threshold (points stricter than it: the study analyses at one false-alarm rate)."""
-    from session.detect import Tumour, match_ground_truth
-
-    points = []
-    for least in scores:
-        found = truths = false = 0
-        for r in results:
-            kept = [Tumour(**{**t, "levels_N": tuple(t["levels_N"])})
-                    for t in r["tumours"] if t["source"] == source and t["score"] >= least]
-            matches, fp = match_ground_truth(kept, r["truths"])
-            palpated = {m["truth_index"] for m in r["matches"] if m["source"] == source and m["palpated"]}
-            truths += len(palpated)
-            found += sum(1 for m in matches if m.source == source and m.found and m.truth_index in palpated)
-            false += fp.get(source, 0)
-        points.append({"least_score": least, "sensitivity_pct": _pct(found, truths),
-                       "false_positives_per_phantom": false / len(results) if results else None})
-    return points
-
-
-def _found_count(result: dict | None, source: str) -> int | None:
-    if result is None:
-        return None
-    return sum(1 for m in result["matches"] if m["source"] == source and m["found"])
-
-
-def case_failures(result: dict, source: str = "stiffness") -> list[str]:
-    """What one case got wrong in one map, a line each: every palpated tumour it missed and every false
-    positive, where they are (a study's figures say how often, these say where to look), after how many
-    of its areas ended aborted, and why."""
-    lines = []
-    aborted = result.get("regions_aborted") or {}
-    if aborted:
-        why = ", ".join(f"{reason.lower()} {count}" for reason, count in sorted(aborted.items(), key=lambda i: -i[1]))
-        lines.append(f"{sum(aborted.values())} of {result['regions']} areas aborted ({why})")
-    for m in result.get("matches", ()):
-        if m["source"] == source and not m["found"] and m["palpated"]:
-            t = result["truths"][m["truth_index"]]
-            lines.append(f"missed ({t['x_m'] * 1e3:.1f}, {t['y_m'] * 1e3:.1f}) mm: {t['depth_m'] * 1e3:.1f} mm deep, "
-                         f"{t['diameter_m'] * 1e3:.1f} mm across, {t['modulus_ratio']:.1f}x stiffer")
-    matched = {m["detection"] for m in result.get("matches", ()) if m["source"] == source and m["found"]}
-    for k, t in enumerate(result.get("tumours", ())):
-        if t["source"] == source and k not in matched:
-            lines.append(f"false positive ({t['x_m'] * 1e3:.1f}, {t['y_m'] * 1e3:.1f}) mm: z {t['score']:.1f}, "
-                         f"contrast {t['contrast'] * 100:+.0f} %, first at {t['first_level_N']:g} N")
-    return lines
-
-
 # ---- the command ---------------------------------------------------------------------------------------------
-
-
-def _fmt(value, unit: str = "", decimals: int = 1) -> str:
-    return "—" if value is None else f"{value:.{decimals}f}{unit}"
-
-
-def _depth_cell(figures: dict, estimate: str) -> str:
-    error, bias = figures[f"depth_err_{estimate}_median_mm"], figures[f"depth_bias_{estimate}_median_mm"]
-    return "—" if error is None else f"{error:.2f} ({bias:+.2f}) mm"
-
-
-def print_summary(figures: dict[str, dict], wall_s: float, out=None) -> None:
-    out = out or sys.stdout
-    for source, f in figures.items():
-        print(f"\n{source} map: {f['tumours']} tumours in {f['phantoms']} phantoms", file=out)
-        print("  depth band   tumours  found  sensitivity   depth error (bias), rule / model   covered", file=out)
-        for band, b in f["by_depth"].items():
-            print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}   "
-                  f"{_depth_cell(b, 'rule'):>15} / {_depth_cell(b, 'model'):<15} "
-                  f"{_fmt(b['depth_interval_coverage_pct'], ' %'):>7}", file=out)
-        print("  surface     phantoms tumours  found  sensitivity   false positives per phantom", file=out)
-        for kind, s in f["by_surface"].items():
-            print(f"  {kind:>10} {s['phantoms']:>9} {s['tumours']:>7} {s['found']:>6}  "
-                  f"{_fmt(s['sensitivity_pct'], ' %'):>10}   {_fmt(s['false_positives_per_phantom'], '', 2):>10}",
-                  file=out)
-        print(f"  sensitivity {_fmt(f['sensitivity_pct'], ' %')} (<= 6 mm: {_fmt(f['sensitivity_le6mm_pct'], ' %')}), "
-              f"false positives {_fmt(f['false_positives_per_phantom'], ' per phantom', 2)}", file=out)
-        print(f"  localisation p90 {_fmt(f['loc_err_p90_mm'], ' mm', 2)}, depth error median: paper's rule "
-              f"{_fmt(f['depth_err_rule_median_mm'], ' mm', 2)}, model {_fmt(f['depth_err_model_median_mm'], ' mm', 2)}"
-              f"; 90 % intervals cover {_fmt(f['depth_interval_coverage_pct'], ' %')}", file=out)
-        if f["paper_flat_found"] is not None:
-            print(f"  paper phantoms: flat {f['paper_flat_found']} of 3, uneven {f['paper_uneven_found']} of 3, "
-                  f"false positives {f['paper_false_positives']}", file=out)
-    print(f"\nstudy wall time {wall_s:.0f} s", file=out)
-    failed = max((f.get("failed_cases", 0) for f in figures.values()), default=0)
-    if failed:
-        print(f"{failed} case(s) could not be run: see 'cases' in the JSON", file=out)
 
 
 # Stable names of the benchmark file (build/bench/accuracy.json): the stiffness map's figures, the paper's

@@ -16,7 +16,7 @@ from pathlib import Path
 
 NAME = "cli"
 RUNS = 7
-HEAVY = ("PySide6", "pyqtgraph", "scipy", "h5py", "hardware.sim.mechanics")
+HEAVY = ("PySide6", "pyqtgraph", "scipy", "h5py", "tissue.mechanics")
 
 
 def run(out_dir: Path) -> dict:

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.realtime import claim_realtime
 from app.runtime import make_loop, run_tick
 from bench.loop_bench import WARMUP_S, tick_statistics
 from control.config import ControlConfig
@@ -83,7 +84,7 @@ def _slave_side(conn, serving, answering) -> None:
     from hardware.udp.server import SlaveServer, SlaveServerSettings
 
     _pin(1)
-    rt, _ = _claim_realtime()  # as a slave PC's control process would run
+    rt = claim_realtime().realtime  # as a slave PC's control process would run
     sim = build_sim_rig("flat")
     server = SlaveServer(sim.slave, SlaveServerSettings(port=0, forward_tactile=False), sensor=sim.sensor)
     server.open()
@@ -141,20 +142,6 @@ class _Cleared:
 
     def is_set(self) -> bool:
         return not self._event.is_set()
-
-
-def _claim_realtime() -> tuple[bool, object]:
-    try:
-        saved = (os.sched_getscheduler(0), os.sched_getparam(0))
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-        return True, saved
-    except (AttributeError, OSError):
-        return False, None
-
-
-def _release_realtime(saved) -> None:
-    if saved is not None:
-        os.sched_setscheduler(0, saved[0], saved[1])
 
 
 def _run_loop(rig: Rig, config: ControlConfig, seconds: float) -> tuple[np.ndarray, list]:
@@ -231,7 +218,7 @@ def run(out_dir: Path) -> dict:
     slave = ctx.Process(target=_slave_side, args=(child, serving, answering), name="bench-slave", daemon=True)
     slave.start()
     saved_affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
-    saved_sched = None
+    claim = None
     rig = None
     try:
         if not parent.poll(60.0):
@@ -242,7 +229,8 @@ def run(out_dir: Path) -> dict:
         rig = Rig(sensor=sensor, slave=link)
         rig.open()
         pinned = _pin(0)
-        rt, saved_sched = _claim_realtime()
+        claim = claim_realtime()
+        rt = claim.realtime
         ticks, events = _run_loop(rig, config, seconds)
         serving.clear()  # before the console goes quiet, so the slave's watchdog has nothing to report
         link_rtts = link.clock.round_trips_s()
@@ -250,14 +238,15 @@ def run(out_dir: Path) -> dict:
         rig.close()
         rig = None
         ping_rtts, ping_lost = _ping_round_trips(address, PINGS)
-        _release_realtime(saved_sched)
-        saved_sched = None
+        claim.release()
+        claim = None
         answering.clear()
         if not parent.poll(30.0):
             raise RuntimeError("the slave process did not report back")
         slave_stats = parent.recv()
     finally:
-        _release_realtime(saved_sched)
+        if claim is not None:
+            claim.release()
         if saved_affinity is not None:
             os.sched_setaffinity(0, saved_affinity)
         if rig is not None:

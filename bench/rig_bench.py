@@ -12,7 +12,7 @@ Writes ``rig.json``:
 * per phantom, the TSI indentation at 1..7 N in every region (``*_indentation_mm``), the paper's
   measured points beside them, the same for the Winkler spring model and for the continuum model with
   its finite-strain correction, and each tumour's contrast in the force and the stiffness (Eq. 1) maps
-  at every level against the same phantom without tumours (see hardware/sim/mechanics/study.py), with the
+  at every level against the same phantom without tumours (see tissue/mechanics/study.py), with the
   linear model and (``*_contrast_finite_strain``) with the rig's finite-strain model;
 * ``contrast_2mm_at_1N``, ``contrast_2mm_at_7N`` and the same for the 7 mm and 10 mm tumours: each flat-phantom
   tumour's stiffness-map contrast at 1 N and 7 N with the rig's model (it grows with the press at finite
@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.sim.mechanics.finite_strain import homogeneous, punch
-from hardware.sim.mechanics.model import ContinuumTissue, MeshSettings, phantom_material
-from hardware.sim.mechanics.progress import TextProgressBar
-from hardware.sim.mechanics.study import (height_for_force, palpate, tumour_contrast, tumour_standout,
+from tissue.mechanics.finite_strain import homogeneous, punch
+from tissue.mechanics.model import ContinuumTissue, MeshSettings, phantom_material
+from tissue.mechanics.progress import TextProgressBar
+from tissue.mechanics.study import (height_for_force, palpate, tumour_contrast, tumour_standout,
                                           without_inclusions)
-from hardware.sim.phantom import load_phantom, parse_phantom
-from hardware.sim.winkler import WinklerTissue
+from tissue.phantom import load_phantom, parse_phantom
+from tissue.winkler import WinklerTissue
 
 LEVELS_N = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0)
 PAPER = {"flat": {2.0: 2.26, 5.0: 7.40, 7.0: 9.29}, "uneven": {7.0: 10.54}}

@@ -1,4 +1,4 @@
-"""The fault campaign at scale (app/safety_campaign.py): ``safety.json``.
+"""The fault campaign at scale (bench/safety_campaign.py): ``safety.json``.
 
 ``PALPATION_SAFETY_RUNS`` plant runs (default 10,000) in as many processes as there are CPUs, 100 runs of
 the fast-forward simulated rig on the flat phantom's finite-element tissue, and a fuzz of every reader of
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import tomli_w
 
-from app import safety_campaign as campaign
+from bench import safety_campaign as campaign
 
 RIG_RUNS = 100
 FUZZ_PER_READER = 2000
@@ -32,9 +32,9 @@ def _record_session(folder: Path) -> Path:
     from app.recording import record_simulation
     from hardware.interfaces import TactileConstraints
     from hardware.settings import read_toml
-    from hardware.sim.phantom import PHANTOM_DIR, load_phantom
+    from tissue.phantom import PHANTOM_DIR, load_phantom
     from hardware.sim.rig import build_sim_rig
-    from hardware.sim.winkler import WinklerTissue
+    from tissue.winkler import WinklerTissue
 
     data = read_toml(PHANTOM_DIR / "flat.toml", "phantom file")
     data["phantom"]["regions"] = [{"centre_xy_m": [0.012, 0.015]}, {"centre_xy_m": [0.036, 0.015]}]

@@ -40,6 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from control.config import ContactSettings
+from tissue.face import stiffness_pa
 
 # An element's contact onset threshold stands this many of its own noise standard deviations above zero.
 ONSET_NOISE_SIGMAS = 5.0
@@ -257,11 +258,7 @@ def element_analysis(
     L0 = onset_height_m - contact.table_height_m  # NaN where the onset is unknown
     in_contact = (pressure_pa >= onset_threshold_pa) & (L0 == L0)
     dL = np.where(in_contact, onset_height_m - tsi_z_m, np.nan)
-    usable = in_contact & (dL >= contact.min_indentation_m) & (L0 > 0)
-    force = pressure_pa * element_area_m2
-    # Eq. 1 with unusable elements divided by 1 and then blanked: no division warnings, no inf
-    stiffness = force * L0 / (element_area_m2 * np.where(usable, dL, 1.0))
-    stiffness[~usable] = np.nan
+    stiffness = stiffness_pa(pressure_pa * element_area_m2, L0, dL, element_area_m2, contact.min_indentation_m)
     n = np.count_nonzero(in_contact)
     indentation = float(dL[in_contact].sum() / n) if n else float("nan")
     return L0, dL, stiffness, in_contact, indentation

@@ -8,7 +8,7 @@ Conventions (the one place they are written down):
   level and its 15-element axis runs along y, its 4-element axis along x.
 * Every tactile array is shaped ``(rows, cols) == (4, 15)``: row ``i`` is along x, column ``j`` along
   y. Element ``(i, j)`` is centred at ``((i - (rows-1)/2) * pitch, (j - (cols-1)/2) * pitch)`` from
-  the TSI centre (see :meth:`TactileConstraints.element_offsets_m`).
+  the TSI centre (:func:`tissue.face.element_offsets_m`, the one place the rule is written).
 * Every reading carries the host-clock time it describes (``t_s``, the device timestamp mapped to
   the host's monotonic clock) and the device's sequence number, so the loop always knows its age.
 
@@ -25,6 +25,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+
+from tissue.face import Face
 
 Vec3 = tuple[float, float, float]
 
@@ -69,32 +71,11 @@ class Phase(enum.IntEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class TactileConstraints:
-    rows: int = 4
-    cols: int = 15
-    pitch_m: float = 2e-3
+class TactileConstraints(Face):
+    """A tactile array: its face's geometry (:class:`tissue.face.Face`) and what its electronics deliver."""
+
     full_scale_pa: float = 100e3
     frame_rate_hz: float = 100.0
-
-    @property
-    def element_area_m2(self) -> float:
-        return self.pitch_m * self.pitch_m
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return (self.rows, self.cols)
-
-    @property
-    def size_m(self) -> tuple[float, float]:
-        """Extent of the sensing face along (x, y)."""
-        return (self.rows * self.pitch_m, self.cols * self.pitch_m)
-
-    def element_offsets_m(self) -> np.ndarray:
-        """(rows, cols, 2) array of element-centre (x, y) offsets from the TSI centre."""
-        ix = (np.arange(self.rows) - (self.rows - 1) / 2.0) * self.pitch_m
-        jy = (np.arange(self.cols) - (self.cols - 1) / 2.0) * self.pitch_m
-        gx, gy = np.meshgrid(ix, jy, indexing="ij")
-        return np.stack([gx, gy], axis=-1)
 
 
 @dataclass(frozen=True, slots=True)

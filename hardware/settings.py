@@ -8,10 +8,11 @@ and the problem, so the same check serves the TOML loader, the GUI and the comma
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import Any, ClassVar
+
+from tissue import files
 
 Vec3 = tuple[float, float, float]
 
@@ -23,32 +24,13 @@ class ConfigError(ValueError):
         self.problem = problem
 
 
-MAX_TOML_BYTES = 1 << 20  # configuration and phantom files are a few kB; this bounds what reading one costs
-
-
 def read_toml(path: Path, what: str = "configuration file") -> dict[str, Any]:
-    """A TOML file's table, or ConfigError(path, one line) for any file that cannot serve: missing, a folder,
-    unreadable, over ``MAX_TOML_BYTES``, not UTF-8, not TOML, or nested beyond what the parser can follow."""
-    key = str(path)
+    """A TOML file's table, or ConfigError(path, one line) for any file that cannot serve
+    (:func:`tissue.files.read_toml` says which)."""
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_TOML_BYTES + 1)
-    except FileNotFoundError:
-        raise ConfigError(key, f"no such {what}") from None
-    except IsADirectoryError:
-        raise ConfigError(key, f"is a folder, not a {what}") from None
-    except OSError as err:
-        raise ConfigError(key, f"cannot read it ({err.strerror or err})") from None
-    if len(raw) > MAX_TOML_BYTES:
-        raise ConfigError(key, f"larger than {MAX_TOML_BYTES >> 10} kB: not a {what}")
-    try:
-        return tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise ConfigError(key, "not UTF-8 text") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(key, f"not valid TOML: {err}") from None
-    except RecursionError:
-        raise ConfigError(key, "nested too deeply to be a settings file") from None
+        return files.read_toml(path, what)
+    except files.UnreadableFile as err:
+        raise ConfigError(err.path, err.problem) from None
 
 
 def number(key: str, value: Any) -> float:

@@ -4,8 +4,8 @@ tumours in the stiffness map and in the force map (:mod:`session.detect`), stitc
 into whole-tissue maps (:mod:`session.stitch`), and, for a simulated session, score what was found against
 the phantom's ground truth.
 
-The physics of the expected pattern (a homogeneous block pressed by the face) comes from the composition
-root, which knows the continuum mechanics (``app.physics``); without it the analysis still runs, with the
+The physics of the expected pattern (a homogeneous block pressed by the face, :mod:`session.physics`) and the
+model-based depth (:mod:`session.depth`) are given to it; without physics the analysis still runs, with the
 face's pattern left to the session's own baseline, and says so. Nothing here writes to the session file:
 an analysis is derived data, recomputable from the file alone with other parameters (:class:`AnalysisParams`).
 """
@@ -13,31 +13,18 @@ an analysis is derived data, recomputable from the file alone with other paramet
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
                             match_ground_truth, over_each_other)
-from session.flatfield import Contrast, Pattern, Physics, Reference, contrast
+from session.depth import DepthModel
+from session.flatfield import Contrast, Reference, contrast
+from session.physics import HomogeneousTissue, Pattern
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
 
 CONTRAST_MAPS = {"stiffness": "stiffness_contrast", "force": "force_contrast"}
-
-
-class DepthModel(Protocol):
-    """The model-based depth of a tumour (``app.depth_model.DepthModel``): (estimate, 5th and 95th
-    percentiles) in m from the level records and the stiffness contrast, NaNs when it cannot say."""
-
-    def estimate(self, tumour: Tumour, levels: np.ndarray, contrast: Contrast) -> tuple[float, float, float]: ...
-
-    def signature(self, tumour: Tumour, levels: np.ndarray, contrast: Contrast, records: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray] | None:
-        """(contrast, its uncertainty) the tumour's best-fitting sphere makes on each of ``records``' faces."""
-
-    def with_params(self, params: DepthParams) -> DepthModel:
-        """The same model with ``params``."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +50,7 @@ class SessionAnalysis:
     false_positives: dict[str, int] = field(default_factory=dict)
 
     @classmethod
-    def run(cls, session: Session, params: AnalysisParams | None = None, physics: Physics | None = None,
+    def run(cls, session: Session, params: AnalysisParams | None = None, physics: HomogeneousTissue | None = None,
             reference: Reference | None = None, depth_model: DepthModel | None = None) -> SessionAnalysis:
         params = params or AnalysisParams()
         levels = session.levels
@@ -119,7 +106,7 @@ class SessionAnalysis:
         return next((m for m in self.matches if m.found and m.detection == detection), None)
 
 
-def expected_patterns(physics: Physics, levels: np.ndarray) -> dict[str, Pattern]:
+def expected_patterns(physics: HomogeneousTissue, levels: np.ndarray) -> dict[str, Pattern]:
     """What homogeneous tissue gives each map on every record: the stiffness map is compared with the surface
     the onsets measured, the force map with a flat one (the face's own pattern)."""
     return {source: physics.pattern(levels, measured_surface=source == "stiffness") for source in SOURCES}

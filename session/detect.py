@@ -51,7 +51,8 @@ import numpy as np
 from scipy import ndimage
 
 from session.flatfield import ACCURACY, MAPS, Contrast
-from session.stitch import element_offsets_m, level_groups
+from session.stitch import level_groups
+from tissue.face import element_offsets_m
 
 SOURCES = MAPS
 _NULL_DRAWS = 20000  # healthy faces simulated to set the threshold: its quantile is good to ~0.1 in z
@@ -109,7 +110,7 @@ def widths_from_mm(text: str) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class DepthParams:
-    """The model-based depth's own parameters (``app.depth_model``). Together they set how wide the
+    """The model-based depth's own parameters (``session.depth``). Together they set how wide the
     depth's interval is."""
 
     # The forward model's error in a tumour's predicted contrast, relative, each element's its own: the

@@ -8,7 +8,7 @@ How (written down once, here):
   - ``share`` is the physics: the element forces a homogeneous block gives under the face at that pose and
     force (edge rows high, inner rows low, soft near a free end, and, for the stiffness map, the contact the
     level actually had on its measured surface), normalised to a mean of one. It comes from the
-    composition root (``app.physics``), which knows the continuum mechanics; without it the share is one
+    composition root (``session.physics``), which knows the continuum mechanics; without it the share is one
     everywhere (the face's pattern is then left to the baseline alone).
   - ``baseline`` is what the physics does not know and every area shares: the array's own element-to-element
     sensitivity, its compliant cover, the pattern's systematic error. In order of preference it comes from
@@ -52,7 +52,6 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
@@ -74,20 +73,6 @@ PART_RANGE = 0.3
 # side, lifting one of the four, moved their level and was found 2-3 mm off or missed.
 MIN_PART_LEVEL = 10
 REFERENCE_FORMAT = "palpation-console-reference"
-
-
-class Pattern(Protocol):
-    share: np.ndarray  # (records, rows, cols) expected element forces over their mean; NaN where none
-    sigma: np.ndarray  # (records, rows, cols) their relative uncertainty
-    modes: np.ndarray | None  # (records, modes, rows, cols) the part of it shared between elements
-
-
-class Physics(Protocol):
-    """What homogeneous tissue would press on each element (``app.physics.HomogeneousTissue``)."""
-
-    description: str
-
-    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern: ...
 
 
 class FlatFieldError(ValueError):

@@ -33,7 +33,8 @@ from control.messages import LevelRecord
 from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS, DepthModel
 from session.detect import SOURCES, DetectParams, Tumour, detect, evidence_by_width, significant_peaks, threshold
-from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Pattern, Reference, contrast
+from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
+from session.physics import Pattern
 from session.format import LEVEL_DTYPE, level_row
 from session.stitch import StitchParams, StitchResult, level_groups, stitch
 
@@ -184,7 +185,7 @@ class LiveMaps:
         return covered if len({row[1] for row in self._rows[:covered]}) > MIN_VOUCHING else 0
 
     def set_physics(self, records: int, patterns: dict[str, Pattern], description: str) -> None:
-        """The pattern homogeneous tissue gives each map (``patterns[map]``, :class:`session.flatfield.Physics`)
+        """The pattern homogeneous tissue gives each map (``patterns[map]``, :meth:`session.physics.HomogeneousTissue.pattern`)
         on the first ``records`` level records, as computed from them (``description`` says how)."""
         if not 0 < records <= len(self._rows) or set(patterns) != set(SOURCES):
             raise ValueError(f"physics for {records} records of {len(self._rows)}, maps {sorted(patterns)}")

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tissue.face import element_offsets_m, stiffness_pa
+
 QUANTITIES = ("pressure_pa", "stiffness_pa", "indentation_m")
 
 
@@ -186,18 +188,7 @@ def recompute_stiffness(levels: np.ndarray, element_area_m2: float, params: Stit
     else:
         L0 = np.full(dL.shape, float(params.l0_fixed_m))
     min_dL = params.min_indentation_m if params.min_indentation_m is not None else default_min_indentation_m
-    with np.errstate(invalid="ignore", divide="ignore"):
-        usable = np.isfinite(force) & np.isfinite(dL) & np.isfinite(L0) & (dL >= min_dL) & (L0 > 0)
-        stiffness = np.where(usable, force * L0 / (element_area_m2 * dL), np.nan)
-    return stiffness
-
-
-def element_offsets_m(rows: int, cols: int, pitch_m: float) -> np.ndarray:
-    """(rows, cols, 2) element-centre offsets from the TSI centre (hardware.interfaces' convention)."""
-    ix = (np.arange(rows) - (rows - 1) / 2.0) * pitch_m
-    jy = (np.arange(cols) - (cols - 1) / 2.0) * pitch_m
-    gx, gy = np.meshgrid(ix, jy, indexing="ij")
-    return np.stack([gx, gy], axis=-1)
+    return stiffness_pa(force, L0, dL, element_area_m2, min_dL)
 
 
 # Cells over all force levels: each level keeps half a dozen maps of float64, so 20 million cells is about

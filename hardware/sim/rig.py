@@ -6,15 +6,15 @@ from typing import Any
 
 from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
-from hardware.sim.mechanics import ContinuumTissue, MeshSettings
-from hardware.sim.mechanics.progress import Progress
+from tissue.mechanics import ContinuumTissue, MeshSettings
+from tissue.mechanics.progress import Progress
 from hardware.sim.operator import ScriptedOperator
-from hardware.sim.phantom import Phantom, load_phantom
+from tissue.phantom import Phantom, load_phantom
 from hardware.sim.robot import SimSlave
 from hardware.sim.sensor import SimTactileSensor
 from hardware.sim.settings import SimSettings
 from hardware.sim.tissue import TissueModel
-from hardware.sim.winkler import WinklerTissue
+from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
 
 
@@ -62,7 +62,7 @@ def build_sim_rig(
     ``settings`` may be the ``[sim]`` table of a config file; ``tissue`` defaults to the model
     ``settings.tissue`` names (see :func:`build_tissue`); ``seed`` drives the run's sensor noise (the
     sensor as manufactured is fixed by ``settings.sensor.seed``). Raises
-    :class:`~hardware.sim.phantom.PhantomError` or :class:`~control.config.ConfigError` naming the bad
+    :class:`~tissue.phantom.PhantomError` or :class:`~control.config.ConfigError` naming the bad
     key, or ValueError for a mismatched tissue.
     """
     phantom, settings = _resolve(phantom, settings)

@@ -43,6 +43,7 @@ import numpy as np
 
 from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, TactileSensor, tare_problem
 from hardware.sim.world import SimDevice, SimWorld
+from tissue.face import cover_operators, cover_weight
 
 
 class SimTactileSensor(SimDevice, TactileSensor):
@@ -186,30 +187,3 @@ class SimTactileSensor(SimDevice, TactileSensor):
         """Spread each element's load to its neighbours along both axes; edge elements keep what would
         leave the array, so the total force is unchanged."""
         return self._cover_rows @ p @ self._cover_cols
-
-
-def cover_operators(weight: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(left, right) matrices with ``left @ p @ right`` = the cover's spread of ``p``: each element passes
-    ``weight`` of its load to each neighbour along both axes, and an edge element keeps the share that
-    would leave the array (so every column of either matrix sums to one and the total force is kept)."""
-    mats = []
-    for n in shape:
-        m = np.eye(n) * (1.0 - 2.0 * weight)
-        idx = np.arange(n - 1)
-        m[idx, idx + 1] = weight
-        m[idx + 1, idx] = weight
-        m[0, 0] += weight
-        m[n - 1, n - 1] += weight
-        mats.append(m)
-    return mats[0], mats[1].T
-
-
-def cover_weight(spread_m: float, pitch_m: float) -> float:
-    """Fraction of a uniformly loaded element's force a Gaussian spread of ``spread_m`` moves into one
-    neighbour (exact integral of the Gaussian's tail over the element)."""
-    if spread_m <= 0.0:
-        return 0.0
-    a = pitch_m / spread_m
-    # (1/a) * integral_0^a Q(t) dt = Q(a) + (phi(0) - phi(a)) / a, Q the Gaussian tail, phi its density
-    q = 0.5 * math.erfc(a / math.sqrt(2.0))
-    return q + (1.0 - math.exp(-0.5 * a * a)) / (math.sqrt(2.0 * math.pi) * a)

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from hardware.settings import ConfigError, Settings, non_negative, positive, vec3
+from tissue.face import COVER_SPREAD_M
+from tissue.mechanics.model import RIG_FINITE_STRAIN
 
 Vec3 = tuple[float, float, float]
 
@@ -49,7 +51,7 @@ class SensorSimSettings(Settings):
     # sensors' hysteresis "high" beside optical and piezoelectric ones (Frontiers in Robotics and AI
     # 8:705662, 2022, Table 2), so the default is a pessimistic 5 %, not zero.
     hysteresis_fraction: float = 0.05
-    cover_spread_m: float = 0.5e-3  # the elastomer cover spreads load sideways by about its thickness
+    cover_spread_m: float = COVER_SPREAD_M  # the elastomer cover spreads load sideways by about its thickness
     seed: int = 0
 
     def __post_init__(self):
@@ -138,8 +140,8 @@ class SimSettings(Settings):
     operator: OperatorSimSettings = field(default_factory=OperatorSimSettings)
     substep_s: float = 1e-3  # the world's time grid (the robot sub-steps within it when its limits act)
     max_catchup_s: float = 0.1  # longest host stall integrated step by step; the rest is skipped
-    tissue: str = "continuum"  # continuum (finite elements, hardware/sim/mechanics) | winkler (spring baseline)
-    finite_strain: bool = True  # continuum: the reduced finite-strain model (hardware/sim/mechanics/model.py)
+    tissue: str = "continuum"  # continuum (finite elements, tissue/mechanics) | winkler (spring baseline)
+    finite_strain: bool = RIG_FINITE_STRAIN  # continuum: the reduced finite-strain model (tissue/mechanics/model.py)
 
     _nested: ClassVar[dict[str, type[Settings]]] = {
         "sensor": SensorSimSettings,

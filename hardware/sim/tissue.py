@@ -6,7 +6,7 @@ from typing import Protocol
 
 import numpy as np
 
-from hardware.sim.phantom import Phantom
+from tissue.phantom import Phantom
 
 
 class TissueModel(Protocol):

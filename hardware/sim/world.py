@@ -24,7 +24,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from hardware.interfaces import ConnectionState, Vec3
-from hardware.sim.phantom import Phantom
+from tissue.phantom import Phantom
 from hardware.sim.settings import RobotSimSettings, SimSettings
 from hardware.sim.tissue import TissueModel
 

@@ -119,7 +119,7 @@ def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
     import sys
 
     probe = ("import sys, app.cli; heavy = ('PySide6', 'pyqtgraph', 'scipy', 'h5py', 'numpy', "
-             "'hardware.sim.mechanics'); print(sorted(m for m in sys.modules if m.startswith(heavy)))")
+             "'tissue.mechanics'); print(sorted(m for m in sys.modules if m.startswith(heavy)))")
     out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True).stdout
     assert out.strip() == "[]"
 
@@ -169,7 +169,7 @@ def test_every_subcommand_takes_config_before_or_after_it_or_says_why_not(tmp_pa
         err = capsys.readouterr().err
         assert "reads no configuration file" in err and len(err.strip().splitlines()) == 1, argv
     seen = []
-    monkeypatch.setattr("hardware.discovery.main", lambda argv: seen.append(argv) or 0)
+    monkeypatch.setattr("app.devices.main", lambda argv: seen.append(argv) or 0)
     assert main(["--config", str(config), "devices", "--json"]) == 0
     assert main(["devices", "--config", str(config)]) == 0
     assert seen == [["--config", str(config), "--json"], ["--config", str(config)]]

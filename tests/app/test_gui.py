@@ -15,7 +15,7 @@ from app.config import load_config
 from app.gui import console_rig, run_gui
 from app.rigs import RigSpec, build_rig
 from hardware.settings import ConfigError
-from hardware.sim.phantom import PhantomError
+from tissue.phantom import PhantomError
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,7 +15,7 @@ from hardware.interfaces import TactileConstraints
 from session.live import LiveMaps
 from session.reader import open_session
 
-FLAT_EXTENT_M = (0.0, 0.072, 0.0, 0.030)  # the autopilot plan's (resources/phantoms/flat.toml)
+FLAT_EXTENT_M = (0.0, 0.072, 0.0, 0.030)  # the autopilot plan's (tissue/phantoms/flat.toml)
 TUMOURS_XY_M = ((0.012, 0.015), (0.036, 0.015), (0.060, 0.015))
 
 

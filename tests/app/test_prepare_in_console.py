@@ -8,7 +8,7 @@ import pytest
 from PySide6 import QtCore, QtWidgets
 
 from app.gui import prepare_in_console
-from hardware.sim.phantom import PhantomError
+from tissue.phantom import PhantomError
 
 
 def _dialog():

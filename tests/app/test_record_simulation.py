@@ -14,9 +14,9 @@ from tests.session.conftest import REGIONS_XY_M, _phantom_file
 def test_a_fault_ends_its_area_and_the_operator_clears_it_and_goes_on(tmp_path):
     from app.config import load_config
     from hardware.interfaces import TactileConstraints
-    from hardware.sim.phantom import load_phantom
+    from tissue.phantom import load_phantom
     from hardware.sim.rig import build_sim_rig
-    from hardware.sim.winkler import WinklerTissue
+    from tissue.winkler import WinklerTissue
 
     phantom_path = _phantom_file(tmp_path, "three", with_tumours=False)
     # every area passes 5.5 kPa on some element on its way to its last level (1.5 N: 6.3 kPa), none before (1 N: 4.1 kPa)

@@ -1,8 +1,8 @@
-"""Drives the loop alone against the exact layer plant of :mod:`app.plants`, tick by tick."""
+"""Drives the loop alone against the exact layer plant of :mod:`hardware.sim.plant`, tick by tick."""
 
 from __future__ import annotations
 
-from app.plants import LayerPlant
+from hardware.sim.plant import LayerPlant
 from control.config import ControlConfig
 from control.loop import ControlLoop
 from hardware.interfaces import MasterState, TactileConstraints

@@ -16,7 +16,7 @@ from control.messages import CancelJog, CommandRefused, EStop, Jog, LevelRecorde
 from control.telemetry import empty_tick
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
-from hardware.sim.phantom import load_phantom
+from tissue.phantom import load_phantom
 
 CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force_step_N=0.5),
                        master=MasterMapping(jog_speed_m_s=0.04))

@@ -1,6 +1,5 @@
 """`palpation-console devices`: listing USB devices with their roles, probing a serial port and a slave."""
 
-import json
 import threading
 
 import numpy as np
@@ -33,15 +32,6 @@ def test_usb_devices_are_listed_with_the_role_they_could_play(bus):
     assert [f.role != "" for f in found] == [True, True, True, False]  # recognised ones first
 
 
-def test_the_command_prints_recognised_devices_and_counts_the_rest(bus, capsys):
-    assert discovery.main([], usb_backend=bus) == 0
-    out = capsys.readouterr().out
-    assert "1209:0001" in out and "256f:c62e" in out and "046d:c31c" not in out and "(1 other USB device" in out
-    assert discovery.main(["--all", "--json"], usb_backend=bus) == 0
-    listed = json.loads(capsys.readouterr().out)
-    assert {d["address"] for d in listed["usb"]} == {"1209:0001", "256f:c62e", "046d:c31c", "256f:c635"}
-
-
 def probe_while_sending(emu, send, **probe):
     """Run the probe on its thread while the emulated device keeps sending (opening a port flushes it)."""
     result = []
@@ -55,15 +45,14 @@ def probe_while_sending(emu, send, **probe):
     return result[0]
 
 
-def test_probing_a_serial_port_recognises_tsi_frames(tmp_path, capsys):
+def test_probing_a_serial_port_recognises_tsi_frames(tmp_path):
     with SerialSensorEmulator(directory=tmp_path) as emu:
         # 100 frames/s by the device's clock, however fast the test sends them
         found = probe_while_sending(emu, lambda k: emu.send(np.full((4, 15), 2000.0), 10.0 + 0.01 * k), listen_s=0.3)
         assert "TSI frames, 4 x 15, 100 frames/s" in found.note and f'port = "{emu.path}"' in found.role
         found = probe_while_sending(emu, lambda k: emu.write(b"AT+OK\r\n"), listen_s=0.1)
         assert found.role == "" and "no TSI frames" in found.note and "bytes that were not TSI frames" in found.note
-    assert discovery.main(["--probe-serial", str(tmp_path / "gone")], usb_backend=EmulatedBackend()) == 1
-    assert "there is no serial port" in capsys.readouterr().out
+    assert "there is no serial port" in discovery.probe_serial(str(tmp_path / "gone")).note
 
 
 def test_probing_a_slave_answers_without_disturbing_it():
@@ -85,28 +74,3 @@ def test_probing_a_slave_answers_without_disturbing_it():
     assert all(kind == "hold" for kind, _ in robot.orders)
     nobody = discovery.probe_udp(host, port, timeout_s=0.05, count=1)
     assert nobody.role == "" and "no answer" in nobody.note
-
-
-def test_a_configuration_adds_the_devices_it_names_to_the_probes(tmp_path, capsys):
-    """issue 13: `devices --config FILE` probes the sensor port and slave the console would use."""
-    config = tmp_path / "lab.toml"
-    gone = tmp_path / "ttyTSI"
-    config.write_text(f'[hardware.sensor]\nkind = "serial"\nport = "{gone}"\nbaud = 921600\n'
-                      '[hardware.slave]\nhost = "127.0.0.1"\nport = 9\n')
-    assert discovery.main(["--config", str(config), "--json"], usb_backend=EmulatedBackend()) == 1
-    probes = {p["address"]: p for p in json.loads(capsys.readouterr().out)["probes"]}
-    assert set(probes) == {str(gone), "127.0.0.1:9"}
-    assert "there is no serial port" in probes[str(gone)]["note"] and probes["127.0.0.1:9"]["role"] == ""
-    own_id = EmulatedBackend(UsbTactileDevice(vendor_id=0x16C0, product_id=0x05DC))  # the lab's own USB id
-    assert discovery.main([], usb_backend=own_id) == 0
-    assert "16c0:05dc" not in capsys.readouterr().out  # not recognised without the configuration
-    config.write_text('[hardware.sensor]\nkind = "usb"\nvid_pid = "16c0:05dc"\n')
-    assert discovery.main(["--config", str(config)], usb_backend=own_id) == 0
-    assert "16c0:05dc" in capsys.readouterr().out
-    config.write_text('[control.ramp]\nforce_max_N = 5.0\n')  # a configuration for the simulated rig
-    assert discovery.main(["--config", str(config)], usb_backend=EmulatedBackend()) == 0
-    assert "names no serial port, USB id or slave" in capsys.readouterr().out
-    config.write_text('[hardware.sensor]\nkind = "serial"\nport = "/dev/ttyACM0"\nbaud = 9600\n')
-    assert discovery.main(["--config", str(config)], usb_backend=EmulatedBackend()) == 2
-    err = capsys.readouterr().err
-    assert err.startswith(f"error: {config}: hardware.sensor.baud") and len(err.strip().splitlines()) == 1

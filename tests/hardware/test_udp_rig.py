@@ -1,4 +1,4 @@
-"""The real-hardware rig as the config describes it, and `palpation-console slave`."""
+"""The real-hardware rig as the config describes it, over the UDP link and its slave server."""
 
 import select
 import threading
@@ -14,7 +14,7 @@ from hardware.serial_tactile import SerialTactileSensor
 from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
 from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig
-from hardware.udp import SlaveServer, SlaveServerSettings, UdpSlaveLink, UdpTactileSensor, slave_main
+from hardware.udp import SlaveServer, SlaveServerSettings, UdpSlaveLink, UdpTactileSensor
 from hardware.udp.rig import HardwareSettings, build_hardware_rig, build_rig
 from hardware.usb.emulator import EmulatedBackend, SpaceMouseDevice
 from hardware.usb.spacemouse import SpaceMouseMaster
@@ -83,31 +83,3 @@ def test_a_rig_of_real_backends_runs_the_loop(tmp_path):
         rig.close()
         server.close()
         emulator.close()
-
-
-def test_the_slave_command_runs_and_stops(capsys):
-    # --duration-s only bounds how long the slave serves; the test reads its exit code and output
-    exit_code = slave_main(["--port", "0", "--duration-s", "0.2", "--serial-emulator", "--no-realtime"])
-    assert exit_code == 0
-    out = capsys.readouterr().out
-    assert "slave: listening on 127.0.0.1:" in out and "serial tactile emulator at" in out
-    assert "normal priority (--no-realtime)" in out
-    assert "stopped after" in out
-
-
-def test_the_slave_command_refuses_to_expose_the_robot(capsys):
-    exit_code = slave_main(["--bind", "0.0.0.0", "--port", "0", "--duration-s", "0.1", "--no-realtime"])
-    assert exit_code == 2  # refused before serving
-    assert "exposes the robot" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("args, said", [
-    (["--force-limit-n", "100"], "force_limit_N: must be within [0.1, 30]"),
-    (["--max-speed-m-s", "5"], "max_speed_m_s: must be within"),
-    (["--workspace-min-m", "0", "0", "0.1", "--workspace-max-m", "0.1", "0.1", "0.05"], "must exceed workspace_min_m"),
-])
-def test_the_slave_command_refuses_limits_of_its_own_that_make_no_sense(capsys, args, said):
-    exit_code = slave_main(["--port", "0", "--duration-s", "0.1", "--no-realtime", *args])
-    assert exit_code == 2
-    err = capsys.readouterr().err
-    assert said in err and len(err.strip().splitlines()) == 1

@@ -16,9 +16,9 @@ import tomli_w
 from app.config import load_config
 from app.recording import record_simulation
 from hardware.interfaces import TactileConstraints
-from hardware.sim.phantom import PHANTOM_DIR, load_phantom
+from tissue.phantom import PHANTOM_DIR, load_phantom
 from hardware.sim.rig import build_sim_rig
-from hardware.sim.winkler import WinklerTissue
+from tissue.winkler import WinklerTissue
 
 REGIONS_XY_M = ((0.012, 0.015), (0.018, 0.015), (0.036, 0.015))
 RAMP = {"force_min_N": 0.5, "force_max_N": 1.5, "force_step_N": 0.5}

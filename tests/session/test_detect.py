@@ -16,7 +16,7 @@ from session.detect import (DetectError, DetectParams, Tumour, detect, evidence,
                             match_ground_truth, significant_peaks, spots, threshold)
 from session.flatfield import Reference, contrast
 from session.reader import open_session
-from session.stitch import element_offsets_m
+from tissue.face import element_offsets_m
 from session.synthetic import level_record
 
 from tests.session.test_stitch import PITCH, levels_of

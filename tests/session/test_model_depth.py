@@ -1,4 +1,4 @@
-"""A recorded session analysed with the model-based depth (app/depth_model.py) through the one analysis.
+"""A recorded session analysed with the model-based depth (session/depth.py) through the one analysis.
 
 The recording's tissue is the Winkler model (see conftest), which the finite-element library does not
 describe, so only the shape of the answer is checked here; how well it covers the truth is measured by the
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from app.depth_model import DepthModel
+from session.depth import DepthModel
 from session.analysis import AnalysisParams, SessionAnalysis
 from session.detect import DepthParams, DetectParams
 from session.flatfield import Reference

@@ -573,7 +573,7 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert tissue.quantity() == "pressure_pa"
     asked = []
 
-    class DepthModel:  # what the composition root gives (app.depth_model); it sees what the reviewer's would
+    class DepthModel:  # what the composition root gives (session.depth); it sees what the reviewer's would
         def estimate(self, tumour, levels, contrast):
             asked.append((tumour.source, len(levels), contrast.map))
             return 3.1e-3, 2.25e-3, 4.4e-3

@@ -26,9 +26,11 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from session.analysis import CONTRAST_MAPS, AnalysisParams, DepthModel, SessionAnalysis
 from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumour, widths_from_mm, widths_text_mm
 from session.export import ExportError, depth_model_text
-from session.flatfield import FlatFieldError, Physics, Reference
+from session.flatfield import FlatFieldError, Reference
+from session.physics import HomogeneousTissue
 from session.reader import Session, SessionFileError, open_session
-from session.stitch import L0Source, StitchError, StitchParams, StitchResult, element_offsets_m, level_groups
+from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
+from tissue.face import element_offsets_m
 from widgets.colormaps import colour_range
 from widgets.map_painting import render_maps_png, write_report
 from widgets.plot_style import dark_palette
@@ -74,7 +76,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
 
     def __init__(self, path: str | Path | None = None, *, start_folder: str | Path | None = None,
                  settings: QtCore.QSettings | None = None,
-                 physics: Mapping[str, Callable[[Session], Physics | None]] | None = None,
+                 physics: Mapping[str, Callable[[Session], HomogeneousTissue | None]] | None = None,
                  depth_model: Callable[[Session], DepthModel] | None = None,
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
@@ -513,7 +515,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
                 self._depth_model = (None, f"Model-based depth unavailable: {err}.")
         return self._depth_model
 
-    def _current_physics(self) -> tuple[Physics | None, str]:
+    def _current_physics(self) -> tuple[HomogeneousTissue | None, str]:
         """The chosen physics for the open session (made once per session and option) and, if it could
         not be had, why (the analysis then runs without it)."""
         label = self._physics_combo.currentText()

@@ -6,9 +6,9 @@ import pytest
 from hardware.interfaces import ConnectionState, MasterFeedback, Phase
 from hardware.settings import ConfigError
 from hardware.sim.operator import ScriptedOperator
-from hardware.sim.phantom import load_phantom, parse_phantom
+from tissue.phantom import load_phantom, parse_phantom
 from hardware.sim.settings import OperatorSimSettings, SimSettings
-from hardware.sim.winkler import WinklerTissue
+from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
 
 T0 = 12.0

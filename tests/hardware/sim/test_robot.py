@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from hardware.interfaces import ConnectionState, DeviceError
-from hardware.sim.phantom import load_phantom
+from tissue.phantom import load_phantom
 from hardware.sim.robot import SimSlave
 from hardware.sim.settings import RobotSimSettings, SimSettings
-from hardware.sim.winkler import WinklerTissue
+from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
 
 T0 = 250.0  # a host-clock-like start, so nothing relies on time starting at zero

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from hardware.interfaces import ConnectionState, DeviceError, TactileConstraints
-from hardware.sim.phantom import load_phantom
+from tissue.phantom import load_phantom
 from hardware.sim.sensor import SimTactileSensor
 from hardware.sim.settings import SensorSimSettings, SimSettings
-from hardware.sim.winkler import WinklerTissue
+from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
 
 T0 = 40.0
@@ -311,7 +311,7 @@ def test_a_tissue_model_returning_garbage_is_reported():
 
 
 def test_the_cover_spreads_an_edge_peak_to_its_neighbours_and_keeps_the_total_force():
-    from hardware.sim.sensor import cover_operators, cover_weight
+    from tissue.face import cover_operators, cover_weight
 
     w = cover_weight(0.5e-3, 2e-3)
     assert w == pytest.approx(0.0997, abs=5e-4)  # Q(4) + (phi(0) - phi(4)) / 4

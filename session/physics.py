@@ -1,0 +1,707 @@
+"""What homogeneous tissue would have pressed on each element: the physics behind the flat-field.
+
+A rigid face does not load a homogeneous layer evenly: its edge rows carry two to three times what its inner
+rows carry, the tissue is softer near a free end or side, and where only part of the face touches (an
+uneven surface) the edge of the contact is loaded like an edge of the face. A tumour shows as what is left
+once that expected pattern is divided out (:mod:`session.flatfield`).
+
+The pattern comes from the project's continuum mechanics (:mod:`tissue.mechanics`: finite elements of
+the block on its table, condensed onto its surface) for a block of homogeneous tissue rebuilt from the
+session's own measurements, never from a phantom file, so a real session gets the same treatment:
+
+* its extent is what was palpated (the areas of the paper's protocol cover the tissue, so the tissue ends
+  where they end) and its thickness the median height at which the elements first touched, over the table;
+* each recorded level is a rigid flat punch pressing that block uniformly over the elements that were in
+  contact at that level (:meth:`HomogeneousTissue.pattern`): the force map is compared with the whole face
+  pressing a flat surface (``measured_surface=False``, the face's own pattern), the stiffness map with the
+  surface the level's onsets measured, which Eq. 1 then relates to each element's own indentation and
+  thickness;
+* on the measured surface the tissue is pressed at finite strain: each element's force takes the reduced
+  finite-strain model's factor (:class:`tissue.mechanics.model.FiniteStrain`, solved once for a
+  homogeneous neo-Hookean block of the rebuilt extent and thickness) at its own nominal strain (the
+  indentation over its surface's height above the table) over the factor at the record's typical strain.
+  Tissue that stands higher under the face (a bump) is pressed further than the rest and carries more
+  than linear elasticity gives it: without this, the tops of the bumps read as tumours. What finite strain
+  does to the face's own pattern at the typical strain is the same in every area of a level, and the
+  level's baseline carries it (as it does for the force map's flat surface, pressed alike everywhere).
+
+Forces are seen through the sensor's compliant cover when the session records one, and returned normalised
+to their mean over the elements pressing: the flat-field fits its own scale per level. The block's modulus is
+irrelevant to the pattern (linear elasticity scales with it, and the finite-strain factor is a ratio).
+:meth:`HomogeneousTissue.from_phantom` gives, for a simulated session only, the pattern of its own phantom
+without the tumours: the simulator's answer, for tests and comparison.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from session.info import SessionInfo
+from session.reader import Session
+from tissue.face import COVER_SPREAD_M, cover_operators, cover_weight, element_offsets_m
+
+if TYPE_CHECKING:
+    from tissue.mechanics.model import FiniteStrain
+
+Progress = Callable[[float, str], None]
+NU = 0.49  # nearly incompressible soft tissue and silicone (docs/phantoms.md)
+MESH_VERSION = 2  # bump when the block's mesh changes: cached compliances are keyed by it
+GRID_M = 1e-3  # the mesh's node spacing in the plane (MeshSettings' default)
+# How far the tissue may go on beyond the palpated extent: areas laid to cover it end within about half an
+# element's pitch of its end, and the mesh places an end on its node lines (GRID_M)
+EXTENT_SLACK_M = 1e-3
+# How far off the sink-in the surface's rebuild adds to the onsets is, one standard deviation relative to it,
+# shared by the elements of an area (it comes from one contact): next to a ridge pressed 11 mm before the
+# flat part beside it touched, the flanks' onsets came early (the cover spreads the crest's load onto them),
+# the rebuild took them at their highest and added 1.6 times the sink-in the simulated tissue had, and the
+# flat part read tilted, +0.2 to +0.35 at the face's far side (s2611-0007). Against the simulated truth, on
+# 4,551 elements that touched by their own contact in 12 sloped and bumpy study sessions (s777, s4711), the
+# rebuilt sink-in ran 22-37 % above the truth, scattered by 8-25 %: this is the typical error, not the worst.
+SINK_IN_ERROR = 0.25
+# The onsets' own scatter (0.1-0.3 mm) is smoothed out of the block's surface, but not a bump's step.
+SMOOTHING_M = 0.5e-3
+# The rebuilt block's surface compliance is dense: 8,000 nodes (about 120 x 65 mm of palpated extent) is
+# 0.5 GB, and memory and solve time grow with its square, so a larger extent is refused up front.
+MAX_BLOCK_NODES = 8000
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceBlock:
+    """A homogeneous block on the table, ``length_m`` along x and ``width_m`` along y from (0, 0), whose
+    surface stands at ``heights_m`` (on a ``GRID_M`` grid from (0, 0) reaching at least that far, first index
+    along x): what the continuum model needs of a phantom to mesh it."""
+
+    heights_m: np.ndarray
+    length_m: float
+    width_m: float
+    youngs_modulus_pa: float = 1.0
+    poisson_ratio: float = NU
+    inclusions: tuple = ()
+    source: dict = field(default_factory=dict)
+
+    @property
+    def thickness_m(self) -> float:
+        return float(np.median(self.heights_m))
+
+    @property
+    def name(self) -> str:
+        return (f"{self.length_m * 1e3:.0f} x {self.width_m * 1e3:.0f} mm block, "
+                f"{self.heights_m.min() * 1e3:.1f}-{self.heights_m.max() * 1e3:.1f} mm thick")
+
+    def surface_height_m(self, x, y) -> np.ndarray:
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        h = self.heights_m
+        fx = np.clip(x / GRID_M, 0.0, h.shape[0] - 1.0)
+        fy = np.clip(y / GRID_M, 0.0, h.shape[1] - 1.0)
+        i = np.minimum(np.floor(fx).astype(int), h.shape[0] - 2)
+        j = np.minimum(np.floor(fy).astype(int), h.shape[1] - 2)
+        wx, wy = fx - i, fy - j
+        value = ((1 - wx) * (1 - wy) * h[i, j] + wx * (1 - wy) * h[i + 1, j] + (1 - wx) * wy * h[i, j + 1]
+                 + wx * wy * h[i + 1, j + 1])
+        outside = (x < -1e-9) | (x > self.length_m + 1e-9) | (y < -1e-9) | (y > self.width_m + 1e-9)
+        return np.where(outside, 0.0, value)
+
+    def content_hash(self) -> str:
+        digest = hashlib.sha256(np.round(self.heights_m, 6).tobytes())
+        digest.update(f"{self.length_m:.7f} {self.width_m:.7f} {self.poisson_ratio} {MESH_VERSION}".encode())
+        return digest.hexdigest()[:16]
+
+
+def measured_surface(levels: np.ndarray, pitch_m: float, table_height_m: float,
+                     extent_m: tuple[float, float, float, float] | None = None) -> tuple[SurfaceBlock, tuple]:
+    """(the block of the measured surface, (x0, y0) of its origin in the tissue frame): the
+    onsets of every palpated area placed where its elements were, over the union of their footprints (and of
+    ``extent_m``, (x0, x1, y0, y1), where the tissue is known to reach further), smoothed over about one
+    element (an onset comes from noisy frames). Where an element never touched the surface is taken a
+    millimetre below the lowest it was found under that area; between areas nobody measured, and beyond
+    them, the nearest measurement stands."""
+    from scipy import ndimage
+
+    rows, cols = levels.dtype["onset_height_m"].shape
+    offsets = element_offsets_m(rows, cols, pitch_m)
+    centres = levels["tsi_position_m"][:, None, None, :2] + offsets[None]
+    lo = centres.reshape(-1, 2).min(axis=0) - pitch_m / 2
+    hi = centres.reshape(-1, 2).max(axis=0) + pitch_m / 2
+    if extent_m is not None:
+        lo = np.minimum(lo, (extent_m[0], extent_m[2]))
+        hi = np.maximum(hi, (extent_m[1], extent_m[3]))
+    nx = int(np.ceil((hi[0] - lo[0]) / GRID_M - 1e-6)) + 1
+    ny = int(np.ceil((hi[1] - lo[1]) / GRID_M - 1e-6)) + 1
+    if nx * ny > MAX_BLOCK_NODES:
+        raise ValueError(f"the palpated areas span {(hi[0] - lo[0]) * 1e3:.0f} x {(hi[1] - lo[1]) * 1e3:.0f} mm, a "
+                         f"block of {nx * ny:,} surface nodes; the rebuilt physics models at most "
+                         f"{MAX_BLOCK_NODES:,} (about 120 x 65 mm): analyse with --physics none")
+    gx = lo[0] + GRID_M * np.arange(nx)
+    gy = lo[1] + GRID_M * np.arange(ny)
+    total, count = np.zeros((nx, ny)), np.zeros((nx, ny))
+    for region in np.unique(levels["region"]):
+        i = np.flatnonzero(levels["region"] == region)[-1]  # its last level: onsets refined the longest
+        onset = levels["onset_height_m"][i] - table_height_m
+        if not np.isfinite(onset).any():
+            continue
+        onset = np.where(np.isfinite(onset), onset, np.nanmin(onset) - 1e-3)
+        for a in range(rows):
+            for b in range(cols):
+                cx, cy = centres[i, a, b]
+                cells = np.ix_(np.abs(gx - cx) <= pitch_m / 2 + 1e-9, np.abs(gy - cy) <= pitch_m / 2 + 1e-9)
+                total[cells] += onset[a, b]
+                count[cells] += 1
+    if not count.any():
+        raise ValueError("no element of this session ever touched the tissue: its surface is unknown")
+    known = count > 0
+    heights = total / np.maximum(count, 1)
+    if not known.all():
+        nearest = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
+        heights = heights[tuple(nearest)]
+    heights = ndimage.gaussian_filter(heights, SMOOTHING_M / GRID_M, mode="nearest")
+    block = SurfaceBlock(np.clip(heights, 1e-3, None), float(hi[0] - lo[0]), float(hi[1] - lo[1]))
+    return block, (float(lo[0]), float(lo[1]))
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """What homogeneous tissue presses on each element of each record, and how sure that is."""
+
+    share: np.ndarray  # (n, rows, cols) element forces over their mean over the elements pressing; NaN: none
+    sigma: np.ndarray  # (n, rows, cols) relative uncertainty of ``share`` from the rebuilt geometry (0: exact)
+    # (n, modes, rows, cols): the parts of that uncertainty shared between elements, one standard deviation
+    # each (a surface under one element a little higher loads it more and its neighbours less; the tissue
+    # going on beyond the palpated extent unloads the elements near the end together); ``sigma`` holds them
+    # too, with what is independent per element
+    modes: np.ndarray | None = None
+
+
+class HomogeneousTissue(ABC):
+    """Element forces of a homogeneous block under the face at each recorded level (module docstring).
+
+    ``description`` says which block, for the analysis report."""
+
+    def __init__(self, description: str, cover_spread_m: float, pitch_m: float, shape: tuple[int, int]):
+        self.description = description
+        self.cover_spread_m = cover_spread_m
+        self.pitch_m = pitch_m
+        self.shape = shape
+        self._cover = _cover(cover_spread_m, shape, pitch_m)
+
+    @classmethod
+    def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None,
+                      ends_known: bool = True) -> BlockResponse:
+        """The block rebuilt from ``session`` (raises ValueError if no element ever touched); without
+        ``ends_known``, a session of part of a tissue, where it ends not known."""
+        return BlockResponse.from_levels(session.levels, session, cache_dir, progress, ends_known=ends_known)
+
+    @classmethod
+    def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
+        """The simulated session's phantom without its tumours (raises ValueError for other sessions)."""
+        return PhantomResponse.load(session, cache_dir, progress)
+
+    @abstractmethod
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        """The pattern of each level record. ``measured_surface``: the surface under the face is the one
+        the record's onsets measured, else a flat one pressed evenly by the whole face."""
+
+    def _finish(self, forces: np.ndarray) -> np.ndarray:
+        if self._cover is not None:
+            forces = self._cover[0] @ forces @ self._cover[1]
+        pressing = forces > 1e-9 * max(float(forces.max()), 1e-300)
+        if not pressing.any():
+            return np.full(forces.shape, np.nan)
+        return np.where(pressing, forces / forces[pressing].mean(), np.nan)
+
+
+class BlockResponse(HomogeneousTissue):
+    """The flat block of the palpated extent: its surface compliance, and punches on it."""
+
+    def __init__(self, block: SurfaceBlock, origin_xy_m: tuple[float, float], compliance: np.ndarray,
+                 nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int],
+                 finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0,
+                 ends_known: bool = True):
+        ends = "" if ends_known else "; where the tissue ends not known"
+        super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}: the palpated extent "
+                         f"and the measured surface, finite elements{_finite(finite_strain)}{ends})",
+                         cover_spread_m, pitch_m, shape)
+        self.ends_known = ends_known
+        self.block = block
+        self.origin_xy_m = origin_xy_m
+        self.finite_strain = finite_strain
+        self.table_height_m = table_height_m
+        self._compliance = compliance
+        self._nodes = nodes_xy_m
+        self._faces: dict[tuple[int, int], _Face] = {}
+
+    @classmethod
+    def from_levels(cls, levels: np.ndarray, described: Session | SessionInfo, cache_dir=None,
+                    progress: Progress | None = None,
+                    extent_m: tuple[float, float, float, float] | None = None,
+                    ends_known: bool = True) -> BlockResponse:
+        """The block rebuilt from ``levels`` of the session ``described`` (recorded, or being recorded: the
+        live maps ask for the areas palpated so far), reaching over ``extent_m`` too where the tissue is known
+        to: the live maps' last area is not at the tissue's end, and modelled as if it were, its far edge
+        rows read as a tumour (the paper's flat phantom, 8 areas of 9: a spot at x = 64 mm, z 5.9). Without
+        ``ends_known`` the block's ends are not taken to be the tissue's (:meth:`_extent_modes`): the live
+        maps of a session whose tissue no plan describes, whose last area is where the operator has got to."""
+        if not len(levels):
+            raise ValueError("the session recorded no level: there is no palpated area to model")
+        shape = tuple(levels.dtype["pressure_pa"].shape)
+        table = float(described.calibration.get("table_height_m", 0.0))
+        pitch = float(described.calibration["pitch_m"])
+        block, origin = measured_surface(levels, pitch, table, extent_m)
+        compliance, nodes = _block_compliance(block, cache_dir, progress)
+        return cls(block, origin, compliance, nodes, _cover_of(described), pitch, shape,
+                   _block_stiffening(block, shape, pitch, cache_dir), table, ends_known)
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        shape = levels["pressure_pa"].shape
+        if not measured_surface:
+            flat = np.full(shape, np.nan)
+            modes = [[] for _ in levels]
+            for k, row in enumerate(levels):
+                flat[k] = self._share(row, None)
+                modes[k] = self._extent_modes(row, None, flat[k])
+            return _pattern(flat, np.zeros(shape), modes)
+        # An onset is where an element first touched: the highest point under it, or where a neighbour's load
+        # leaking through the sensor's cover first reached the threshold. Where the surface falls away within
+        # an element (a bump's flank, the edge of a gap) the truth lies between that and the lowest of its
+        # neighbours' surfaces, and an onset step to a neighbour beyond the onsets' scatter says by how much
+        # it may fall within the element (the only clue at the array's edge). The pattern is taken on the
+        # surface half-way; each uncertain element's half-range is propagated through the contact to every
+        # element's share (a raised element takes load off its neighbours), one mode of the uncertainty
+        # shared between them, and the onsets' own scatter counts, per element, relative to how far each
+        # element is pressed in.
+        upper, sink_in = self._surfaces(levels)
+        onset_noise = _onset_noise_m(levels)
+        relief = _relief(levels, onset_noise)
+        share = np.full(shape, np.nan)
+        independent = np.full(shape, np.nan)
+        modes = [[] for _ in levels]
+        for k, row in enumerate(levels):
+            region = int(row["region"])
+            high = upper[region]
+            low = np.minimum(_lower_envelope(high), high - relief[region])
+            mid = 0.5 * (high + low)
+            half = np.nan_to_num(0.5 * (high - low))
+            base = self._share(row, mid)
+            sunk = np.nan_to_num(sink_in[region])
+            if np.abs(sunk).max() > 2.0 * onset_noise:
+                modes[k].append(_change_of_pattern(self._share(row, mid - SINK_IN_ERROR * sunk), base))
+            pressed = np.maximum(mid - float(row["tsi_position_m"][2]), 1e-4)
+            for e in np.flatnonzero(half.ravel() > 2.0 * onset_noise):
+                raised = mid.copy()
+                raised.flat[e] += half.flat[e]
+                modes[k].append(_change_of_pattern(self._share(row, raised), base))
+            share[k] = base
+            independent[k] = (onset_noise / pressed) ** 2
+            modes[k] += self._extent_modes(row, mid, base)
+        return _pattern(share, independent, modes)
+
+    def _extent_modes(self, row, heights: np.ndarray | None, base: np.ndarray) -> list[np.ndarray]:
+        """The share's relative changes from not knowing where the tissue ends. The block ends where the
+        palpated areas end; the tissue may go on beyond that by up to ``EXTENT_SLACK_M``, and an element
+        over a free end is loaded very differently from one a millimetre inside it (a face edge flush with
+        the end rides on a free edge; one a little short of it presses a punch's edge into the tissue). Where
+        the face reaches an end of the block, the change of every element's share if the tissue went on by
+        that much (the face that far inside the block) is one standard deviation of that uncertainty.
+
+        Where the ends are not known (``ends_known`` false), the tissue may as well go on by another area:
+        the slack is the face's own length along that axis, and a face up to that far from an end feels it
+        too (on the flat phantom's block of its first eight areas, the face an area short of the end changes
+        by up to 12 % with it, the one two areas short by 2 %). Taken to end a millimetre beyond the face,
+        the live maps' newest area read its far edge as a tumour after four of the flat phantom's first
+        eight areas (z 6-10); taken to go on by 4 mm more on every side, as often (the free end's effect
+        reaches further into 20 mm of tissue), and at the tissue's real end the face's other edge read as
+        one. The README's "live findings" and docs/session-format.md ``--physics partial`` say what this
+        costs and gains on the validation study's phantoms."""
+        modes = []
+        rows, cols = self.shape
+        reach = ((self.block.length_m, rows * self.pitch_m), (self.block.width_m, cols * self.pitch_m))
+        lo = self._face_lo(row)
+        for axis, (extent, span) in enumerate(reach):
+            if self.ends_known:
+                slack, within = EXTENT_SLACK_M, EXTENT_SLACK_M / 2
+            else:
+                slack, within = span, span + EXTENT_SLACK_M / 2
+            near_end = lo[axis] * GRID_M
+            far_end = extent - near_end - span
+            for gap, inward in ((near_end, 1.0), (far_end, -1.0)):
+                other = far_end if inward > 0 else near_end
+                if gap > within or other < slack:  # not near this end, or no room to move
+                    continue
+                moved = row.copy()
+                moved["tsi_position_m"][axis] += inward * slack
+                modes.append(_change_of_pattern(self._share(moved, heights), base))
+        return modes
+
+    def _share(self, row, heights: np.ndarray | None) -> np.ndarray:
+        """The normalised element forces of one record: the face on ``heights`` (undeformed surface height
+        under each element; None: a flat surface pressed evenly)."""
+        fx, fy = self._face_lo(row)
+        ix, iy = int(np.floor(fx)), int(np.floor(fy))
+        z = float(row["tsi_position_m"][2])
+        forces = np.zeros(self.shape)
+        # The mesh resolves a face whose edges lie on its node lines; a face between them is the blend of
+        # the two neighbouring faces along each axis, as the simulator's model does.
+        for px, wx in ((ix, 1.0 - (fx - ix)), (ix + 1, fx - ix)):
+            for py, wy in ((iy, 1.0 - (fy - iy)), (iy + 1, fy - iy)):
+                if wx * wy > 1e-9:
+                    face = self._face(px, py)
+                    # a flat surface pressed evenly: a unit indentation everywhere
+                    gap = np.ones(len(face.nodes)) if heights is None else face.surface(heights) - z
+                    forces += wx * wy * face.elements(_contact(self._compliance, face.nodes, gap))
+        if heights is not None and self.finite_strain is not None:
+            # Each element stiffens with its own nominal strain: where the surface stands higher (a bump) it
+            # is pressed further than the rest of the face and carries more than linear elasticity says. Only
+            # that departure from the record's typical strain is modelled; how the face's own pattern changes
+            # with the typical strain is shared by every area at a level, and the level's baseline measures it
+            # better than this model predicts it (with the whole factor, a deep tumour's contrast on a flat
+            # phantom came out 10 % below the simulator's own with/without ratio, against 2 % without).
+            with np.errstate(invalid="ignore", divide="ignore"):
+                strain = (heights - z) / (heights - self.table_height_m)
+            strain = np.clip(np.nan_to_num(strain, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None).ravel()
+            pressed = forces.ravel() > 0
+            if pressed.any():
+                typical = np.full(strain.shape, float(np.median(strain[pressed])))
+                factor = self.finite_strain.scale(strain) / self.finite_strain.scale(typical)
+                forces = forces * factor.reshape(forces.shape)
+        return self._finish(forces)
+
+    def _face_lo(self, row) -> tuple[float, float]:
+        """The face's lower corner in the block, in node spacings."""
+        rows, cols = self.shape
+        x0, y0 = self.origin_xy_m
+        return ((float(row["tsi_position_m"][0]) - x0 - rows * self.pitch_m / 2) / GRID_M,
+                (float(row["tsi_position_m"][1]) - y0 - cols * self.pitch_m / 2) / GRID_M)
+
+    def _face(self, ix: int, iy: int) -> _Face:
+        """The nodes under a face whose lower corner is node line (ix, iy), and how they map to its elements."""
+        from tissue.mechanics.contact import tributary_weights
+
+        face = self._faces.get((ix, iy))
+        if face is None:
+            rows, cols = self.shape
+            lo = (ix * GRID_M, iy * GRID_M)
+            nx, ny = self._nodes[:, 0], self._nodes[:, 1]
+            eps = 1e-9
+            under = np.flatnonzero((nx >= lo[0] - eps) & (nx <= lo[0] + rows * self.pitch_m + eps)
+                                   & (ny >= lo[1] - eps) & (ny <= lo[1] + cols * self.pitch_m + eps))
+            weights = tributary_weights(nx[under], ny[under], (0.0, self.block.length_m, 0.0, self.block.width_m),
+                                        lo, self.pitch_m, self.shape)
+            carried = weights.sum(axis=0) > 0
+            under, weights = under[carried], weights[:, carried]
+            # each node's position in element units from the first element's centre, kept on the array
+            u = np.clip((nx[under] - lo[0]) / self.pitch_m - 0.5, 0.0, rows - 1.0)
+            v = np.clip((ny[under] - lo[1]) / self.pitch_m - 0.5, 0.0, cols - 1.0)
+            i0 = np.minimum(np.floor(u).astype(int), max(rows - 2, 0))
+            j0 = np.minimum(np.floor(v).astype(int), max(cols - 2, 0))
+            i1, j1 = np.minimum(i0 + 1, rows - 1), np.minimum(j0 + 1, cols - 1)
+            fu, fv = u - i0, v - j0
+            corners = np.stack([i0 * cols + j0, i1 * cols + j0, i0 * cols + j1, i1 * cols + j1], axis=1)
+            corner_weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
+            face = self._faces[(ix, iy)] = _Face(under, weights, np.argmax(weights, axis=0), self.shape,
+                                                 corners, corner_weights)
+        return face
+
+    def _surfaces(self, levels: np.ndarray) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Each palpated area's undeformed surface height under each element, relative to the face, and the
+        sink-in added to its onsets (both by region).
+
+        An element's onset is where the face was when it first touched, but by then the elements already
+        touching had pushed the surface around it down (sink-in), so the undeformed surface was higher by
+        that much. Going through the elements in the order they touched, each one's sink-in at its onset is
+        the homogeneous block's response to the contact already made: undeformed height = onset + sink-in.
+        Elements that never touched lie below every face height recorded (NaN)."""
+        surfaces, sink_in = {}, {}
+        for region in np.unique(levels["region"]):
+            rows_of = np.flatnonzero(levels["region"] == region)
+            row = levels[rows_of[-1]]  # the last level's onsets: refined for as long as the area was pressed
+            onset = np.where(np.isfinite(row["dL_m"]) | np.isfinite(row["onset_height_m"]),
+                             row["onset_height_m"], np.nan).ravel()
+            fx, fy = self._face_lo(row)
+            face = self._face(int(round(fx)), int(round(fy)))
+            heights = np.full(onset.shape, np.nan)
+            for e in np.argsort(-np.where(np.isfinite(onset), onset, -np.inf)):
+                if not np.isfinite(onset[e]):
+                    break
+                gap = heights[face.owner] - onset[e]
+                f = _contact(self._compliance, face.nodes, gap)
+                mine = face.owner == e
+                # the element touched first where its surface stood highest after sinking in, and the point
+                # that sank least is the one whose height the onset can vouch for
+                sink = float((self._compliance[np.ix_(face.nodes[mine], face.nodes)] @ f).min()) if mine.any() else 0.0
+                heights[e] = onset[e] + sink
+            surfaces[int(region)] = heights.reshape(self.shape)
+            sink_in[int(region)] = (heights - onset).reshape(self.shape)
+        return surfaces, sink_in
+
+
+def _change_of_pattern(share: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Each element's relative change from ``base`` to ``share``, less the change of their median: the flat
+    field fits each record's scale itself, so only a change of the pattern is an error (0 where either has
+    none)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        change = share / base
+        return np.nan_to_num(change / np.nanmedian(change) - 1.0)
+
+
+def _pattern(share: np.ndarray, independent_variance: np.ndarray, modes: list[list[np.ndarray]]) -> Pattern:
+    """A Pattern from each record's share, the variance independent per element, and its shared modes."""
+    count = max((len(m) for m in modes), default=0)
+    stacked = np.zeros((len(share), count) + share.shape[1:])
+    for k, record in enumerate(modes):
+        if record:
+            stacked[k, :len(record)] = record
+    inside = np.isfinite(share)
+    stacked = np.where(inside[:, None], stacked, 0.0)
+    sigma = np.sqrt(independent_variance + (stacked ** 2).sum(axis=1))
+    return Pattern(share, np.where(inside, sigma, np.nan), stacked)
+
+
+def _onset_noise_m(levels: np.ndarray) -> float:
+    """How much the onsets scatter about the surface they measure: the robust spread of each element's
+    onset about the mean of its neighbours, over every palpated area (relief a few elements wide cancels)."""
+    from scipy import ndimage
+
+    residuals = []
+    kernel = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], dtype=float)
+    for region in np.unique(levels["region"]):
+        onset = levels["onset_height_m"][np.flatnonzero(levels["region"] == region)[-1]]
+        known = np.isfinite(onset)
+        if known.sum() < 5:
+            continue
+        total = ndimage.convolve(np.where(known, onset, 0.0), kernel, mode="constant")
+        count = ndimage.convolve(known.astype(float), kernel, mode="constant")
+        inner = known & (count >= 3)
+        residuals.append((onset - total / np.maximum(count, 1))[inner])
+    if not residuals:
+        return 0.0
+    r = np.concatenate(residuals)
+    # the residual of one element against the mean of n ~ 4 neighbours has sd sigma * sqrt(1 + 1/4)
+    return float(1.4826 * np.median(np.abs(r - np.median(r))) / np.sqrt(1.25))
+
+
+def _relief(levels: np.ndarray, onset_noise_m: float) -> dict[int, np.ndarray]:
+    """Per area, each element's largest onset step to a neighbour beyond what the onsets' scatter explains."""
+    out = {}
+    for region in np.unique(levels["region"]):
+        onset = levels["onset_height_m"][np.flatnonzero(levels["region"] == region)[-1]]
+        padded = np.pad(onset, 1, mode="constant", constant_values=np.nan)
+        steps = np.stack([np.abs(onset - padded[:-2, 1:-1]), np.abs(onset - padded[2:, 1:-1]),
+                          np.abs(onset - padded[1:-1, :-2]), np.abs(onset - padded[1:-1, 2:])])
+        with np.errstate(invalid="ignore"):
+            largest = np.nanmax(np.where(np.isfinite(steps), steps, -np.inf), axis=0)
+        out[int(region)] = np.clip(np.where(np.isfinite(largest), largest, 0.0) - 2.0 * onset_noise_m, 0.0, None)
+    return out
+
+
+def _lower_envelope(heights: np.ndarray) -> np.ndarray:
+    """Each element's height, or the lowest of its four neighbours' where lower. A neighbour that never
+    touched counts as falling away by as much as the deepest drop measured under the face; one beyond the
+    array's edge continues the slope from the element on the other side."""
+    h = heights
+    known = h[np.isfinite(h)]
+    floor = float(known.min() - (known.max() - known.min()) - 1e-3) if len(known) else np.nan
+    filled = np.where(np.isfinite(h), h, floor)
+    padded = np.pad(filled, 1, mode="reflect", reflect_type="odd")  # odd reflection: 2 h_edge - h_inner
+    low = np.minimum.reduce([filled, padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])
+    return np.where(np.isfinite(h), low, np.nan)
+
+
+@dataclass(frozen=True)
+class _Face:
+    nodes: np.ndarray  # block nodes under the face
+    weights: np.ndarray  # (elements, nodes): share of each node's force each element takes
+    owner: np.ndarray  # the element taking most of each node's force
+    shape: tuple[int, int]
+    corners: np.ndarray  # (nodes, 4): the element centres around each node, as flat element indices
+    corner_weights: np.ndarray  # (nodes, 4): their bilinear weights at the node
+
+    def elements(self, nodal_forces: np.ndarray) -> np.ndarray:
+        return (self.weights @ nodal_forces).reshape(self.shape)
+
+    def surface(self, heights: np.ndarray) -> np.ndarray:
+        """The surface at each node, interpolated between the element centres (an element's own height
+        where a neighbour never touched: it is the only measurement there)."""
+        h = heights.ravel()
+        around = h[self.corners]
+        value = (around * self.corner_weights).sum(axis=1)
+        return np.where(np.isfinite(value), value, h[self.owner])
+
+
+def _contact(compliance: np.ndarray, nodes: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
+    """Nodal forces of a rigid level face pressing the surface ``nodes`` of a linear-elastic block, where
+    ``gap_m`` is how far each node's undeformed surface rises above the face (NaN: never reaches it):
+    frictionless and unilateral (f >= 0, each node pushed down at least its gap, exactly where it carries
+    force), found by active sets."""
+    gap = np.where(np.isfinite(gap_m), gap_m, -np.inf)
+    f = np.zeros(len(nodes))
+    active = gap > 0
+    for _ in range(4 * len(nodes) + 4):
+        f[:] = 0.0
+        if active.any():
+            idx = np.flatnonzero(active)
+            f[idx] = np.linalg.solve(compliance[np.ix_(nodes[idx], nodes[idx])], gap[idx])
+        pulling = active & (f < 0)
+        if pulling.any():
+            active &= ~pulling
+            continue
+        sink = compliance[np.ix_(nodes, nodes[active])] @ f[active] if active.any() else np.zeros(len(nodes))
+        through = ~active & (sink < gap - 1e-12)
+        if not through.any():
+            return f
+        active |= through
+    raise RuntimeError("the contact of the face with the rebuilt surface did not settle")
+
+
+class PhantomResponse(HomogeneousTissue):
+    """A simulated session's own phantom without its tumours, at each level's pose and measured force, at
+    finite strain if the rig that recorded it was."""
+
+    def __init__(self, tissue, cover_spread_m: float, pitch_m: float, shape: tuple[int, int], description: str):
+        super().__init__(description, cover_spread_m, pitch_m, shape)
+        self.tissue = tissue
+
+    @classmethod
+    def load(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
+        from tissue.mechanics.model import RIG_FINITE_STRAIN, ContinuumTissue, MeshSettings
+        from tissue.mechanics.study import without_inclusions
+        from tissue.phantom import parse_phantom
+
+        if not session.simulated or not session.phantom:
+            raise ValueError("only a simulated session knows its phantom")
+        phantom = without_inclusions(parse_phantom(session.phantom, str(session.path)))
+        recorded = (session.config.get("sim") or {}).get("finite_strain")  # as the rig that recorded it was set
+        finite = recorded if isinstance(recorded, bool) else RIG_FINITE_STRAIN
+        tissue = ContinuumTissue.load(phantom, cache_dir=cache_dir, progress=progress,
+                                      settings=MeshSettings(finite_strain=finite))
+        shape = tuple(session.levels.dtype["pressure_pa"].shape)
+        return cls(tissue, _cover_of(session), session.pitch_m, shape,
+                   f"the simulated phantom {phantom.name!r} without its tumours (the simulator's own model)")
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+        """The phantom's own surface whatever ``measured_surface`` says: this is the exact answer."""
+        out = np.full(levels["pressure_pa"].shape, np.nan)
+        for k, row in enumerate(levels):
+            x, y, z = (float(v) for v in row["tsi_position_m"])
+            out[k] = self._finish(_at_force(self.tissue, x, y, z, float(row["force_measured_N"])))
+        return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan), np.zeros((len(out), 0) + out.shape[1:]))
+
+
+def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(C, node (x, y)): the block's surface compliance (vertical displacement per vertical force between
+    its top nodes, every other node free) and where those nodes are; computed once per block and cached."""
+    from tissue.mechanics import cache as cache_mod
+    from tissue.mechanics.fem import condensed_surface_stiffness
+    from tissue.mechanics.model import MeshSettings, phantom_grid, phantom_material
+
+    folder = cache_dir if cache_dir is not None else cache_mod.default_cache_dir()
+    key = f"block-{block.content_hash()}"
+    path = cache_mod.cache_path(folder, key)
+    arrays = cache_mod.load(path, key)
+    if arrays is not None and {"compliance", "nodes"} <= set(arrays):
+        return arrays["compliance"], arrays["nodes"]
+    grid = phantom_grid(block, MeshSettings())
+    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(block), progress=progress)
+    compliance = np.linalg.inv(stiffness)
+    compliance = 0.5 * (compliance + compliance.T)
+    nodes = np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
+    try:
+        cache_mod.store(path, key, {"compliance": compliance, "nodes": nodes})
+    except OSError:
+        pass  # an unwritable cache only costs the recomputation next time
+    return compliance, nodes
+
+
+def _finite(finite_strain: FiniteStrain | None) -> str:
+    from tissue.mechanics.model import FIT_STRAIN
+
+    if finite_strain is None:
+        return ""
+    if finite_strain.fit_strain < FIT_STRAIN:
+        return (f", finite strain solved to {finite_strain.fit_strain:.0%} of {FIT_STRAIN:.0%} and held "
+                "beyond")
+    return ", finite strain"
+
+
+def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None
+                      ) -> FiniteStrain:
+    """The finite-strain factor of the face pressed into a homogeneous neo-Hookean block of the rebuilt
+    extent and thickness (free sides: the tissue ends where the palpation ends), cached. A real tissue's law
+    is not known to the analysis: neo-Hookean is the phantom's default (docs/phantoms.md)."""
+    from hardware.interfaces import TactileConstraints
+    from tissue.mechanics.model import homogeneous_stiffening
+    from tissue.phantom import Phantom
+
+    # The factor is a ratio of forces in the same material, so the modulus drops out; a soft silicone's
+    # keeps the solver in the range it is tested in.
+    homogeneous = Phantom("rebuilt", "the rebuilt block, homogeneous", block.length_m, block.width_m,
+                          block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio)
+    sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
+    return homogeneous_stiffening(homogeneous, sensor, cache_dir)
+
+
+def _at_force(tissue, x: float, y: float, z_guess: float, force_N: float) -> np.ndarray:
+    """The element forces with the face where the tissue carries ``force_N`` (bisection in height: the
+    force falls monotonically as the face rises)."""
+    lo, hi = z_guess - 0.01, z_guess + 0.01
+    while tissue.element_forces_N(x, y, lo).sum() < force_N and lo > -0.1:
+        lo -= 0.01
+    while tissue.element_forces_N(x, y, hi).sum() > force_N and hi < 0.5:
+        hi += 0.01
+    for _ in range(40):  # 20 mm / 2^40: far below a micrometre
+        mid = 0.5 * (lo + hi)
+        if tissue.element_forces_N(x, y, mid).sum() >= force_N:
+            lo = mid
+        else:
+            hi = mid
+    return tissue.element_forces_N(x, y, 0.5 * (lo + hi))
+
+
+def _cover_of(session: Session | SessionInfo) -> float:
+    """The sensor cover's lateral spread the session records (its simulated array's setting), else none."""
+    value = session.calibration.get("cover_spread_m")
+    if value is None:
+        value = ((session.config.get("sim") or {}).get("sensor") or {}).get("cover_spread_m")
+        if value is None and session.simulated:
+            value = COVER_SPREAD_M
+    return float(value) if isinstance(value, (int, float)) else 0.0
+
+
+def cover_for(described: Session | SessionInfo, shape: tuple[int, int], pitch_m: float
+              ) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The sensor cover's spread of element forces on a (rows, cols) array at ``pitch_m``, as a recorded
+    session or one being recorded describes it (None: it records no cover)."""
+    operators = _cover(_cover_of(described), shape, pitch_m)
+    return None if operators is None else (lambda forces: operators[0] @ forces @ operators[1])
+
+
+def _cover(spread_m: float, shape: tuple[int, int], pitch_m: float):
+    if spread_m <= 0:
+        return None
+    return cover_operators(cover_weight(spread_m, pitch_m), shape)
+
+
+PHYSICS = {
+    "rebuilt": "homogeneous tissue rebuilt from the session's own measurements (any session)",
+    "partial": "the same, for part of a tissue palpated: where the tissue ends not known, it may go on beyond the "
+               "areas by another area",
+    "phantom": "the simulated phantom without its tumours (simulated sessions only)",
+    "none": "no physics: the face's pattern is left to the baseline alone",
+}
+
+
+def physics_for(session: Session, name: str = "rebuilt", cache_dir=None,
+                progress: Progress | None = None) -> HomogeneousTissue | None:
+    """The physics :data:`PHYSICS` names for ``session``; raises ValueError saying why it cannot be had."""
+    if name == "none":
+        return None
+    if name in ("rebuilt", "partial"):
+        return HomogeneousTissue.reconstructed(session, cache_dir, progress, ends_known=name == "rebuilt")
+    if name == "phantom":
+        return HomogeneousTissue.from_phantom(session, cache_dir, progress)
+    raise ValueError(f"unknown physics {name!r}; choose from {', '.join(PHYSICS)}")

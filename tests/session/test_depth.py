@@ -1,0 +1,304 @@
+"""The model-based depth (session/depth.py): the shipped library is what the project's mechanics gives, a
+damaged one is refused in one line, and the inversion's interval covers a tumour the library never held."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from session.depth import (LIBRARY_PATH, DepthModel, DepthModelError, LibraryGrid, _block_solve, build_library,
+                             _kept_block_solve, load_library)
+from session.detect import DepthParams
+
+PITCH = 2e-3
+SHAPE = (4, 15)
+
+
+@pytest.fixture(scope="module")
+def library():
+    return load_library()
+
+
+def test_the_shipped_library_is_what_the_mechanics_gives(library):
+    grid = LibraryGrid()
+    t, d, a, r = 0, grid.depth_m.index(2.5e-3), 0, 1  # 20 mm layer, top 2.5 mm deep, 5 mm across, 6 times stiffer
+    solved = _block_solve(grid, grid.thickness_m[t], (grid.depth_m[d], grid.diameter_m[a], grid.modulus_ratio[r]))
+    np.testing.assert_allclose(library.inclusion[t, d, a, r], solved, rtol=1e-5)
+    np.testing.assert_allclose(library.homogeneous[t], _block_solve(grid, grid.thickness_m[t], None), rtol=1e-5)
+    # a sphere that does not fit in the layer has no solve
+    assert np.isnan(library.inclusion[0, -1, -1, 0]).all()
+
+
+def test_a_damaged_foreign_or_missing_library_is_refused_in_one_line(tmp_path):
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, format=np.array("something else"), version=np.array(1))
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(LIBRARY_PATH.read_bytes()[:5000])
+    for path, said in ((foreign, "not a version"), (truncated, "cannot be read"),
+                       (tmp_path / "missing.npz", "cannot be read")):
+        with pytest.raises(DepthModelError, match=said) as caught:
+            load_library(path)
+        assert "\n" not in str(caught.value)
+
+
+def test_an_array_the_library_was_not_built_for_is_refused(library):
+    with pytest.raises(DepthModelError, match="built for a 4 x 15 array"):
+        DepthModel(library, (4, 16), PITCH, 0.0)
+
+
+def _one_area(contrast: np.ndarray, sigma: float, thickness_m: float, tumour_x: float, tumour_y: float,
+              face_x: float, levels: int = 3, pressed_m=0.0):
+    """Level records of one area, its face centred at (face_x, mid-array), flat surface at ``thickness_m``,
+    every element pressed ``pressed_m`` (0: the small-strain limit, where the contrast is the library's; or
+    one per level, with ``contrast`` one per level)."""
+    rows = np.zeros(levels, dtype=[("region", "i4"), ("tsi_position_m", "f8", 3), ("onset_height_m", "f8", SHAPE),
+                                   ("dL_m", "f8", SHAPE)])
+    pressed_m = np.broadcast_to(pressed_m, (levels,))
+    rows["tsi_position_m"] = np.stack([np.full(levels, face_x), np.full(levels, SHAPE[1] * PITCH / 2),
+                                       thickness_m - pressed_m], axis=1)
+    rows["onset_height_m"] = thickness_m
+    rows["dL_m"] = pressed_m[:, None, None]
+    rng = np.random.default_rng(7)
+    noisy = np.broadcast_to(contrast, (levels, *SHAPE)) + rng.normal(0.0, sigma, (levels, *SHAPE))
+    measured = SimpleNamespace(contrast=noisy, sigma=np.full_like(noisy, sigma))
+    return rows, measured, SimpleNamespace(x_m=tumour_x, y_m=tumour_y)
+
+
+def test_the_interval_covers_a_tumour_the_library_never_held(library):
+    """An independent solve: a 25 mm layer (the library holds 20 and 32), the sphere's top 5 mm deep, 7 mm
+    across, 8 times stiffer, the face 2 mm off it; sensor noise on top. The estimate comes within the
+    library's spacing, the interval covers the truth and says something (narrower than the prior)."""
+    thickness, depth = 0.025, 5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (depth, 7e-3, 8.0))[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    truth = q / np.median(q) - 1.0
+    tumour_x = 0.030
+    rows, measured, tumour = _one_area(truth, 0.02, thickness, tumour_x, SHAPE[1] * PITCH / 2, tumour_x + 2e-3)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 2e-3
+    assert high - low < 0.6 * (library.depth_m[-1] - library.depth_m[0])
+
+
+def test_the_tissues_side_does_not_draw_the_depth(library):
+    """A sphere 1 mm from a free side of the tissue (the face spans the tissue's width, as in the paper's
+    protocol), 3 mm deep at rest, 9 mm across, 5 times stiffer, in a 25 mm layer pressed to 30 %: it shows
+    as one 3 (1 - 0.3) - 4.5 x 0.3 = 0.75 mm deep does at rest (an independent solve of that, with the
+    side). The library shifts a mid-array signature sideways and knows no side, so the elements on the side
+    are left out: what they read (the simulated sessions of the validation study read down to -0.2 there
+    beside a shallow tumour) does not move the estimate, which covers the truth."""
+    thickness, depth, pressed, tumour_y = 0.025, 3e-3, 7.5e-3, 24.5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (0.75e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    seen = q / np.median(q) - 1.0
+    estimates = []
+    for side in (seen[:, -1], np.full(SHAPE[0], -0.2)):
+        rows, measured, tumour = _one_area(np.concatenate([seen[:, :-1], side[:, None]], axis=1), 0.02, thickness,
+                                           0.030, tumour_y, 0.032, pressed_m=pressed)
+        estimates.append(model.estimate(tumour, rows, measured))
+    assert estimates[0] == estimates[1]
+    estimate, low, high = estimates[0]
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 1e-3
+
+
+def test_a_tumour_seen_pressed_deep_is_read_at_its_depth_at_rest(library):
+    """At finite strain the tissue over a tumour thins: pressed to 30 % the 6 mm deep, 7 mm sphere shows as
+    one 6 (1 - 0.3) - 3.5 x 0.3 = 3.15 mm deep does at rest (an independent solve of that). The estimate
+    is the depth at rest, and without the strain it would have been the shallower one."""
+    thickness, depth, pressed = 0.025, 6e-3, 7.5e-3
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_with = _block_solve(grid, thickness, (3.15e-3, 7e-3, 8.0))[0]
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(nodal_with) / model._elements(nodal_without)
+    seen = q / np.median(q) - 1.0
+    args = (seen, 0.02, thickness, 0.030, SHAPE[1] * PITCH / 2, 0.032)
+    rows, measured, tumour = _one_area(*args, pressed_m=pressed)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high and abs(estimate - depth) < 1e-3
+    rows, measured, tumour = _one_area(*args)
+    at_rest, *_ = model.estimate(tumour, rows, measured)
+    assert abs(at_rest - 3.15e-3) < 1e-3
+
+
+def test_the_forward_model_shows_a_pressed_tumour_as_the_rigs_reduced_model_does(library):
+    """The simulated rig tabulates each inclusion at rest and where a layer compressed by COMPRESSED_STRAIN
+    carries it, and an element pressed part-way sees the two mixed in proportion to its strain
+    (tissue.mechanics.model). At half that strain a sphere 3 mm deep, 8 mm across, 6 times stiffer
+    shows half as at rest and half as one 3 (1 - 0.3) - 4 x 0.3 = 0.9 mm deep does, which is more than the
+    sphere half-way between (2.0 mm) shows: a tumour's contrast grows ever faster as it nears the surface."""
+    from tissue.mechanics.model import COMPRESSED_STRAIN
+
+    assert COMPRESSED_STRAIN == 0.3
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    fine = model._fine(model.predict(0.025, 2e-3, SHAPE[1] * PITCH / 2)).reshape(*model.depths.shape, 8, 7, -1)
+    d, a, r = (int(np.argmin(np.abs(axis - v))) for axis, v in ((model.depths, 3e-3), (model.diameters, 8e-3),
+                                                                  (model.ratios, 6.0)))
+    at = {v: fine[int(np.argmin(np.abs(model.depths - v))), a, r] for v in (3e-3, 2e-3, 1e-3, 0.75e-3)}
+    moved = 0.4 * at[0.75e-3] + 0.6 * at[1e-3]  # 0.9 mm, between the fine grid's depths
+    shown = model._pressed(fine, np.array([0.15]), np.ones((1, fine.shape[-1])))[d, a, r]
+    np.testing.assert_allclose(shown, 0.5 * (at[3e-3] + moved), atol=1e-9)
+    assert shown.max() > 1.05 * at[2e-3].max()
+
+
+def test_a_shallow_tumour_is_read_at_its_depth_at_rest_from_levels_pressed_ever_deeper(library):
+    """Levels pressed to 10, 20 and 30 %: a sphere 2 mm deep at rest, 6 mm across, 8 times stiffer shows as
+    the simulated rig's reduced model says, its contrast at rest and where a layer compressed by 30 % carries
+    it, 2 (1 - 0.3) - 3 x 0.3 = 0.5 mm deep (two independent solves), mixed in proportion 1/3, 2/3 and 1.
+    That is nearer the surface than any tumour is taken to lie at rest but not than the library reaches,
+    and not the sphere at the depth each level's strain alone would carry it to (a tumour's contrast grows
+    ever faster as it nears the surface). The estimate is the depth at rest and its interval covers it."""
+    thickness, depth, strains = 0.025, 2e-3, np.array([0.1, 0.2, 0.3])
+    grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
+    nodal_without = _block_solve(grid, thickness, None)[0]
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    states = []
+    for at in (depth, 0.5e-3):
+        q = model._elements(_block_solve(grid, thickness, (at, 6e-3, 8.0))[0]) / model._elements(nodal_without)
+        states.append(q / np.median(q) - 1.0)
+    mix = (strains / 0.3)[:, None, None]
+    rows, measured, tumour = _one_area((1 - mix) * states[0] + mix * states[1], 0.02, thickness, 0.030,
+                                       SHAPE[1] * PITCH / 2, 0.032, pressed_m=strains * thickness)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high
+    assert abs(estimate - depth) < 0.5e-3
+
+
+def test_the_sphere_that_made_the_contrast_explains_it_best(library):
+    """A contrast the model itself predicts, for a sphere 3 or 6 mm deep, 8 mm across, 6 times stiffer, with
+    little noise: the posterior's mode is that sphere. With the model's error taken relative to each
+    sphere's own prediction, a sphere predicting less than was measured fitted better (6 mm deep read as a
+    sphere 3 times stiffer, 9 mm across, 5.25 mm deep)."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2
+    fine = model._fine(model.predict(thickness, 2e-3, y))
+    j, k = int(np.argmin(np.abs(model.diameters - 8e-3))), int(np.argmin(np.abs(model.ratios - 6.0)))
+    for depth in (3e-3, 6e-3):
+        i = int(np.argmin(np.abs(model.depths - depth)))
+        rows, measured, tumour = _one_area(fine[i, j, k], 0.002, thickness, 0.030, y, 0.032)
+        log_post, _ = model._posterior(tumour, rows, measured)
+        assert np.unravel_index(int(np.argmax(log_post)), log_post.shape) == (i, j, k)
+
+
+def test_the_shared_scale_error_is_the_whole_covariance_of_the_model_errors(library):
+    """The likelihood with a scale error shared by every element, group and area (Sherman-Morrison) is
+    the Gaussian one with the whole covariance, D + s^2 p p^T, up to a constant the spheres share."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0, params=DepthParams(0.25, 0.3))
+    rng = np.random.default_rng(3)
+    mode = (1, 0, 1)
+    terms = [(rng.normal(0.2, 0.1, n), rng.uniform(0.01, 0.05, n), rng.normal(0.2, 0.1, (3, 2, 2, n)), groups)
+             for n, groups in ((5, 2), (5, 2), (7, 1))]
+    p = np.concatenate([t[2][mode] for t in terms])
+    diagonal = np.concatenate([sigma**2 + groups * ((0.25 * t[mode]) ** 2 + model.contrast_floor**2)
+                               for _, sigma, t, groups in terms])
+    inverse = np.linalg.inv(np.diag(diagonal) + 0.3**2 * np.outer(p, p))
+    residual = np.concatenate([m - t for m, _, t, _ in terms], axis=-1)
+    whole = -0.5 * np.einsum("...i,ij,...j->...", residual, inverse, residual)
+    got = model._log_like(terms, mode)
+    np.testing.assert_allclose(got - got[mode], whole - whole[mode], rtol=1e-9, atol=1e-9)
+
+
+def test_deeper_tumours_read_deeper(library):
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2 + 1e-3
+    found = []
+    depths = [list(library.depth_m).index(v) for v in (2.5e-3, 6e-3, 10e-3)]
+    middle = list(library.diameter_m).index(8.5e-3)
+    for d in depths:  # 8.5 mm across, 6 times stiffer
+        truth = model.predict(thickness, -2e-3, y)[d, middle, 1]
+        rows, measured, tumour = _one_area(truth, 0.02, thickness, 0.030, y, 0.028)
+        found.append(model.estimate(tumour, rows, measured))
+    assert found[0][0] < found[1][0] < found[2][0]
+    for (estimate, low, high), d in zip(found, depths):
+        assert low <= library.depth_m[d] <= high and low <= estimate <= high
+
+
+def test_no_estimate_without_an_area_over_the_tumour(library):
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    rows, measured, tumour = _one_area(np.zeros(SHAPE), 0.02, 0.025, 0.030, 0.015, 0.040)  # face 10 mm away
+    assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))
+
+
+def test_the_library_builder_writes_what_the_loader_reads(tmp_path):
+    grid = LibraryGrid(thickness_m=(0.006, 0.008), depth_m=(1e-3, 2e-3), diameter_m=(2e-3, 3e-3),
+                       modulus_ratio=(3.0, 6.0), offset_x_m=(4e-3,), length_m=0.016)
+    lib = load_library(build_library(tmp_path / "small.npz", grid))
+    assert lib.inclusion.shape[:5] == (2, 2, 2, 2, 1)
+    assert np.isfinite(lib.inclusion[1, 0, 0, 0]).all()
+
+
+def test_a_tumour_in_the_gap_between_two_areas_is_read_from_the_nearer_one(library):
+    """Areas laid evenly along a tissue leave gaps of a few tenths of a millimetre: a tumour fitted 4.2 mm
+    from the nearest face's centre (0.2 mm outside it) is read at the library's farthest offset, 4 mm,
+    rather than left without an estimate; 1 mm outside it, it is not read at all."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    thickness, y = 0.026, SHAPE[1] * PITCH / 2
+    depth = 4e-3  # 8.5 mm across, 6 times stiffer
+    entry = (list(library.depth_m).index(depth), list(library.diameter_m).index(8.5e-3), 1)
+    seen = model.predict(thickness, 4e-3, y)[entry]
+    rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.0342)
+    estimate, low, high = model.estimate(tumour, rows, measured)
+    assert low <= depth <= high and low <= estimate <= high
+    rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.035)
+    assert all(math.isnan(v) for v in model.estimate(tumour, rows, measured))
+
+
+def test_the_signature_carries_a_spheres_far_field_to_the_tissues_far_side(library):
+    """A stiff sphere 11 mm from one side of a 27 mm layer, 1.5 mm deep, 9 mm across, 5 times stiffer (an
+    independent solve of the face over it): it lowers the near side's elements and raises the far side's
+    (by 0.03 here, without a cover).
+    The library's mid-array signature shifted sideways knows no side and puts both at about zero; the
+    signature solved where the sphere lies gives them within 0.02."""
+    thickness, tumour_y = 0.027, 11e-3
+    grid = replace(LibraryGrid(), offset_x_m=(0.0,))
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    q = model._elements(_block_solve(grid, thickness, (1.5e-3, 9e-3, 5.0), tumour_y_m=tumour_y)[0]) / model._elements(
+        _block_solve(grid, thickness, None)[0])
+    truth = q / np.median(q) - 1.0
+    assert truth[:, -1].mean() > 0.02 and truth[:, 0].mean() < -0.02
+    rows, measured, tumour = _one_area(truth, 0.01, thickness, 0.030, tumour_y, 0.030)
+    made, error = model.signature(tumour, rows, measured, np.array([0]))
+    np.testing.assert_allclose(made[0][:, [0, -1]], truth[:, [0, -1]], atol=0.02)
+    assert np.all(error >= 0) and error[0].max() > 0.1  # the model's error, largest over the sphere
+    nearest = (list(library.depth_m).index(2.5e-3), list(library.diameter_m).index(8.5e-3), 1)  # 6x
+    shifted = model.predict(thickness, 0.0, tumour_y)[nearest]  # the nearest library entry
+    assert abs(shifted[:, -1].mean()) < 0.02
+    # a face beyond the sphere's reach feels nothing of it, whether or not the tumour has a fit
+    far = SimpleNamespace(x_m=0.030 + 13e-3, y_m=tumour_y)
+    made, error = model.signature(far, rows, SimpleNamespace(contrast=np.full_like(measured.contrast, np.nan),
+                                                             sigma=measured.sigma), np.array([0]))
+    assert not made.any() and not error.any()
+
+
+def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_again(tmp_path, monkeypatch):
+    import session.depth as depth_model
+    from tissue.mechanics import cache as cache_mod
+
+    monkeypatch.setenv(cache_mod.ENV_VAR, str(tmp_path))
+    grid = replace(LibraryGrid(), offset_x_m=(0.0, 1e-3))
+    solved = []
+
+    def solve(grid, thickness_m, inclusion, tumour_y_m):  # the solve itself is checked against the library
+        solved.append((thickness_m, inclusion, tumour_y_m))
+        return np.full((2, 9, 31), thickness_m + sum(inclusion) + tumour_y_m)
+
+    monkeypatch.setattr(depth_model, "_block_solve", solve)
+    first = _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015)
+    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first)
+    assert solved == [(0.005, (1e-3, 2e-3, 5.0), 0.015)]
+    _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 6.0), 0.015)  # another sphere is another solve
+    assert len(solved) == 2
+    for entry in tmp_path.iterdir():
+        entry.write_bytes(entry.read_bytes()[:-7])
+    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first) and len(solved) == 3

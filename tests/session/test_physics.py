@@ -1,0 +1,142 @@
+"""The rebuilt physics of the flat field at finite strain: tissue that stands higher under the face is pressed
+further, and stiffens more than linear elasticity says."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from session.physics import BlockResponse, _block_compliance, measured_surface
+from tissue.mechanics.model import FiniteStrain
+from session.synthetic import level_record
+from tests.session.test_stitch import levels_of
+
+PITCH = 2e-3
+BASE_M, RIDGE_M = 0.020, 0.023
+RIDGE = slice(6, 9)  # a 6 mm ridge along the face, under its middle columns
+
+
+def ridge_levels(face_heights_m):
+    records = []
+    for k, z in enumerate(face_heights_m):
+        levels = levels_of(level_record(0, k, 1.0 + k, (0.004, 0.015), thickness_m=BASE_M))
+        levels["tsi_position_m"][0, 2] = z
+        onset = np.full((4, 15), BASE_M)
+        onset[:, RIDGE] = RIDGE_M
+        levels["onset_height_m"] = onset
+        levels["dL_m"] = onset - z
+        records.append(levels)
+    return np.concatenate(records)
+
+
+def test_a_ridge_pressed_further_carries_more_at_finite_strain(tmp_path):
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    # every element alike, so that only the strain differs between the ridge and the base
+    finite = FiniteStrain(np.stack([np.full(60, 0.5), np.full(60, 1.0)]), (0.5, 1.0))
+    nonlinear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), finite, 0.0)
+    linear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    ratio = nonlinear.pattern(levels).share / linear.pattern(levels).share
+    ridge_over_base = ratio[:, 1:3, 7].mean(axis=1) / ratio[:, 1:3, 2].mean(axis=1)
+    z = levels["tsi_position_m"][:, 2]
+    expected = np.array([finite.scale(np.full(60, (RIDGE_M - h) / RIDGE_M))[0]
+                         / finite.scale(np.full(60, (BASE_M - h) / BASE_M))[0] for h in z])
+    # the ridge's strain (23 - z) / 23 runs ahead of the base's (20 - z) / 20: 5 to 10 % more load on it
+    np.testing.assert_allclose(ridge_over_base, expected, rtol=0.02)
+    assert np.all(expected > 1.04)
+    assert "finite strain" in nonlinear.description and "finite strain" not in linear.description
+
+
+def test_on_a_flat_surface_the_level_baseline_keeps_the_face_pattern_finite_strain_gives(tmp_path):
+    # the face's edge rows stiffen faster than its inner rows; on a flat surface every area of a level shows
+    # that alike, and the flat field's baseline measures it, so the physics leaves the pattern linear there
+    levels = ridge_levels((0.019, 0.017))
+    levels["onset_height_m"] = BASE_M
+    levels["dL_m"] = BASE_M - levels["tsi_position_m"][:, 2][:, None, None]
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    a = np.where(np.arange(4)[:, None] % 3 == 0, 0.5, 0.57) * np.ones((4, 15))
+    b = np.where(np.arange(4)[:, None] % 3 == 0, 2.5, -1.6) * np.ones((4, 15))
+    finite = FiniteStrain(np.stack([a.ravel(), b.ravel()]), (0.5, 1.0))
+    nonlinear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), finite, 0.0)
+    linear = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    np.testing.assert_allclose(nonlinear.pattern(levels).share, linear.pattern(levels).share, rtol=1e-9)
+
+
+def test_the_rebuilt_surfaces_uncertainty_is_kept_as_modes_shared_between_elements(tmp_path):
+    # the ridge's flanks: where the onsets step by 3 mm, the surface within those elements is unsure
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    pattern = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15)).pattern(levels)
+    modes = pattern.modes
+    assert modes.shape[0] == 2 and modes.shape[1] >= 8 and modes.shape[2:] == (4, 15)
+    # a surface a little higher under one flank element loads it more and its neighbours less
+    flank = np.abs(modes[:, :, :, [5, 6, 8, 9]]).max(axis=(1, 2, 3))
+    assert np.all(flank > 0.5)
+    # only the change of the pattern: the flat field fits each record's scale itself (the median)
+    pressing = np.isfinite(pattern.share)[:, None] & (np.abs(modes).sum(axis=(2, 3)) > 0)[..., None, None]
+    medians = np.nanmedian(np.where(pressing, modes, np.nan).reshape(*modes.shape[:2], -1), axis=2)
+    np.testing.assert_allclose(medians[np.isfinite(medians)], 0.0, atol=1e-9)
+    # and their part of each element's uncertainty is within it
+    own = pattern.sigma ** 2 - (modes ** 2).sum(axis=1)
+    assert np.all(own[np.isfinite(own)] >= -1e-12)
+
+
+def test_the_sink_in_the_rebuild_adds_is_itself_an_uncertainty_shared_between_elements(tmp_path, monkeypatch):
+    # The base beside the ridge touched only once the ridge had sunk it in; the rebuild adds back what the
+    # block's linear response says (1.5 mm beside this 3 mm ridge), which next to a ridge pressed far was
+    # 1.6 times what the simulated tissue did, and the base then reads tilted. How much it added is a mode
+    # of the pattern's uncertainty: the base's elements are less sure the more was added.
+    import session.physics
+
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    response = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    _, sink_in = response._surfaces(levels)
+    assert sink_in[0][:, 5].min() > 1e-3 and np.all(sink_in[0][:, RIDGE] == 0.0)
+    sure = {}
+    for error in (0.0, session.physics.SINK_IN_ERROR):
+        monkeypatch.setattr(session.physics, "SINK_IN_ERROR", error)
+        sure[error] = response.pattern(levels).sigma
+    unsure = sure[session.physics.SINK_IN_ERROR] ** 2 - sure[0.0] ** 2
+    beside, next_over = unsure[:, 1:3, 4], unsure[:, 1:3, 3]
+    # at least a twentieth more spread beside the ridge, more the more was added (the nearer the ridge),
+    # less the deeper the face pressed the base past its sink-in
+    assert np.all(next_over > 0.05 ** 2) and np.all(beside > 2 * next_over)
+    assert np.all(unsure[0, 1:3, 3:5] > unsure[1, 1:3, 3:5])
+    assert np.all(unsure[np.isfinite(unsure)] >= -1e-12)
+
+
+def test_where_the_tissue_ends_is_not_known_it_may_go_on_by_another_area(tmp_path):
+    # Five flat areas side by side along x: the first and the last are at the block's ends. The live maps
+    # without a plan do not know whether the tissue ends there (the newest area is where the operator has
+    # got to), and taken to end there, the newest area's far edge read as a tumour.
+    records = []
+    for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
+        levels = levels_of(level_record(region, 0, 1.0, (x, 0.015), thickness_m=BASE_M))
+        levels["tsi_position_m"][0, 2] = 0.019
+        levels["onset_height_m"] = BASE_M
+        levels["dL_m"] = BASE_M - 0.019
+        records.append(levels)
+    levels = np.concatenate(records)
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    known, unknown = (BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15), ends_known=ends)
+                      for ends in (True, False))
+    sure, unsure = known.pattern(levels), unknown.pattern(levels)
+    np.testing.assert_allclose(unsure.share, sure.share)
+    # the middle area is two areas from either end: nothing to doubt, nor where the face spans the width
+    assert not sure.modes[2].any() and not unsure.modes[2].any()
+    # the face an area short of an end feels where the tissue ends only if it is not known: by several %
+    assert not sure.modes[[1, 3]].any()
+    assert 0.03 < np.abs(unsure.modes[1]).max() < 0.5 and 0.03 < np.abs(unsure.modes[3]).max() < 0.5
+    for end, row in ((0, 0), (4, 3)):  # each end area's row over the block's end
+        # a millimetre more of tissue changes the end row's share by over half; another area's length, by
+        # several times, and the whole face's by a fifth and more
+        assert np.abs(sure.modes[end][:, row]).max() > 0.5
+        assert np.all(np.abs(unsure.modes[end]).max(axis=(0, 2)) > 0.2)
+        assert np.abs(unsure.modes[end][:, row]).max() > 4 * np.abs(sure.modes[end][:, row]).max()
+    assert "where the tissue ends not known" in unknown.description
+    assert "not known" not in known.description

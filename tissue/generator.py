@@ -1,0 +1,125 @@
+"""Phantoms nobody designed for: a seeded, documented distribution of silicone blocks with tumours.
+
+The validation study palpates phantoms drawn here (:func:`draw_phantom`), so that its figures measure the
+console on tissue it was not tuned to. Each draw is a phantom file's table, valid by construction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from tissue.phantom import PhantomError, parse_phantom
+
+# the paper's comparison of the two maps turns on the surface: on even thickness they see the same
+# within-face pattern, where the thickness varies only Eq. 1 tells a tumour from thicker tissue
+SURFACES = ("flat", "sloped", "bumpy")
+
+
+@dataclass(frozen=True)
+class StudyDistribution:
+    """Where the study's phantoms come from (all ranges uniform unless said otherwise; lengths in m).
+
+    The phantom is a silicone block on the table like the paper's, as wide as the TSI is long (the TSI
+    spans it, as in Section IV-A), palpated in 8 mm strips along its length. Its surface is flat, sloped
+    (a plane tilted along x and y) or bumpy (one or two half-cylinders along x over part of the length,
+    like the paper's uneven phantom), each with the probability given. It holds 0 to 3 spherical tumours
+    (each count equally likely) at a depth (surface to the sphere's top) of 1-12 mm, 5-12 mm across and
+    3-12 times stiffer than the tissue (log-uniform), anywhere inside the block that keeps 1 mm of tissue
+    between tumours and 2 mm above the table. The tissue's modulus is log-uniform around the paper's
+    20 kPa. A draw that the phantom schema refuses is drawn again.
+    """
+
+    length_m: tuple[float, float] = (0.056, 0.088)
+    width_m: float = 0.030
+    thickness_m: tuple[float, float] = (0.020, 0.032)
+    youngs_modulus_pa: tuple[float, float] = (15e3, 30e3)  # log-uniform
+    poisson_ratio: float = 0.49
+    surface_odds: tuple[float, float, float] = (0.4, 0.3, 0.3)  # flat, sloped, bumpy
+    slope_x: tuple[float, float] = (-0.10, 0.10)  # rise per unit length along x
+    slope_y: tuple[float, float] = (-0.05, 0.05)
+    bump_radius_m: tuple[float, float] = (0.003, 0.006)
+    tumours: tuple[int, int] = (0, 3)
+    depth_m: tuple[float, float] = (1e-3, 12e-3)
+    diameter_m: tuple[float, float] = (5e-3, 12e-3)
+    modulus_ratio: tuple[float, float] = (3.0, 12.0)  # log-uniform
+    min_gap_m: float = 1e-3  # tissue between two tumours
+    table_clearance_m: float = 2e-3  # tissue under a tumour
+
+
+def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(rng.uniform(bounds[0], bounds[1]))
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
+
+
+def draw_phantom(rng: np.random.Generator, name: str, dist: StudyDistribution = StudyDistribution(),
+                 attempts: int = 200) -> dict[str, Any]:
+    """One phantom from ``dist`` as a phantom file's table (see docs/phantoms.md), valid by construction."""
+    for _ in range(attempts):
+        length = round(_uniform(rng, dist.length_m), 4)
+        thickness = round(_uniform(rng, dist.thickness_m), 4)
+        tissue_pa = round(_log_uniform(rng, dist.youngs_modulus_pa), -2)
+        table: dict[str, Any] = {
+            "name": name, "length_m": length, "width_m": dist.width_m, "thickness_m": thickness,
+            "youngs_modulus_pa": tissue_pa, "poisson_ratio": dist.poisson_ratio,
+        }
+        kind = SURFACES[int(rng.choice(len(SURFACES), p=np.asarray(dist.surface_odds)))]
+        if kind == "sloped":
+            gx, gy = round(_uniform(rng, dist.slope_x), 3), round(_uniform(rng, dist.slope_y), 3)
+            # tilted about the phantom's centre, so the base thickness is its mean height
+            table["surface"] = [{"kind": "slope", "gradient": [gx, gy], "origin_m": [length / 2, dist.width_m / 2],
+                                 "x_range_m": [0.0, length]}]
+        elif kind == "bumpy":
+            table["surface"] = []
+            for _ in range(int(rng.integers(1, 3))):
+                radius = round(_uniform(rng, dist.bump_radius_m), 4)
+                start = round(float(rng.uniform(0.0, 0.5)) * length, 4)
+                end = round(min(length, start + float(rng.uniform(0.3, 0.7)) * length), 4)
+                centre = round(float(rng.choice([radius, dist.width_m - radius])), 4)
+                table["surface"].append({"kind": "half_cylinder", "centre_y_m": centre, "radius_m": radius,
+                                         "x_range_m": [start, end]})
+        table["inclusions"] = []
+        for _ in range(int(rng.integers(dist.tumours[0], dist.tumours[1] + 1))):
+            diameter = round(_uniform(rng, dist.diameter_m), 4)
+            radius = diameter / 2
+            table["inclusions"].append({
+                "centre_xy_m": [round(_uniform(rng, (radius, length - radius)), 4),
+                                round(_uniform(rng, (radius, dist.width_m - radius)), 4)],
+                "diameter_m": diameter,
+                "youngs_modulus_pa": round(tissue_pa * _log_uniform(rng, dist.modulus_ratio), -2),
+                "depth_m": round(_uniform(rng, dist.depth_m), 4),
+            })
+        data = {"phantom": table}
+        try:
+            phantom = parse_phantom(data, name)
+        except PhantomError:
+            continue
+        if _room_around_tumours(phantom, dist):
+            table["description"] = (f"study phantom, {kind} surface, {len(table['inclusions'])} tumour(s), "
+                                    f"E = {tissue_pa / 1e3:.1f} kPa")
+            return data
+    raise RuntimeError(f"no valid phantom after {attempts} draws: the distribution leaves no room")
+
+
+def _room_around_tumours(phantom, dist: StudyDistribution) -> bool:
+    for i, a in enumerate(phantom.inclusions):
+        if a.z_m - a.radius_m < dist.table_clearance_m:
+            return False
+        for b in phantom.inclusions[:i]:
+            if math.dist((a.x_m, a.y_m, a.z_m), (b.x_m, b.y_m, b.z_m)) < a.radius_m + b.radius_m + dist.min_gap_m:
+                return False
+    return True
+
+
+def surface_kind(phantom: dict[str, Any]) -> str:
+    """Which of :data:`SURFACES` a phantom file's table has (a drawn phantom's features are all of one kind)."""
+    features = phantom["phantom"].get("surface", [])
+    if not features:
+        return "flat"
+    return "sloped" if features[0]["kind"] == "slope" else "bumpy"
