@@ -93,6 +93,7 @@ class ControlLoop:
         self._sent: Vec3 | None = None  # the last reference that left the loop (None: none yet, or held)
         # safe hold
         self._hold_xy: tuple[float, float] = (0.0, 0.0)
+        self._lifting = False  # held by a stop-where-it-is fault, and lifting: it pressed over a ceiling
         # a frame older than this is overdue: normally one arrives every period, a latency after its sample
         self._overdue_s = min(config.safety.sensor_timeout_s, OVERDUE_FRAME_PERIODS / sensor.frame_rate_hz)
         self._frame_z = math.nan  # the TSI's height when the newest frame was sampled
@@ -291,6 +292,7 @@ class ControlLoop:
             return
         if kind not in RETRACT_FAULTS:
             self.law.reset(self._x_s, ZERO3)  # Eq. 3 again: the reference restarts where the robot stopped
+        self._lifting = False
         self._clutch((0, 1, 2))
         self.sm.clear_fault(now_s)
         events.append(FaultCleared(now_s, kind))
@@ -307,13 +309,16 @@ class ControlLoop:
             min_pressure_pa=self._min_pressure_pa,
             full_scale_pa=self.sensor.full_scale_pa,
             saturated_elements=self._saturated,
-            # between frames the robot's own motion since the newest one is added: a late frame must not
-            # hide travel into the tissue from the ceiling
-            indentation_m=self._indentation_m + max(self._frame_z - self._x_s[Z], 0.0),
+            indentation_m=self._indentation_now(),
             sensor_age_s=self._ages[0],
             master_age_s=self._ages[1] if self.has_master else None,
             slave_age_s=self._ages[2],
         )
+
+    def _indentation_now(self) -> float:
+        """The newest frame's indentation with the robot's own motion since added: a late frame must not hide
+        travel into the tissue from the ceiling."""
+        return self._indentation_m + max(self._frame_z - self._x_s[Z], 0.0)
 
     def _read_master(self, master: MasterState, now_s: float, events: list, result: StepResult) -> None:
         if master.seq == self._master_seq:
@@ -463,12 +468,22 @@ class ControlLoop:
     def _reference(self, now_s: float, dt: float, result: StepResult, events: list) -> None:
         sm, law = self.sm, self.law
         z_before = law.x_r[Z]
-        if sm.phase == Phase.HOLD and not self.safety.retract:
-            # stopped: keep the reference on the robot so clearing the fault restarts without a jump
+        if sm.phase == Phase.HOLD and not (self.safety.retract or self._lifting):
+            too_hard = self.safety.pressing_too_hard(self._force_N, self._max_pressure_pa, self._indentation_now())
+            if too_hard is None or not self._ages[2] <= self.safety.limits.slave_timeout_s:
+                # stopped: keep the reference on the robot so clearing the fault restarts without a jump
+                law.reset(self._x_s, ZERO3)
+                result.position_ref_m = self._x_s
+                result.hold = True
+                return
+            # held pressing harder than a ceiling allows (a robot that braked into the tissue): lift, and stay
+            # faulted; a live robot moving up, away from the tissue, is safe
+            self._lifting = True
             law.reset(self._x_s, ZERO3)
-            result.position_ref_m = self._x_s
-            result.hold = True
-            return
+            sm.set_retract(self._x_s[Z])
+            z_before = law.x_r[Z]
+            events.append(Notice(now_s, f"{too_hard} while the robot was held: the probe is being lifted off the "
+                                        f"tissue at the retract speed; the fault stays latched."))
         if sm.phase.idle:
             self._advance_jog(dt)
         x_d = self._xd = self._desired()
@@ -477,15 +492,19 @@ class ControlLoop:
         # must not pull the probe down through the law's compliance; the supervisor faults on it meanwhile.
         f_e = (0.0, 0.0, -self._force_N if self._force_N > 0.0 else 0.0)
         if sm.phase in (Phase.RETRACT, Phase.HOLD):
-            z, vz, finished = sm.retract_setpoint(now_s)
+            z, vz, finished = sm.retract_step(law.x_r[Z], dt)
             if sm.phase == Phase.HOLD:
                 x_d = (self._hold_xy[0], self._hold_xy[1], z)
                 v_d = (0.0, 0.0, vz)
             else:
                 x_d = (x_d[0], x_d[1], z)
                 v_d = (self._v_d[0], self._v_d[1], vz)
-            law.step(dt, x_d, v_d, ZERO3, f_e, ZERO3)
-            if sm.phase == Phase.RETRACT and finished and abs(law.x_r[Z] - z) < 2e-4:
+            law.step(dt, x_d, v_d, ZERO3, ZERO3, ZERO3)
+            # The lift is the retract ramp itself, not the law's answer to the tissue's push: with the push,
+            # a probe carrying 9 N rose at F/B = 112 mm/s, the velocity guard refused it, and the probe was
+            # stopped where it was, still pressing.
+            law.x_r[Z], law.v_r[Z], law.a_r[Z] = z, vz, 0.0
+            if sm.phase == Phase.RETRACT and finished:
                 sm.retract_finished(now_s)
                 self._clutch((Z,))
                 self._xd = (self._xd[0], self._xd[1], self._desired()[Z])  # this tick's row shows the handed-back X_d

@@ -53,10 +53,7 @@ class PalpationStateMachine:
         self._fpos = np.zeros((FRAME_BUFFER, 3))
         self._fp = np.zeros((FRAME_BUFFER, *shape))
         self._fi = 0
-        # retract trajectory
-        self._r_t0 = 0.0
-        self._r_z0 = 0.0
-        self._r_z1 = 0.0
+        self._r_z1 = 0.0  # where the retract lifts to
         self._after_retract = Phase.APPROACH
 
     # ---- queries -------------------------------------------------------------------------------------
@@ -117,7 +114,7 @@ class PalpationStateMachine:
             self._events.append(RegionAborted(now_s, self.region, reason))
         self._finish_ramp()
         if retract:
-            self._set_retract(now_s, tsi_z_m)
+            self.set_retract(tsi_z_m)
         self._enter(now_s, Phase.HOLD)
 
     def clear_fault(self, now_s: float) -> None:
@@ -136,21 +133,22 @@ class PalpationStateMachine:
         top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else tsi_z_m
         return max(top, tsi_z_m) + self.contact.retract_height_m
 
-    def _set_retract(self, now_s: float, tsi_z_m: float) -> None:
-        self._r_t0, self._r_z0 = now_s, tsi_z_m
+    def set_retract(self, tsi_z_m: float) -> None:
+        """Lift to :meth:`retract_target_m` from here (the loop drives the lift: :meth:`retract_step`)."""
         self._r_z1 = self.retract_target_m(tsi_z_m)
 
     def begin_retract(self, now_s: float, tsi_z_m: float, then: Phase) -> None:
-        self._set_retract(now_s, tsi_z_m)
+        self.set_retract(tsi_z_m)
         self._after_retract = then
         self._enter(now_s, Phase.RETRACT)
 
-    def retract_setpoint(self, now_s: float) -> tuple[float, float, bool]:
-        """(z, vz, finished) of the retract ramp at now_s."""
+    def retract_step(self, z_ref_m: float, dt_s: float) -> tuple[float, float, bool]:
+        """(z, vz, finished): the lift's next reference from ``z_ref_m``, at the retract speed whatever the
+        force the probe carries, never downwards."""
         v = self.contact.retract_speed_m_s
-        z = self._r_z0 + v * (now_s - self._r_t0)
+        z = z_ref_m + v * dt_s
         if z >= self._r_z1:
-            return self._r_z1, 0.0, True
+            return max(self._r_z1, z_ref_m), 0.0, True
         return z, v, False
 
     # ---- per frame and per tick ----------------------------------------------------------------------

@@ -107,6 +107,20 @@ class SafetySupervisor:
                 f"{lim.velocity_limit_m_s * 1e3:.0f} mm/s limit. The robot was stopped where it is.")
         return self.outside_workspace(x_ref_m)
 
+    def pressing_too_hard(self, force_N: float, max_pressure_pa: float, indentation_m: float) -> str | None:
+        """What of the probe's push passes a ceiling, as a clause ("the force 12.3 N is over the 12 N
+        ceiling"), or None."""
+        lim = self.limits
+        if force_N > lim.force_ceiling_N:
+            return f"The force {force_N:.2f} N is over the {lim.force_ceiling_N:.2f} N ceiling"
+        if max_pressure_pa > lim.element_pressure_ceiling_pa:
+            return (f"An element reads {max_pressure_pa / 1e3:.1f} kPa, over the "
+                    f"{lim.element_pressure_ceiling_pa / 1e3:.1f} kPa ceiling")
+        if indentation_m > lim.indentation_ceiling_m:
+            return (f"The probe is {indentation_m * 1e3:.1f} mm into the tissue, over the "
+                    f"{lim.indentation_ceiling_m * 1e3:.1f} mm ceiling")
+        return None
+
     def outside_workspace(self, x_ref_m) -> tuple[FaultKind, str] | None:
         lim = self.limits
         for i, axis in enumerate("xyz"):
