@@ -186,9 +186,18 @@ class AirNoise:
         self._own = np.full(n, np.nan)
         self._turn = 0  # the next element brought up to date
         self.count = 0  # frames held, up to the window
+        self._levels = np.zeros(window_frames)  # each held frame's median reading: where the array's zero lies
+        self._level_next = 0
+        self._levels_held = 0
 
-    def push(self, pressure_pa: np.ndarray) -> None:
+    def push(self, pressure_pa: np.ndarray, unloaded: bool = True) -> None:
+        """A frame read between areas; ``unloaded``: no element reads contact, so it shows where the array's
+        zero lies (:meth:`zero_pa`)."""
         reading = pressure_pa.ravel()
+        if unloaded:
+            self._levels[self._level_next] = _row_medians(reading[None])[0]
+            self._level_next = (self._level_next + 1) % len(self._levels)
+            self._levels_held = min(self._levels_held + 1, len(self._levels))
         if self.count:
             self._diffs[:, self._next] = reading - self._last
             self._next = (self._next + 1) % self._diffs.shape[1]
@@ -213,6 +222,14 @@ class AirNoise:
         kept = distance <= _OUTLIER_SIGMAS * _MAD_TO_SIGMA * _row_medians(distance)[:, None]
         spread = np.sqrt(np.sum(np.where(kept, centred, 0.0) ** 2, axis=1) / np.maximum(kept.sum(axis=1) - 1, 1))
         self._own[elements] = spread / np.sqrt(2.0)
+
+    def zero_pa(self) -> float:
+        """Where the unloaded array reads now: the median over the unloaded frames held of each frame's median
+        element (a face in air reads its tare's zero plus noise; a drifting array reads its drift). NaN
+        before any such frame."""
+        if not self._levels_held:
+            return float("nan")
+        return float(np.median(self._levels[: self._levels_held]))
 
     def sigma_pa(self) -> np.ndarray | None:
         """Per-element noise standard deviation, never below the face's median (an element's own estimate

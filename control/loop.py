@@ -17,14 +17,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.analysis import NOISE_MIN_FRAMES, AirNoise, PoseHistory, contact_thresholds, element_analysis
+from control.analysis import (NOISE_MIN_FRAMES, ONSET_NOISE_SIGMAS, AirNoise, PoseHistory, contact_thresholds,
+                              element_analysis)
 from control.config import ControlConfig
 from control.law import HybridImpedanceLaw
 from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
                               FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
-from control.safety import IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS, SafetySupervisor
+from control.safety import (IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS, UNMEASURED_NEGATIVE_FRACTION,
+                            SafetySupervisor)
 from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
@@ -36,6 +38,23 @@ STEP_TOLERANCE_M = 1e-6  # rounding in the law and the pose: far below any step 
 # lies over other tissue
 TRACKED_DRIFT_PITCHES = 0.25
 NOISY_ELEMENT_FACTOR = 2.0  # an element this many times noisier than the face's median is named to the operator
+# A reading stamped further ahead of the loop's clock than this comes from a clock or a device that lies: it is
+# not fresh (one frame 5 s ahead, taken as "last seen", kept the stale watchdog quiet for 0.5-1 s)
+FUTURE_TOLERANCE_S = 2e-3
+# How far the probe may go deeper, under force control in contact, without the measured force rising: an array
+# that streams zeros, repeats a frame or drifts down reads no more force however deep the probe goes, and the
+# force loop pushes on. Tissue stiffens with depth; its creep under a held level moves the probe by a fraction
+# of this at most. Less than 1 mm by the time the probe stops: the force loop descends at up to 20-30 mm/s,
+# and the lift starts within a tick of the check.
+UNEXPLAINED_TRAVEL_M = 0.6e-3
+# the force rise that counts as one (besides five standard deviations of the measured force's noise)
+FORCE_RISE_N = 5e-3
+# An array that reads no contact at all while the probe is this far below where it confirmed contact is not
+# reading the tissue
+DEAD_DEPTH_M = 0.5e-3
+# The unloaded reading between areas may wander by this share of full scale from the tare before force control
+# is refused until the sensor is tared again: its offset would be taken for force
+DRIFT_FRACTION = 0.01
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 
@@ -83,10 +102,21 @@ class ControlLoop:
         self._sensor_seq = -1
         self._force_N = 0.0
         self._max_pressure_pa = 0.0
-        self._min_pressure_pa = 0.0
+        self._lowest_pa = 0.0  # the element reading furthest below what a tared array can read, and how far it may
+        self._lowest_allowance_pa = 0.0
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
         self._noise = AirNoise(sensor.shape)
+        # liveness: a frame that repeats the one before says nothing new, and the array ages as if silent
+        self._prev_pressure = np.full(sensor.shape, np.nan)
+        # until the array's own noise is measured, what a noisy element may read below zero is not known either
+        self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
+        self._repeats = 0  # frames in a row that repeat the one before
+        self._force_noise_N = 0.0  # the measured force's noise, from the air noise when the area began
+        self._peak_force_N = math.nan  # the most force this area's contact has read, and where
+        self._peak_z = math.nan
+        self._contradiction: str | None = None  # what the array says that the probe's motion belies
+        self._surface_top_m = math.nan  # the highest contact onset confirmed in this session
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
                             np.full(sensor.shape, contact.confirm_threshold_pa))
@@ -190,7 +220,9 @@ class ControlLoop:
         confirm = self.config.contact.confirm_threshold_pa
         if self._saturated:
             return f"{self._saturated} element(s) saturated: the probe is pressing; lift it clear of the tissue"
-        if not self._max_pressure_pa < confirm:
+        # lifted well above every surface this session has touched, a reading is the array's own drift
+        clear = self._x_s[Z] - self._surface_top_m >= self.config.contact.retract_height_m / 2
+        if not (self._max_pressure_pa < confirm or clear):
             return (f"an element reads {self._max_pressure_pa / 1e3:.2f} kPa, above the "
                     f"{confirm / 1e3:.2f} kPa contact threshold: the probe is touching something; lift it clear")
         return None
@@ -204,13 +236,15 @@ class ControlLoop:
                 self._refuse(now_s, cmd, "force control is already on", events)
             elif sm.phase == Phase.RETRACT:
                 self._refuse(now_s, cmd, "the probe is still retracting", events)
-            elif (problem := self._contact_problem()) is not None:
+            elif (problem := self._contact_problem() or self._start_problem()) is not None:
                 self._refuse(now_s, cmd, problem, events)
             else:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 onset, _ = self._thresholds
                 touching = bool((self.frame["pressure_pa"] >= onset).any())
                 sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching)
+                sigma = self._noise.sigma_pa()
+                self._force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
                 self._set_sz(now_s, False, cmd.source, events)
                 notice = self._noise_notice()
                 if notice:
@@ -225,6 +259,8 @@ class ControlLoop:
         sigma = self._noise.sigma_pa()
         if sigma is not None:
             contact_thresholds(self.config.contact, sigma, out=self._thresholds)
+            np.multiply(sigma, ONSET_NOISE_SIGMAS, out=self._negative_allowance_pa)
+            self._negative_allowance_pa += IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
 
     def _contact_problem(self) -> str | None:
         """Why contact could not be told from the sensor's noise in this area (None: it can)."""
@@ -242,6 +278,25 @@ class ControlLoop:
                     f"({mean_pa / 1e3:.2f} kPa at {ramp.force_min_N:g} N): check the sensor's cable and shielding")
         return None
 
+    def _start_problem(self) -> str | None:
+        """Why the array's reading cannot be trusted to start force control here (None: it can): its zero has
+        drifted since the tare, or it already reads contact that it was not seen making, by an unknown depth
+        that no ceiling would count (issue 49: started 8 mm into a soft layer, a ramp ended 24 mm in while the
+        indentation ceiling read 16)."""
+        tracker = self.sm.tracker
+        pressed = tracker.blind & (self.frame["pressure_pa"] >= tracker.confirm_pa)
+        if pressed.any():
+            return (f"{int(pressed.sum())} element(s) already read contact, up to "
+                    f"{float(self.frame['pressure_pa'][pressed].max()) / 1e3:.2f} kPa, that the probe was not seen "
+                    f"making: it may press the tissue by a depth no ceiling would count; lift it clear of the "
+                    f"tissue (a reading left by the last area fades within seconds in air)")
+        zero = self._noise.zero_pa()
+        bound = DRIFT_FRACTION * self.sensor.full_scale_pa
+        if abs(zero) > bound:  # (not known before the array was seen unloaded)
+            return (f"the array's unloaded reading has drifted to {zero / 1e3:+.2f} kPa since the tare (more than "
+                    f"{bound / 1e3:.1f} kPa): tare the sensor with the probe clear of the tissue")
+        return None
+
     def _noise_notice(self) -> str:
         """What the operator should know of the sensor's noise before this area ("": nothing): that the array is
         noisier than the configured thresholds allow for, or that some elements are far noisier than the rest.
@@ -255,7 +310,7 @@ class ControlLoop:
             said.append(f"Sensor noise between areas: {typical:.0f} Pa per element (median), more than the "
                         f"configured {configured:g} Pa onset allows for: contact is tracked from "
                         f"{np.median(onset) / 1e3:.2f} kPa (confirmed at {np.median(confirm) / 1e3:.2f} kPa).")
-        for i, j in np.argwhere(sigma > NOISY_ELEMENT_FACTOR * typical):
+        for i, j in np.argwhere(sigma > NOISY_ELEMENT_FACTOR * typical) if typical > 0 else ():
             said.append(f"Element at row {i}, column {j} is {sigma[i, j] / typical:.0f}x noisier than the median "
                         f"({sigma[i, j]:.0f} Pa): its contact is tracked from {onset[i, j] / 1e3:.2f} kPa.")
         return " ".join(said)
@@ -306,11 +361,13 @@ class ControlLoop:
             v_ref_m_s=self.law.v_r,
             force_N=self._force_N,
             max_pressure_pa=self._max_pressure_pa,
-            min_pressure_pa=self._min_pressure_pa,
-            full_scale_pa=self.sensor.full_scale_pa,
+            lowest_pa=self._lowest_pa,
+            negative_allowance_pa=self._lowest_allowance_pa,
             saturated_elements=self._saturated,
             indentation_m=self._indentation_now(),
             sensor_age_s=self._ages[0],
+            sensor_repeats=self._repeats,
+            contradiction=self._contradiction,
             master_age_s=self._ages[1] if self.has_master else None,
             slave_age_s=self._ages[2],
         )
@@ -349,10 +406,18 @@ class ControlLoop:
     def _read_frame(self, frame: TactileFrame) -> None:
         self._sensor_seq = frame.seq
         p = frame.pressure_pa
+        if np.array_equal(p, self._prev_pressure):
+            self._repeats += 1  # a frozen array (or a dead one streaming zeros): every real array has noise
+        else:
+            self._repeats = 0
+            self._seen[0] = frame.t_s
+        self._prev_pressure[...] = p
         area = self.sensor.element_area_m2
         self._force_N = float(p.sum()) * area
         self._max_pressure_pa = float(p.max())
-        self._min_pressure_pa = float(p.min())
+        margin = p + self._negative_allowance_pa
+        k = int(np.argmin(margin))  # a NaN element is the one: NaN is never plausible
+        self._lowest_pa, self._lowest_allowance_pa = float(p.flat[k]), float(self._negative_allowance_pa.flat[k])
         self._saturated = int(frame.saturated.sum()) if frame.saturated is not None else 0
         pos = self.history.at(frame.t_s)
         self._frame_z = pos[Z]
@@ -366,11 +431,11 @@ class ControlLoop:
         fr["pressure_pa"] = p
         tracker = sm.tracker
         if sm.phase.idle:
-            self._noise.push(p)
+            self._noise.push(p, unloaded=bool((p < self._thresholds[0]).all()))
             self._refresh_thresholds()  # the estimate moved on by a few elements (AirNoise)
         if not sm.force_control:
             # the ceiling holds under position control too: the operator can press the probe in by hand
-            implausible = self._min_pressure_pa < -IMPLAUSIBLE_NEGATIVE_FRACTION * self.sensor.full_scale_pa
+            implausible = not self._lowest_pa >= -self._lowest_allowance_pa
             clear = (p < self._thresholds[0]).all() and not implausible
             # A sensor's residual reading after a hard press (creep) can hold an element above the threshold
             # in air for seconds: a probe moved to the next area would then carry the last area's onsets
@@ -393,12 +458,48 @@ class ControlLoop:
             travel = float(np.mean(blind_onset[pressed_blind])) - pos[Z]
             if not self._indentation_m >= travel:
                 self._indentation_m = max(travel, 0.0)
+        self._check_contact(p, pos[Z])
         if sm.force_control:
             fr["dL_m"] = dL
             fr["stiffness_pa"] = stiffness
         else:
             fr["dL_m"] = np.nan
             fr["stiffness_pa"] = np.nan
+
+    def _check_contact(self, pressure_pa: np.ndarray, z_m: float) -> None:
+        """Whether the array reads the contact the probe's motion says it has, under force control once contact
+        is confirmed (``_contradiction`` says why not): no element reading contact while the probe is below
+        where it confirmed contact, or the probe going deeper without the force rising. A dead array, one that
+        repeats a frame, or one whose reading drifts down all read less than the tissue pushes, and the force
+        loop pushes on into the tissue."""
+        sm = self.sm
+        if sm.phase != Phase.SETTLING:
+            self._peak_force_N = self._peak_z = math.nan
+            self._contradiction = None
+            return
+        tracker = sm.tracker
+        onsets = tracker.onset_height_m
+        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else math.nan
+        if not self._surface_top_m >= top:
+            self._surface_top_m = top
+        if z_m < top - DEAD_DEPTH_M and not (pressure_pa >= tracker.onset_pa).any():
+            self._contradiction = (
+                f"Dead tactile array: no element reads contact while the probe is {(top - z_m) * 1e3:.1f} mm below "
+                f"where it confirmed contact; the array is not reading the tissue. The probe was lifted off the tissue.")
+            return
+        force = self._force_N
+        if not force <= self._peak_force_N + max(5.0 * self._force_noise_N, FORCE_RISE_N):
+            self._peak_force_N, self._peak_z = force, z_m
+
+    def _check_travel(self) -> None:
+        """The robot, now, below where the array last read the force rise (between frames as well: a frame is
+        10-20 ms late, and at 20 mm/s that is a third of a millimetre more)."""
+        travel = self._peak_z - self._x_s[Z]
+        if travel > UNEXPLAINED_TRAVEL_M and self._contradiction is None:
+            self._contradiction = (
+                f"Tactile force not rising: the probe went {travel * 1e3:.2f} mm deeper under force control while "
+                f"the array read no more than {self._peak_force_N:.2f} N; it is not reading the tissue (dead, "
+                f"frozen or drifting). The probe was lifted off the tissue.")
 
     def step(
         self,
@@ -426,14 +527,13 @@ class ControlLoop:
             events.append(SzChanged(now_s, 1, Source.CONTROLLER))
         dt = min(max(now_s - self._last, 0.0), self.config.max_step_s)
         self._last = now_s
-        if sensor is not None:
-            self._seen[0] = sensor.t_s
-        if master is not None:
+        ahead = now_s + FUTURE_TOLERANCE_S
+        if sensor is not None and not sensor.t_s <= ahead:
+            sensor = None  # stamped in the future (or not at all): not a reading of now
+        if master is not None and master.t_s <= ahead:
             self._seen[1] = master.t_s
-        if slave is not None:
+        if slave is not None and slave.t_s <= ahead:
             self._seen[2] = slave.t_s
-        # a device that stops answering keeps ageing from its last reading
-        self._ages = (now_s - self._seen[0], now_s - self._seen[1], now_s - self._seen[2])
 
         if master is not None and self.has_master:
             self._read_master(master, now_s, events, result)
@@ -442,10 +542,13 @@ class ControlLoop:
         if sensor is not None and sensor.seq != self._sensor_seq:
             self._read_frame(sensor)
             result.new_frame = True
+        # a device that stops answering keeps ageing from its last reading (the array: from its last new one)
+        self._ages = (now_s - self._seen[0], now_s - self._seen[1], now_s - self._seen[2])
 
         sm = self.sm
         if sm.force_control:
             sm.on_tick(now_s, self._x_s[Z])
+            self._check_travel()
         events.extend(sm.take_events())
 
         if not self.safety.faulted:

@@ -21,9 +21,14 @@ RETRACT_FAULTS = frozenset({
     FaultKind.FORCE_CEILING, FaultKind.PRESSURE_CEILING, FaultKind.INDENTATION_CEILING,
     FaultKind.SENSOR_STALE, FaultKind.MASTER_STALE, FaultKind.SENSOR_IMPLAUSIBLE,
 })
-# A tared element cannot read far below zero: the tare refuses loads beyond this share of full scale, and no
-# contact pulls on the array. A frame below it is damaged or its sensor broken: what it says of contact is void.
-IMPLAUSIBLE_NEGATIVE_FRACTION = 0.2
+# A tared element cannot read far below zero: no contact pulls on the array, and its zero moves by less than
+# this share of full scale within a session (rest offsets of capacitive arrays move about 2 % of full scale
+# between days, so an array is tared each session). Below it, less its own noise's five standard deviations,
+# the element is damaged or drifting, and what the array says of contact is void: an array drifting 15-19 kPa
+# down, inside the 20 % this once was, hid 3.4-4.6 N from the force loop.
+IMPLAUSIBLE_NEGATIVE_FRACTION = 0.03
+# ... and before its noise is measured (the first frames after start-up), this share of full scale
+UNMEASURED_NEGATIVE_FRACTION = 0.2
 
 # Before the first reading of a device arrives, allow this long after start-up.
 STARTUP_GRACE_S = 1.0
@@ -58,11 +63,13 @@ class SafetySupervisor:
         v_ref_m_s,
         force_N: float,
         max_pressure_pa: float,
-        min_pressure_pa: float,
-        full_scale_pa: float,
+        lowest_pa: float,
+        negative_allowance_pa: float,
         saturated_elements: int,
         indentation_m: float,
         sensor_age_s: float,
+        sensor_repeats: int,
+        contradiction: str | None,
         master_age_s: float | None,
         slave_age_s: float,
     ) -> tuple[FaultKind, str] | None:
@@ -73,8 +80,13 @@ class SafetySupervisor:
             return FaultKind.SLAVE_STALE, _stale("robot", slave_age_s, lim.slave_timeout_s,
                                                  "The robot was told to hold; check its controller and cable.")
         if not (sensor_age_s <= lim.sensor_timeout_s) and not (grace and math.isinf(sensor_age_s)):
-            return FaultKind.SENSOR_STALE, _stale("tactile sensor", sensor_age_s, lim.sensor_timeout_s,
-                                                  "The probe was lifted off the tissue because the force is unknown.")
+            action = "The probe was lifted off the tissue because the force is unknown."
+            if sensor_repeats and not math.isinf(sensor_age_s):
+                return FaultKind.SENSOR_STALE, (
+                    f"Frozen tactile array: its last {sensor_repeats + 1} frames ({sensor_age_s * 1e3:.0f} ms) were "
+                    f"identical, element by element, as no array with noise gives (limit {lim.sensor_timeout_s * 1e3:.0f} "
+                    f"ms). {action}")
+            return FaultKind.SENSOR_STALE, _stale("tactile sensor", sensor_age_s, lim.sensor_timeout_s, action)
         if master_age_s is not None and not (master_age_s <= lim.master_timeout_s) \
                 and not (grace and math.isinf(master_age_s)):
             return FaultKind.MASTER_STALE, _stale("master device", master_age_s, lim.master_timeout_s,
@@ -83,10 +95,13 @@ class SafetySupervisor:
             return FaultKind.FORCE_CEILING, (
                 f"Force ceiling exceeded: the tactile sensor measured {force_N:.2f} N, above the "
                 f"{lim.force_ceiling_N:.2f} N limit. The probe was lifted off the tissue.")
-        if not min_pressure_pa >= -IMPLAUSIBLE_NEGATIVE_FRACTION * full_scale_pa:
+        if not lowest_pa >= -negative_allowance_pa:
             return FaultKind.SENSOR_IMPLAUSIBLE, (
-                f"Implausible tactile data: an element read {min_pressure_pa / 1e3:.1f} kPa, far below zero; "
-                f"what the array says of contact cannot be trusted. The probe was lifted off the tissue.")
+                f"Implausible tactile data: an element read {lowest_pa / 1e3:.1f} kPa, far below zero (a tared "
+                f"element stays above {-negative_allowance_pa / 1e3:.1f} kPa); what the array says of contact "
+                f"cannot be trusted. The probe was lifted off the tissue.")
+        if contradiction is not None:
+            return FaultKind.SENSOR_IMPLAUSIBLE, contradiction
         if saturated_elements:  # the force is at least what is read, and could be any amount more
             return FaultKind.FORCE_CEILING, (
                 f"Force unknown: {saturated_elements} tactile element(s) saturated, so the force is at least "

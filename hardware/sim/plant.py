@@ -19,7 +19,7 @@ ELEMENT_AREA_M2 = TactileConstraints().element_area_m2
 
 class LayerPlant:
     def __init__(self, surface_m=0.025, modulus_pa=60e3, frame_period_s=0.01, latency_s=0.005,
-                 start_m=(0.03, 0.015, 0.032), stiff_mask=None, stiff_factor=1.0, noise_pa=0.0,
+                 start_m=(0.03, 0.015, 0.032), stiff_mask=None, stiff_factor=1.0, noise_pa=50.0,
                  full_scale_pa=None):
         self.surface_m = surface_m
         self.modulus = np.full(SHAPE, modulus_pa)
@@ -36,6 +36,8 @@ class LayerPlant:
         self.sensor_alive = True
         self.slave_alive = True
         self.extra_force_pa = 0.0
+        # white noise per element and frame, as the simulated array's default (hardware/sim/settings.py): an
+        # array without noise repeats its frames exactly, which the loop takes for a frozen array
         self.noise_pa = noise_pa
         self.full_scale_pa = full_scale_pa  # None: an array that never saturates
         self.rng = np.random.default_rng(1)

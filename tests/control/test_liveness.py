@@ -1,0 +1,120 @@
+"""A lying tactile array: dead, frozen, drifting, or stamped in the future (issue 49). Each kind once drove the
+probe on into the tissue; each now ends with the probe lifted, before 1 mm of travel the array cannot explain."""
+
+import numpy as np
+import pytest
+
+from control.messages import FaultKind, FaultRaised, SetSz
+from hardware.interfaces import Phase, TactileFrame
+
+from .plant import Harness, LayerPlant
+
+
+def start_region(h):
+    h.run(0.4)  # the loop measures the sensor's noise before it lets force control start
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    assert h.loop.sm.phase == Phase.SEEK_CONTACT
+
+
+def lie(plant, reading):
+    """From now on the array reports ``reading(true pressure)`` instead of the truth (fresh seq and stamp)."""
+    honest = plant.pressure_at
+    plant.pressure_at = lambda z: reading(honest(z))
+
+
+def run_to_fault(h, seconds=10.0):
+    deepest = [h.plant.x[2]]
+    h.run(seconds, until=lambda h: deepest.append(h.plant.x[2]) or h.loop.safety.faulted)
+    h.run(1.0)  # and the lift that follows
+    return min(deepest)
+
+
+def test_an_array_streaming_zeros_from_the_start_of_force_control_is_stale():
+    """Zeros from the start of force control drove the probe through a 25 mm phantom to 38.7 N."""
+    h = Harness()
+    start_region(h)
+    lie(h.plant, lambda p: np.zeros_like(p))
+    lowest = run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_STALE and fault.message.startswith("Frozen tactile array")
+    assert h.plant.x[2] > 0.025 and 0.025 - lowest < 1e-3  # it never got a millimetre into the tissue
+
+
+@pytest.mark.parametrize("level", [2, 5])
+def test_an_array_that_repeats_one_frame_is_stale(level):
+    """The same frame repeated after level 2 or 5 drove the probe to the indentation ceiling at 16 N."""
+    h = Harness()
+    start_region(h)
+    h.run(20, until=lambda h: h.loop.sm.level == level)
+    frozen = h.plant.pressure_at(h.plant.x[2])
+    z = h.plant.x[2]
+    lie(h.plant, lambda p: frozen)
+    lowest = run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_STALE and "identical, element by element" in fault.message
+    assert z - lowest < 1e-3 and h.plant.x[2] > 0.025
+
+
+def test_a_dead_array_that_reads_only_its_noise_in_the_tissue_is_found():
+    """Alive electronics, no sensing: noise about zero while the probe is millimetres into the tissue."""
+    h = Harness()
+    start_region(h)
+    h.run(20, until=lambda h: h.loop.sm.level == 2)
+    z = h.plant.x[2]
+    rng = np.random.default_rng(3)
+    lie(h.plant, lambda p: rng.normal(0.0, 50.0, p.shape))
+    lowest = run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_IMPLAUSIBLE and fault.message.startswith("Dead tactile array")
+    assert z - lowest < 1e-3 and h.plant.x[2] > 0.025
+
+
+def test_an_array_that_loses_half_its_gain_is_found_before_a_millimetre_of_travel():
+    """A reading that falls short of the tissue's push: the force loop goes deeper without the force rising."""
+    h = Harness()
+    start_region(h)
+    h.run(20, until=lambda h: h.loop.sm.level == 3)
+    z = h.plant.x[2]
+    lie(h.plant, lambda p: 0.5 * p)
+    lowest = run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_IMPLAUSIBLE and fault.message.startswith("Tactile force not rising")
+    assert z - lowest < 1e-3 and h.plant.x[2] > 0.025
+
+
+def test_a_uniform_negative_drift_within_the_old_bound_is_implausible():
+    """-15 to -19 kPa per element, inside the old 20 %-of-full-scale bound, put 10.4-11.6 N on the tissue at a
+    7 N ramp and 20 mm of indentation against a 16 mm ceiling, with the ramp reported done."""
+    h = Harness()
+    start_region(h)
+    h.run(20, until=lambda h: h.loop.sm.level == 1)
+    lie(h.plant, lambda p: p - 15e3)
+    run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_IMPLAUSIBLE and "far below zero" in fault.message
+    assert h.plant.true_force_N() == 0.0
+
+
+def test_an_unloaded_reading_that_drifted_since_the_tare_refuses_force_control():
+    h = Harness()
+    lie(h.plant, lambda p: p - 1.5e3)  # in air: within the implausible bound, beyond the drift one
+    h.run(0.4)
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    assert "unloaded reading has drifted to -1.50 kPa" in h.of(type(h.events[-1]))[-1].reason
+    assert h.loop.sm.phase == Phase.APPROACH and not h.of(FaultRaised)
+
+
+def test_a_frame_stamped_in_the_future_does_not_keep_the_watchdog_quiet():
+    """One frame 5 s ahead, stored as "last seen", kept the stale watchdog quiet for 0.5-1 s."""
+    h = Harness()
+    h.run(0.2)
+    frame = h.plant.frame
+    h.plant.frame = TactileFrame(frame.seq + 1, frame.t_s + 5.0, frame.pressure_pa + 1.0, None)
+    h.plant.sensor_alive = False  # and then nothing
+    silent_from = h.now
+    h.run(1.0, until=lambda h: h.loop.safety.faulted)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_STALE
+    assert h.now - silent_from <= h.config.safety.sensor_timeout_s + 0.011  # the newest real frame's age
