@@ -281,6 +281,35 @@ def element_analysis(
     return L0, dL, stiffness, in_contact, indentation
 
 
+class StiffnessWindow:
+    """How stiff the tissue under the face is: the least-squares slope of the total force against the face's
+    height over the newest frames in contact, N per m of indentation (NaN until their forces span
+    MIN_SPAN_N, far above the force's noise of a few mN: over less, the noise is the slope). The frames need
+    not follow each other: a probe bouncing on stiff tissue is in contact for a few frames at a time."""
+
+    MIN_SPAN_N = 0.25
+
+    def __init__(self, frames: int = 8):
+        self._z = np.full(frames, np.nan)
+        self._f = np.full(frames, np.nan)
+        self._i = 0
+
+    def clear(self) -> None:
+        self._z.fill(np.nan)
+        self._f.fill(np.nan)
+
+    def push(self, z_m: float, force_N: float) -> None:
+        self._z[self._i], self._f[self._i] = z_m, force_N
+        self._i = (self._i + 1) % len(self._z)
+
+    def stiffness_N_m(self) -> float:
+        z, f = self._z, self._f
+        if np.isnan(z).any() or not np.isfinite(f).all() or np.ptp(f) < self.MIN_SPAN_N or np.ptp(z) <= 0.0:
+            return float("nan")
+        dz = z - z.mean()
+        return float(-np.dot(dz, f - f.mean()) / np.dot(dz, dz))
+
+
 class PoseHistory:
     """The slave's recent positions, to look up where the TSI was when a (late) frame was sampled."""
 

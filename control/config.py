@@ -8,19 +8,34 @@ from functools import cached_property
 
 from hardware.settings import ConfigError, Settings, Vec3, bounded, number, positive, vec3
 
-# The stiffest environment the loop must stay stable against: the whole 8 x 30 mm face on 1 mm of a
-# 400 kPa silicone over the table (E A / h), well beyond any tissue the console palpates.
+# The stiffest environment the law's own integration must stay stable against at one step: the whole 8 x 30 mm
+# face on 1 mm of a 400 kPa silicone over the table (E A / h), beyond any tissue the console palpates.
 ENVIRONMENT_STIFFNESS_MAX_N_M = 1e5
 RATE_HZ_RANGE = (100.0, 5000.0)  # the paper's loop runs at 1 kHz; below 100 Hz it lags the 10 ms sensor frames
+
+# The force loop closes through the tactile array, not through the 1 ms step: the tissue's push reaches the
+# law with each frame, a latency after its sample, and the robot's own position loop lags the reference.
+# :func:`force_loop_stiffness_limit_N_m` takes the array's frame rate and latency from the sensor (the
+# defaults here are the simulated array's, hardware/sim/settings.py) and assumes the robot's inner loop is no
+# slower than the simulated rig's (a second order of 20 Hz, damping ratio 0.7): a slower robot needs more
+# damping than the rule asks.
+DEFAULT_FRAME_RATE_HZ, DEFAULT_LATENCY_S = 100.0, 0.010
+ROBOT_BANDWIDTH_HZ, ROBOT_DAMPING_RATIO = 20.0, 0.7
+# At 45 degrees of phase margin a force step overshoots by about a quarter and the loop has no limit cycle;
+# the default gains on the simulated rig limit-cycled from 10 kN/m (3.6 kN/m is where this rule's margin ends).
+PHASE_MARGIN_DEG = 45.0
 
 
 @dataclass(frozen=True)
 class ImpedanceGains(Settings):
     """M_d, B_d, K_d of Eq. 2, diagonal, per tissue-frame axis (x, y, z)."""
 
-    mass_kg: Vec3 = (1.0, 1.0, 1.0)
-    damping_N_s_m: Vec3 = (80.0, 80.0, 80.0)
-    stiffness_N_m: Vec3 = (1600.0, 1600.0, 1600.0)
+    # z, the force-controlled axis, is damped for tissue up to SafetyLimits' 5 kN/m through the array's lag
+    # (force_loop_stiffness_limit_N_m: 5.3 kN/m), and stiff enough in position control to stay critically
+    # damped (B^2 = 4 M K) so it follows the operator as briskly as x and y do
+    mass_kg: Vec3 = (1.0, 1.0, 0.5)
+    damping_N_s_m: Vec3 = (80.0, 80.0, 200.0)
+    stiffness_N_m: Vec3 = (1600.0, 1600.0, 20000.0)
 
     def __post_init__(self):
         object.__setattr__(self, "mass_kg", vec3("mass_kg", self.mass_kg, is_positive=True))
@@ -104,8 +119,22 @@ class SafetyLimits(Settings):
     sensor_timeout_s: float = 0.06
     master_timeout_s: float = 0.05
     slave_timeout_s: float = 0.01
+    # The stiffest tissue under the whole face (N per m of indentation) the console palpates: the force loop
+    # must be stable against it, the force is predicted with it between frames, and tissue found stiffer
+    # stops the ramp. The paper's 20 kPa phantoms give 0.4-1 kN/m at 1-7 N; silicone of 200 kPa, 2-5 kN/m.
+    tissue_stiffness_max_N_m: float = 5000.0
+    # The fastest the probe may descend near tissue (below the highest surface touched in this session plus the
+    # retract height, or anywhere before it has touched any): a frame tells of contact 10-20 ms late and a robot
+    # brakes at a few m/s^2, so at 250 mm/s a probe meeting tissue went 6-10 mm further before it could stop.
+    approach_speed_m_s: float = 0.02
 
     def __post_init__(self):
+        object.__setattr__(self, "approach_speed_m_s", bounded(
+            "approach_speed_m_s", self.approach_speed_m_s, 1e-3, 0.05,
+            "faster, a probe meeting the stiffest tissue passes the ceilings before a frame tells"))
+        object.__setattr__(self, "tissue_stiffness_max_N_m", bounded(
+            "tissue_stiffness_max_N_m", self.tissue_stiffness_max_N_m, 100.0, ENVIRONMENT_STIFFNESS_MAX_N_M,
+            "from the softest tissue to the face on 1 mm of stiff silicone"))
         for name, top, why in (
                 ("force_ceiling_N", 30.0, "the TSI's full scale is 95 kPa over 240 mm^2, 23 N"),
                 ("element_pressure_ceiling_pa", 1e6, "a capacitive element saturates far below 1 MPa"),
@@ -142,6 +171,32 @@ class MasterMapping(Settings):
         object.__setattr__(self, "derivative_filter_s", positive("derivative_filter_s", self.derivative_filter_s))
 
 
+def force_loop_stiffness_limit_N_m(mass_kg: float, damping_N_s_m: float, frame_rate_hz: float, latency_s: float,
+                                   dt_s: float) -> float:
+    """The stiffest tissue the force loop on z (S_z = 0: M x'' + B x' = F_d - F_e) stays stable against with
+    PHASE_MARGIN_DEG of margin, the tissue's force read by an array at ``frame_rate_hz`` (held half a frame
+    on average), ``latency_s`` after its sample, through a robot as ROBOT_BANDWIDTH_HZ assumes, at step dt_s.
+    Its open loop is k R(s) e^(-s tau) / (s (M s + B)); the phase falls monotonically with frequency, so the
+    frequency where the margin is left is found by bisection and the stiffness that puts the crossover there
+    follows from the gain."""
+    wn = 2.0 * math.pi * ROBOT_BANDWIDTH_HZ
+    delay = latency_s + 0.5 / frame_rate_hz + dt_s
+
+    def robot(w: float) -> tuple[float, float]:  # (gain, phase lag) of the inner loop
+        re, im = 1.0 - (w / wn) ** 2, 2.0 * ROBOT_DAMPING_RATIO * w / wn
+        return 1.0 / math.hypot(re, im), math.atan2(im, re)
+
+    def lag(w: float) -> float:
+        return 0.5 * math.pi + math.atan(mass_kg * w / damping_N_s_m) + w * delay + robot(w)[1]
+
+    target = math.pi - math.radians(PHASE_MARGIN_DEG)
+    lo, hi = 1e-3, 1e5  # rad/s: the lag passes the target between them for any positive M, B and delay
+    for _ in range(80):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if lag(mid) < target else (lo, mid)
+    return lo * math.hypot(mass_kg * lo, damping_N_s_m) / robot(lo)[0]
+
+
 def stable_for_environment(gains: ImpedanceGains, dt_s: float, stiffness_N_m: float) -> bool:
     """Whether the impedance law (control/law.py: backward Euler in its own B and K) stays stable against an
     environment of ``stiffness_N_m`` fed back explicitly through F_e at step ``dt_s``, on every axis:
@@ -172,15 +227,34 @@ class ControlConfig(Settings):
         if self.ramp.force_max_N > self.safety.force_ceiling_N:
             raise ConfigError("ramp.force_max_N", f"{self.ramp.force_max_N:g} N is above the force ceiling "
                                                   f"({self.safety.force_ceiling_N:g} N): the last level would trip it")
+        if self.safety.approach_speed_m_s > self.safety.velocity_limit_m_s:
+            raise ConfigError("safety.approach_speed_m_s", f"{self.safety.approach_speed_m_s:g} m/s is above the "
+                                                           f"velocity limit ({self.safety.velocity_limit_m_s:g} m/s)")
         for key, speed in (("contact.retract_speed_m_s", self.contact.retract_speed_m_s),
                            ("master.jog_speed_m_s", self.master.jog_speed_m_s)):
             if speed > self.safety.velocity_limit_m_s:
                 raise ConfigError(key, f"{speed:g} m/s is above the velocity limit "
                                        f"({self.safety.velocity_limit_m_s:g} m/s)")
-        if not stable_for_environment(self.gains, self.max_step_s, ENVIRONMENT_STIFFNESS_MAX_N_M):
-            raise ConfigError("gains", "the impedance law would go unstable against stiff tissue: need dt^2 k < "
-                                       "2 (2 M + dt B) on every axis with dt = max_step_s and k = "
-                                       f"{ENVIRONMENT_STIFFNESS_MAX_N_M:g} N/m; raise mass_kg or damping_N_s_m")
+        problem = self.gains_problem(self.gains, DEFAULT_FRAME_RATE_HZ, DEFAULT_LATENCY_S)
+        if problem is not None:
+            raise ConfigError("gains", problem)
+
+    def gains_problem(self, gains: ImpedanceGains, frame_rate_hz: float, latency_s: float) -> str | None:
+        """Why ``gains`` would not be stable here (None: they are): the same rule for the configuration file,
+        the loop's own sensor and every change of gains at run time."""
+        if not stable_for_environment(gains, self.max_step_s, ENVIRONMENT_STIFFNESS_MAX_N_M):
+            return ("the impedance law would go unstable against stiff tissue: need dt^2 k < 2 (2 M + dt B) on "
+                    f"every axis with dt = max_step_s and k = {ENVIRONMENT_STIFFNESS_MAX_N_M:g} N/m; raise mass_kg "
+                    "or damping_N_s_m")
+        limit = force_loop_stiffness_limit_N_m(gains.mass_kg[2], gains.damping_N_s_m[2], frame_rate_hz, latency_s,
+                                               self.period_s)
+        stiffest = self.safety.tissue_stiffness_max_N_m
+        if limit < stiffest:
+            return (f"force control on z would be stable only on tissue up to {limit:.0f} N/m, through an array "
+                    f"at {frame_rate_hz:g} frames/s and {latency_s * 1e3:g} ms latency, not the "
+                    f"safety.tissue_stiffness_max_N_m of {stiffest:.0f} N/m: raise damping_N_s_m[2] (about "
+                    f"{gains.damping_N_s_m[2] * stiffest / limit:.0f}) or lower that limit")
+        return None
 
     @property
     def period_s(self) -> float:

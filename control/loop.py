@@ -17,16 +17,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.analysis import (NOISE_MIN_FRAMES, ONSET_NOISE_SIGMAS, AirNoise, PoseHistory, contact_thresholds,
-                              element_analysis)
+from control.analysis import (NOISE_MIN_FRAMES, ONSET_NOISE_SIGMAS, AirNoise, PoseHistory, StiffnessWindow,
+                              contact_thresholds, element_analysis)
 from control.config import ControlConfig
+from hardware.settings import ConfigError
 from control.law import HybridImpedanceLaw
 from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
                               FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
 from control.palpation import PalpationStateMachine
-from control.safety import (IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS, UNMEASURED_NEGATIVE_FRACTION,
-                            SafetySupervisor)
+from control.safety import (FORCE_RESERVE_N, IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS,
+                            UNMEASURED_NEGATIVE_FRACTION, SafetySupervisor)
 from control.telemetry import empty_frame, empty_tick
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
@@ -52,6 +53,9 @@ FORCE_RISE_N = 5e-3
 # An array that reads no contact at all while the probe is this far below where it confirmed contact is not
 # reading the tissue
 DEAD_DEPTH_M = 0.5e-3
+# Tissue measured this much stiffer than SafetyLimits.tissue_stiffness_max_N_m stops the probe: beyond the
+# force loop's margin (PHASE_MARGIN_DEG leaves it stable to about twice that) and the force floor's prediction
+STIFFER_FACTOR = 1.25
 # The unloaded reading between areas may wander by this share of full scale from the tare before force control
 # is refused until the sensor is tared again: its offset would be taken for force
 DRIFT_FRACTION = 0.01
@@ -73,6 +77,9 @@ class ControlLoop:
     """State: ``tick`` (TICK_DTYPE row, updated in place every step) and ``frame`` (FRAME_DTYPE row)."""
 
     def __init__(self, config: ControlConfig, sensor: TactileConstraints, has_master: bool = True):
+        problem = config.gains_problem(config.gains, sensor.frame_rate_hz, sensor.latency_s)
+        if problem is not None:  # the configuration was checked against the default array's timing, not this one's
+            raise ConfigError("control.gains", problem)
         self.config = config
         self.sensor = sensor
         self.has_master = has_master
@@ -116,6 +123,8 @@ class ControlLoop:
         self._peak_force_N = math.nan  # the most force this area's contact has read, and where
         self._peak_z = math.nan
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
+        self._stiffness = StiffnessWindow()
+        self._too_stiff: str | None = None
         self._surface_top_m = math.nan  # the highest contact onset confirmed in this session
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
@@ -193,8 +202,12 @@ class ControlLoop:
                                                          f"{r.force_step_N:g} N steps ({r.n_levels} levels), eps = "
                                                          f"{r.rmse_threshold_N:g} N over {r.settle_window_s:g} s."))
             elif isinstance(cmd, SetGains):
-                self.law.set_gains(cmd.gains)
-                events.append(CommandApplied(now_s, cmd, "Impedance gains changed."))
+                problem = self.config.gains_problem(cmd.gains, self.sensor.frame_rate_hz, self.sensor.latency_s)
+                if problem is not None:
+                    self._refuse(now_s, cmd, problem, events)
+                else:
+                    self.law.set_gains(cmd.gains)
+                    events.append(CommandApplied(now_s, cmd, "Impedance gains changed."))
             else:
                 sm.region = cmd.index - 1
                 events.append(CommandApplied(now_s, cmd, f"Next region is number {cmd.index + 1}."))
@@ -368,9 +381,34 @@ class ControlLoop:
             sensor_age_s=self._ages[0],
             sensor_repeats=self._repeats,
             contradiction=self._contradiction,
+            too_stiff=self._too_stiff,
             master_age_s=self._ages[1] if self.has_master else None,
             slave_age_s=self._ages[2],
         )
+
+    def _descent_limit_m(self, z_before: float, dt: float) -> float:
+        """The lowest this tick's reference may go from ``z_before`` (never above it): near tissue (below the
+        highest surface touched plus the retract height, or anywhere before any was touched) no faster than
+        the approach speed, and never where the force would pass the ceiling (:meth:`_force_floor_m`)."""
+        near = not z_before > self._surface_top_m + self.config.contact.retract_height_m
+        lowest = z_before - self.safety.limits.approach_speed_m_s * dt if near else -math.inf
+        floor = self._force_floor_m()
+        if floor > lowest:  # (NaN before the first frame: the stale sensor stops everything then)
+            lowest = min(floor, z_before)
+        return lowest
+
+    def _force_floor_m(self) -> float:
+        """The lowest the reference may go now: where the newest frame's force, plus what the stiffest tissue
+        (SafetyLimits.tissue_stiffness_max_N_m) adds below the height that frame was taken at, reaches the
+        ceiling less FORCE_RESERVE_N. Between frames the loop is blind for 10-20 ms; an operator pushing at
+        250 mm/s reached 27.9 N against a 12 N ceiling before one arrived. So the ceiling holds at every
+        velocity limit, and near it the probe slows by itself (0.2 N from it on 5 kN/m: 40 um a frame)."""
+        lim = self.safety.limits
+        force = self._force_N
+        if not force >= 0.0:  # tissue never pulls; an unknown force leaves no headroom
+            force = 0.0 if force < 0.0 else math.inf
+        headroom = lim.force_ceiling_N - FORCE_RESERVE_N - force
+        return self._frame_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
 
     def _indentation_now(self) -> float:
         """The newest frame's indentation with the robot's own motion since added: a late frame must not hide
@@ -446,6 +484,10 @@ class ControlLoop:
                 tracker.reset(self._thresholds)  # the next contact is a new descent, tracked from here
                 self._tracked_xy = (pos[0], pos[1])
             tracker.update(p, pos[Z])
+        if np.isfinite(tracker.onset_height_m).any():
+            top = float(np.nanmax(tracker.onset_height_m))
+            if not self._surface_top_m >= top:
+                self._surface_top_m = top
         _, dL, stiffness, _, self._indentation_m = element_analysis(
             p, tracker.onset_height_m, pos[Z], tracker.onset_pa, self.config.contact, area)
         # Elements already pressed when tracking began have no onset, so no indentation; without this the
@@ -459,6 +501,7 @@ class ControlLoop:
             if not self._indentation_m >= travel:
                 self._indentation_m = max(travel, 0.0)
         self._check_contact(p, pos[Z])
+        self._check_stiffness(p, pos[Z])
         if sm.force_control:
             fr["dL_m"] = dL
             fr["stiffness_pa"] = stiffness
@@ -480,8 +523,6 @@ class ControlLoop:
         tracker = sm.tracker
         onsets = tracker.onset_height_m
         top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else math.nan
-        if not self._surface_top_m >= top:
-            self._surface_top_m = top
         if z_m < top - DEAD_DEPTH_M and not (pressure_pa >= tracker.onset_pa).any():
             self._contradiction = (
                 f"Dead tactile array: no element reads contact while the probe is {(top - z_m) * 1e3:.1f} mm below "
@@ -490,6 +531,26 @@ class ControlLoop:
         force = self._force_N
         if not force <= self._peak_force_N + max(5.0 * self._force_noise_N, FORCE_RISE_N):
             self._peak_force_N, self._peak_z = force, z_m
+
+    def _check_stiffness(self, pressure_pa: np.ndarray, z_m: float) -> None:
+        """The tissue's stiffness over the newest frames in contact, against the stiffest the force loop and the
+        force floor were made for (a 400 kPa layer 6 mm thick bounced 0-11.6 N at the 1 N level)."""
+        sm = self.sm
+        in_contact = bool((pressure_pa >= sm.tracker.onset_pa).any())
+        if sm.phase in (Phase.RETRACT, Phase.HOLD) or (sm.phase.idle and not in_contact):
+            self._stiffness.clear()  # lifting already, or lifted off: the next contact is measured afresh
+            self._too_stiff = None
+            return
+        if not in_contact:
+            return
+        self._stiffness.push(z_m, self._force_N)
+        k = self._stiffness.stiffness_N_m()
+        stiffest = self.safety.limits.tissue_stiffness_max_N_m
+        if k > STIFFER_FACTOR * stiffest and self._too_stiff is None:
+            self._too_stiff = (
+                f"Tissue too stiff: the force rose by {k / 1e3:.1f} N per mm of indentation, more than the "
+                f"{stiffest / 1e3:.1f} N/mm force control is made stable for (safety.tissue_stiffness_max_N_m; raise "
+                f"it with control.gains.damping_N_s_m[2]). The probe was lifted off the tissue.")
 
     def _check_travel(self) -> None:
         """The robot, now, below where the array last read the force rise (between frames as well: a frame is
@@ -613,6 +674,10 @@ class ControlLoop:
                 self._xd = (self._xd[0], self._xd[1], self._desired()[Z])  # this tick's row shows the handed-back X_d
         else:
             law.step(dt, x_d, tuple(self._v_d), tuple(self._a_d), f_e, (0.0, 0.0, f_d_z))
+        lowest = self._descent_limit_m(z_before, dt)
+        if law.x_r[Z] < lowest:  # never lifted by it: it only stops a descent
+            law.x_r[Z] = lowest
+            law.v_r[Z] = max(law.v_r[Z], (lowest - z_before) / dt if dt > 0 else 0.0)
         if self._ages[0] > self._overdue_s and law.x_r[Z] < z_before:
             # the next frame is late: what the probe presses on is unknown, so it goes no deeper until it
             # comes (lateral and upward motion go on; the stale-sensor fault follows if it never does)

@@ -32,6 +32,7 @@ class FaultKind(enum.IntEnum):
     ESTOP = 9
     CONTROLLER = 10  # the controller process itself (crash, stall) as seen from outside
     SENSOR_IMPLAUSIBLE = 11  # the tactile array reads what no contact can give (far below zero)
+    TISSUE_TOO_STIFF = 12  # stiffer than force control is stable for (SafetyLimits.tissue_stiffness_max_N_m)
 
 
 class Source(enum.IntEnum):

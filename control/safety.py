@@ -19,8 +19,11 @@ from control.messages import FaultKind
 
 RETRACT_FAULTS = frozenset({
     FaultKind.FORCE_CEILING, FaultKind.PRESSURE_CEILING, FaultKind.INDENTATION_CEILING,
-    FaultKind.SENSOR_STALE, FaultKind.MASTER_STALE, FaultKind.SENSOR_IMPLAUSIBLE,
+    FaultKind.SENSOR_STALE, FaultKind.MASTER_STALE, FaultKind.SENSOR_IMPLAUSIBLE, FaultKind.TISSUE_TOO_STIFF,
 })
+# What the force the tissue pushes with may be short of the ceiling where the loop stops the probe descending:
+# the robot's own overshoot as its reference stops, and the array's noise
+FORCE_RESERVE_N = 0.2
 # A tared element cannot read far below zero: no contact pulls on the array, and its zero moves by less than
 # this share of full scale within a session (rest offsets of capacitive arrays move about 2 % of full scale
 # between days, so an array is tared each session). Below it, less its own noise's five standard deviations,
@@ -70,6 +73,7 @@ class SafetySupervisor:
         sensor_age_s: float,
         sensor_repeats: int,
         contradiction: str | None,
+        too_stiff: str | None,
         master_age_s: float | None,
         slave_age_s: float,
     ) -> tuple[FaultKind, str] | None:
@@ -100,8 +104,6 @@ class SafetySupervisor:
                 f"Implausible tactile data: an element read {lowest_pa / 1e3:.1f} kPa, far below zero (a tared "
                 f"element stays above {-negative_allowance_pa / 1e3:.1f} kPa); what the array says of contact "
                 f"cannot be trusted. The probe was lifted off the tissue.")
-        if contradiction is not None:
-            return FaultKind.SENSOR_IMPLAUSIBLE, contradiction
         if saturated_elements:  # the force is at least what is read, and could be any amount more
             return FaultKind.FORCE_CEILING, (
                 f"Force unknown: {saturated_elements} tactile element(s) saturated, so the force is at least "
@@ -115,6 +117,10 @@ class SafetySupervisor:
             return FaultKind.INDENTATION_CEILING, (
                 f"Indentation ceiling exceeded: the probe is {indentation_m * 1e3:.1f} mm into the tissue, "
                 f"deeper than the {lim.indentation_ceiling_m * 1e3:.1f} mm limit. The probe was lifted off the tissue.")
+        if contradiction is not None:
+            return FaultKind.SENSOR_IMPLAUSIBLE, contradiction
+        if too_stiff is not None:
+            return FaultKind.TISSUE_TOO_STIFF, too_stiff
         speed = math.sqrt(v_ref_m_s[0] ** 2 + v_ref_m_s[1] ** 2 + v_ref_m_s[2] ** 2)
         if speed > lim.velocity_limit_m_s:
             return FaultKind.VELOCITY_LIMIT, (

@@ -76,6 +76,7 @@ class TactileConstraints(Face):
 
     full_scale_pa: float = 100e3
     frame_rate_hz: float = 100.0
+    latency_s: float = 0.010  # from a frame's sampling instant to its being readable: the force loop's lag
 
 
 @dataclass(frozen=True, slots=True)

@@ -53,7 +53,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
         super().__init__(world)
         s = world.settings.sensor
         self.settings = s
-        self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz)
+        self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz,
+                                              latency_s=s.latency_s)
         shape = self.constraints.shape
         self._cover_rows, self._cover_cols = cover_operators(
             cover_weight(s.cover_spread_m, self.constraints.pitch_m), shape)

@@ -3,6 +3,7 @@ campaign would see it if they did not."""
 
 from bench import safety_campaign as campaign
 from control import safety
+from control.loop import ControlLoop
 
 
 def test_a_short_campaign_finds_no_violation_on_the_plants_and_the_rig():
@@ -21,6 +22,8 @@ def test_the_campaign_catches_a_loop_that_ignores_its_ceilings(monkeypatch):
         return check(self, **readings)
 
     monkeypatch.setattr(safety.SafetySupervisor, "check", blind)
+    # and descends as fast as it is told, wherever the tissue and the ceiling are
+    monkeypatch.setattr(ControlLoop, "_descent_limit_m", lambda self, z, dt: -float("inf"))
     summary = campaign.campaign(plant_runs=60, rig_runs=0, seed=3)
     assert summary["violations"] > 0
     assert any("true force" in v or "true indentation" in v for v in summary["violation_examples"])
