@@ -12,7 +12,10 @@ Signals (all delivered in the bridge's thread):
 * ``start_failed(str)``: the driver could not start (the rig did not open, ...);
 * ``crashed(str)``: the driver died on its own (exit code and its last message);
 * ``snapshot(LiveSnapshot)``: at display rate while running (it carries every tick row and event, but only
-  the latest frame).
+  the latest frame);
+* ``silent(float)``: the controller process, alive, has written no tick for that many seconds (stopped, hung
+  or starved of CPU), at display rate from CONTROLLER_SILENT_S on; ``answering(float)`` once it writes again,
+  with how long it was silent.
 
 Every row the controller produces (ticks, frames, events) also goes, in the worker thread itself, to the
 :class:`RowSink` objects added with :meth:`ControllerBridge.add_sink`: the session recorder is fed there,
@@ -43,6 +46,10 @@ Driver = ControllerProcess | FastForward
 
 # A stalled display thread must not make the fast-forward driver catch up in one enormous burst.
 _MAX_CATCH_UP_S = 0.25
+# A controller that writes no tick for this long is not answering: it writes 1,000 a second, and this host
+# stalls it 20-40 ms now and then. Checked at display rate (16 ms), so told within 80 ms: a process stopped by
+# SIGSTOP was shown as force control with a green "Loop OK" for 12.5 s.
+CONTROLLER_SILENT_S = 0.06
 _NO_TICKS = np.empty(0, TICK_DTYPE)
 
 
@@ -102,6 +109,11 @@ class _ProcessPump(_Pump):
         self.process = process
         self._tick_cursor = 0
         self._frame_cursor = 0
+        self._heard = None  # when the newest tick row arrived (monotonic s); None before the first
+
+    def silence_s(self) -> float:
+        """How long the controller has written no tick (0 before its first)."""
+        return 0.0 if self._heard is None else time.monotonic() - self._heard
 
     def start(self) -> None:
         self.process.start()
@@ -113,6 +125,8 @@ class _ProcessPump(_Pump):
         proc = self.process
         alive = proc.is_alive  # before draining, so rows written just before a death are still read
         ticks, self._tick_cursor, lost = proc.ticks.read_since(self._tick_cursor)
+        if len(ticks):
+            self._heard = time.monotonic()
         frames, self._frame_cursor, lost_frames = proc.frames.read_since(self._frame_cursor)
         events = proc.drain_events()
         if lost or lost_frames:
@@ -169,6 +183,8 @@ class _Worker(QObject):
     start_failed = Signal(str)
     crashed = Signal(str)
     snapshot = Signal(object)
+    silent = Signal(float)
+    answering = Signal(float)
 
     def __init__(self, make_driver: Callable[[], Driver], interval_ms: int, speed: float, home: QThread):
         super().__init__()
@@ -180,6 +196,7 @@ class _Worker(QObject):
         self._pump: _Pump | None = None
         self._timer: QTimer | None = None
         self._stopped_on_request = False
+        self._silent_s = 0.0  # how long the controller was silent, while it is
 
     @Slot()
     def start_driver(self) -> None:
@@ -258,6 +275,14 @@ class _Worker(QObject):
                 sink.add_rows(ticks, frames, events)
         if snapshot is not None:
             self.snapshot.emit(snapshot)
+        if failure is None and isinstance(pump, _ProcessPump):
+            silence = pump.silence_s()
+            if silence >= CONTROLLER_SILENT_S:
+                self._silent_s = silence
+                self.silent.emit(silence)
+            elif self._silent_s:
+                self.answering.emit(self._silent_s)
+                self._silent_s = 0.0
         if failure is not None:
             self._timer.stop()
             self._release_pump()
@@ -270,6 +295,7 @@ class _Worker(QObject):
 
     def _release_pump(self) -> None:
         pump, self._pump = self._pump, None
+        self._silent_s = 0.0
         try:
             pump.stop()
         except Exception:  # noqa: BLE001 - cleanup of a dead driver must not hide why it died
@@ -286,6 +312,8 @@ class ControllerBridge(QObject):
     stopped = Signal()
     start_failed = Signal(str)
     crashed = Signal(str)
+    silent = Signal(float)
+    answering = Signal(float)
 
     _start_requested = Signal()
     _stop_requested = Signal()
@@ -314,6 +342,8 @@ class ControllerBridge(QObject):
         self._worker.crashed.connect(self._on_crashed)
         self._worker.start_failed.connect(self.start_failed)
         self._worker.snapshot.connect(self.snapshot)
+        self._worker.silent.connect(self.silent)
+        self._worker.answering.connect(self.answering)
         app = QCoreApplication.instance()
         if app is not None:
             app.aboutToQuit.connect(self.shutdown)

@@ -5,7 +5,8 @@ every tick row it shows and every event, and the commands the operator sends, an
 the window would otherwise answer with rules of its own:
 
 * which fault the banner shows, in words (the loop's own explanation when its event was seen, the fault's
-  name otherwise; a controller that stopped outranks any fault, because nothing can be cleared then);
+  name otherwise; a controller that stopped outranks any fault, because nothing can be cleared then, and one
+  that has stopped answering outranks what its last tick row said);
 * whether the TSI may be jogged from the console, and if not, why (the same reasons the loop would give
   for refusing the jog, said before the operator tries);
 * whether tare may be offered;
@@ -72,6 +73,7 @@ class ConsoleState:
         self.tick: np.ndarray | None = None
         self.running = False
         self.failure: str | None = None  # why the controller stopped on its own, while it stays stopped
+        self.silence_s = 0.0  # how long the running controller has written nothing, while it is silent
         self.ramp: Setting = Setting(config.ramp)
         self.gains: Setting = Setting(config.gains)
         self.sz: Setting = Setting(None)  # True = position control (S_z = 1); None until the first tick
@@ -87,8 +89,24 @@ class ConsoleState:
         self._drop_requests()
 
     def crashed(self, message: str) -> None:
-        self.running, self.failure = False, message
+        self.running, self.failure, self.silence_s = False, message, 0.0
         self._drop_requests()
+
+    def silent(self, seconds: float) -> None:
+        """The controller, still running, has written nothing for ``seconds``."""
+        self.silence_s = seconds
+
+    def answering(self) -> None:
+        self.silence_s = 0.0
+
+    def controller_problem(self) -> str | None:
+        """What is wrong with the controller itself, in a few words (None: nothing): the loop's health line
+        says the same as the banner."""
+        if self.failure is not None:
+            return "controller stopped"
+        if self.silence_s:
+            return f"controller not answering for {self.silence_s * 1e3:.0f} ms"
+        return None
 
     def on_tick(self, tick: np.ndarray) -> None:
         self.tick = tick
@@ -123,6 +141,12 @@ class ConsoleState:
             return (int(FaultKind.CONTROLLER),
                     f"CONTROLLER STOPPED — {self.failure}. The robot was left holding (or was never commanded); "
                     "restart the console to go on.")
+        if self.silence_s:
+            return (int(FaultKind.CONTROLLER),
+                    f"CONTROLLER NOT ANSWERING — no report for {self.silence_s * 1e3:.0f} ms (stopped, hung or "
+                    "starved of CPU): what the console shows is that old, and nothing it sends is carried out. A "
+                    "real robot holds on its own link watchdog; press STOP, and restart the console if this "
+                    "lasts.")
         kind = int(self.tick["fault"]) if self.tick is not None else 0
         if kind == 0:
             return None
@@ -132,7 +156,7 @@ class ConsoleState:
     def operator_owns_z(self) -> bool:
         """Between areas, nothing faulted: the operator may move the TSI, tare and change settings."""
         tick = self.tick
-        return (self.failure is None and tick is not None and int(tick["fault"]) == 0
+        return (self.failure is None and not self.silence_s and tick is not None and int(tick["fault"]) == 0
                 and Phase(int(tick["phase"])).idle)
 
     def jog_unavailable(self, autopilot_running: bool = False) -> str | None:
@@ -140,6 +164,8 @@ class ConsoleState:
         tick = self.tick
         if self.failure is not None:
             return "the controller is not running"
+        if self.silence_s:
+            return "the controller is not answering"
         if tick is None:
             return "waiting for the controller"
         if not np.isnan(float(tick["master_age_s"])):

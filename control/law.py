@@ -48,6 +48,9 @@ class HybridImpedanceLaw:
         self.v_r = [float(v) for v in v_s]
         self.a_r = [0.0, 0.0, 0.0]
 
+    def damping_N_s_m(self, axis: int) -> float:
+        return self._b[axis]
+
     @property
     def sz(self) -> int:
         return int(self._s[2])

@@ -255,7 +255,8 @@ class ControlLoop:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 onset, _ = self._thresholds
                 touching = bool((self.frame["pressure_pa"] >= onset).any())
-                sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching)
+                sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching,
+                         seek_speed_m_s=sm.ramp.force_min_N / self.law.damping_N_s_m(Z))
                 sigma = self._noise.sigma_pa()
                 self._force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
                 self._set_sz(now_s, False, cmd.source, events)

@@ -43,6 +43,7 @@ class PalpationStateMachine:
         self.rmse_N = math.nan
         self._t_level = 0.0
         self._t_start = 0.0
+        self._seek_timeout_s = ramp.level_timeout_s
         self._z_start = 0.0
         self._events: list = []
         # settle window: per-frame time, force error, total force, height, pressure
@@ -80,11 +81,13 @@ class PalpationStateMachine:
         self.ramp = ramp
 
     def start(self, now_s: float, tsi_z_m: float, thresholds: tuple[np.ndarray, np.ndarray],
-              touching: bool = False) -> None:
+              touching: bool = False, seek_speed_m_s: float = math.inf) -> None:
         """The operator switched S_z to force control above an area: begin the Fig. 4 ramp, tracking contact
         with ``thresholds`` (onset, confirm per element). ``touching``: the probe already presses, and the
         contact tracked under position control carries on with its own (a fresh start would forget the
-        onsets, and the indentation ceiling with them, of what it already presses)."""
+        onsets, and the indentation ceiling with them, of what it already presses). ``seek_speed_m_s``: how
+        fast the force loop descends through air (F_min over the law's damping), so that the seek may take
+        as long as finding tissue at its deepest takes."""
         self.region += 1
         self.region_done = False
         self.level = 0
@@ -95,6 +98,7 @@ class PalpationStateMachine:
         self._t_start = now_s
         self._t_level = now_s
         self._z_start = tsi_z_m
+        self._seek_timeout_s = self.ramp.level_timeout_s + self.contact.max_seek_depth_m / seek_speed_m_s
         self._ft[:] = -np.inf
         self._enter(now_s, Phase.SEEK_CONTACT)
 
@@ -228,9 +232,9 @@ class PalpationStateMachine:
             if self._z_start - tsi_z_m > self.contact.max_seek_depth_m:
                 self.abort(now_s, f"no tissue found within {self.contact.max_seek_depth_m * 1e3:.0f} mm "
                                   f"below the start height", tsi_z_m)
-            elif now_s - self._t_level > self.ramp.level_timeout_s:
-                self.abort(now_s, f"no tissue contact within {self.ramp.level_timeout_s:g} s of force control",
-                           tsi_z_m)
+            elif now_s - self._t_level > self._seek_timeout_s:
+                self.abort(now_s, f"no tissue contact within {self._seek_timeout_s:.0f} s of force control "
+                                  f"(the probe is not descending)", tsi_z_m)
         elif self.phase == Phase.SETTLING and now_s - self._t_level > self.ramp.level_timeout_s:
             message = (f"Level {self.level + 1} of {self.n_levels} ({self.force_desired_N:.2f} N) did not settle "
                        f"within {self.ramp.level_timeout_s:g} s (RMSE {self.rmse_N:.3f} N against "

@@ -46,6 +46,7 @@ class HealthPanel(QtWidgets.QWidget):
         self._rate_hz = rate_hz
         self._texts: dict[QtWidgets.QLabel, tuple[str, str]] = {}
         self._short: dict[str, str] = {}  # what overall() shows of each figure, once there is one
+        self._controller_problem: str | None = None
         self._ticks_seen = 0
         grid = QtWidgets.QGridLayout(self)
         grid.setContentsMargins(6, 4, 6, 4)
@@ -95,6 +96,8 @@ class HealthPanel(QtWidgets.QWidget):
         The one verdict on the loop's health: the status bar leads with the same words (:data:`VERDICT`).
         Every figure counts but real-time priority, whose absence is normal on a desktop machine; the
         reason it was refused does."""
+        if self._controller_problem is not None:  # its figures are as old as its last report
+            return "bad", f"{VERDICT['bad']} · {self._controller_problem}"
         names = ("loopRate", "lateTicks", "jitter", "missedTicks", "sensorAge", "masterAge", "slaveAge")
         levels = [self.level(n) for n in names if n in self._short]
         if not levels:
@@ -108,6 +111,10 @@ class HealthPanel(QtWidgets.QWidget):
         ages = " · ".join(f"{device} {self._short[n]}" for n, device in
                           (("sensorAge", "sensor"), ("slaveAge", "robot"), ("masterAge", "master")) if n in self._short)
         return worst, f"{head} · {loop}" + (f"\n{ages}" if ages else "")
+
+    def show_controller_problem(self, problem: str | None) -> None:
+        """The controller itself stopped or stopped answering (``problem`` in a few words), or None again."""
+        self._controller_problem = problem
 
     def show_health(self, health: LoopHealth) -> None:
         L = self._labels

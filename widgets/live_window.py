@@ -213,6 +213,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         controller.started.connect(self._on_started)
         controller.stopped.connect(self._on_stopped)
         controller.crashed.connect(self._on_crashed)
+        controller.silent.connect(self._on_silent)
+        controller.answering.connect(self._on_answering)
         self._messages.add("Console ready; waiting for the controller to start.")
         self._update_controls()
 
@@ -362,7 +364,8 @@ class LiveWindow(QtWidgets.QMainWindow):
 
         self._ramp_editor = RampEditor(cfg.ramp)
         self._ramp_editor.apply_requested.connect(lambda ramp: self._request(SetRamp(ramp)))
-        self._gains_editor = GainsEditor(cfg.gains)
+        self._gains_editor = GainsEditor(cfg.gains, lambda gains: cfg.gains_problem(
+            gains, self._sensor.frame_rate_hz, self._sensor.latency_s))
         self._gains_editor.apply_requested.connect(lambda gains: self._request(SetGains(gains)))
         settings_page = QtWidgets.QWidget()
         settings_layout = QtWidgets.QVBoxLayout(settings_page)
@@ -650,6 +653,30 @@ class LiveWindow(QtWidgets.QMainWindow):
         if self.autopilot is not None and self.autopilot.running:
             self.autopilot.stop("the controller stopped")
         self._messages.add(f"CONTROLLER STOPPED: {message}", Severity.ERROR)
+        self._show_controller_health()
+
+    @QtCore.Slot(float)
+    def _on_silent(self, seconds: float) -> None:
+        if not self._state.silence_s:
+            self._messages.add("The controller stopped answering: the console's figures are frozen at its last "
+                               "report.", Severity.ERROR)
+        self._state.silent(seconds)
+        self._show_controller_health()
+
+    @QtCore.Slot(float)
+    def _on_answering(self, seconds: float) -> None:
+        self._state.answering()
+        self._messages.add(f"The controller answers again, after {seconds * 1e3:.0f} ms without a report.",
+                           Severity.WARNING)
+        self._show_controller_health()
+
+    def _show_controller_health(self) -> None:
+        """The banner, the health chip and the status line say the same about the controller itself."""
+        problem = self._state.controller_problem()
+        self._health_panel.show_controller_problem(problem)
+        self._show_health_chip()
+        level, text = self._health_panel.overall()
+        self._show_status_line(level, text.replace("\n", " · "))
         self._show_fault()
         self._update_controls()
 
@@ -932,7 +959,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._health_panel.show_health(health)
         self._show_health_chip()
         level, _ = self._health_panel.overall()
-        self._set_text(self._health, f"{VERDICT[level]} · {health_summary(health)}")
+        self._show_status_line(level, f"{VERDICT[level]} · {health_summary(health)}")
+
+    def _show_status_line(self, level: str, text: str) -> None:
+        self._set_text(self._health, text)
         degraded = level != "good"
         if degraded != self._health_degraded:
             self._health_degraded = degraded

@@ -11,6 +11,8 @@ the console's state (:class:`control.console_state.Setting`), shown here with :m
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from PySide6 import QtCore, QtWidgets
 
 from control.config import ImpedanceGains, RampSettings
@@ -175,9 +177,11 @@ class GainsEditor(QtWidgets.QWidget):
 
     apply_requested = QtCore.Signal(object)
 
-    def __init__(self, gains: ImpedanceGains, parent: QtWidgets.QWidget | None = None):
+    def __init__(self, gains: ImpedanceGains, problem: Callable[[ImpedanceGains], str | None] = lambda gains: None,
+                 parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._applied = gains
+        self._problem = problem  # the controller's own rule for gains it would refuse (ControlConfig.gains_problem)
         self._waiting = False  # a request is pending: keep showing what was sent
         self._shown: tuple | None = None
         self._spins: dict[tuple[str, int], QtWidgets.QDoubleSpinBox] = {}
@@ -241,6 +245,9 @@ class GainsEditor(QtWidgets.QWidget):
     def _validate(self) -> ImpedanceGains | None:
         try:
             gains = self.edited()
+            problem = self._problem(gains)
+            if problem is not None:
+                raise ConfigError("gains", problem)
         except ConfigError as err:
             self._summary.setText("Refused — " + _describe(err, _GAIN_LABELS))
             self._summary.setStyleSheet(ERROR_STYLE)

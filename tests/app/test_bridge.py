@@ -137,6 +137,31 @@ def test_process_bridge_reports_a_crash_with_the_exit_reason(qtbot, bridges, tmp
         assert session.closed_cleanly and len(lost) == 1 and "SIGKILL" in lost[0]["text"]
 
 
+def test_a_controller_that_stops_answering_is_told_and_so_is_its_return(qtbot, bridges):
+    """Issue 49: SIGSTOP of the controller during force control looked healthy for 12.5 s (only is_alive was
+    watched)."""
+    from app.bridge import CONTROLLER_SILENT_S
+
+    process = ControllerProcess(ControlConfig(), RigSpec(), PLAIN)
+    bridge = bridges(ControllerBridge(lambda: process))
+    got = Collector(bridge)
+    with qtbot.waitSignal(bridge.started, timeout=20_000):
+        bridge.start()
+    qtbot.waitUntil(lambda: got.n_ticks > 200, timeout=10_000)
+    silences = []
+    bridge.silent.connect(silences.append)
+    with qtbot.waitSignal(bridge.silent, timeout=5_000):
+        os.kill(process.pid, signal.SIGSTOP)
+    try:
+        assert silences[0] >= CONTROLLER_SILENT_S and bridge.running
+        qtbot.waitUntil(lambda: len(silences) >= 3, timeout=5_000)  # told again at display rate while it lasts
+        assert silences == sorted(silences)
+    finally:
+        with qtbot.waitSignal(bridge.answering, timeout=10_000) as back:
+            os.kill(process.pid, signal.SIGCONT)
+    assert back.args[0] >= silences[-1]
+
+
 def test_process_bridge_start_failure_is_reported(qtbot, bridges):
     bridge = bridges(ControllerBridge.for_process(ControlConfig(), RigSpec(phantom="no_such_phantom"), PLAIN))
     with qtbot.waitSignal(bridge.start_failed, timeout=20_000) as failure:

@@ -35,6 +35,8 @@ class FakeController(QtCore.QObject):
     started = QtCore.Signal()
     stopped = QtCore.Signal()
     crashed = QtCore.Signal(str)
+    silent = QtCore.Signal(float)
+    answering = QtCore.Signal(float)
 
     def __init__(self):
         super().__init__()
@@ -237,6 +239,29 @@ def test_a_stopped_controller_is_shown_as_a_fault_that_cannot_be_cleared(window,
     assert not button(window, "tareButton").isEnabled() and not button(window, "jogXPlus").isEnabled()
 
 
+def test_a_controller_that_stops_answering_is_shown_as_such_and_the_health_line_follows(window, controller):
+    """Issue 49: a controller stopped with SIGSTOP during force control was shown for 12.5 s as FORCE,
+    SETTLING and a green "Loop OK · 1000 Hz"; after SIGKILL the banner was right but the health line still
+    said OK."""
+    calm = LoopHealth(rate_hz=1000.0, late_over_0_5ms_pct=0.05, p99_abs_jitter_us=30.0, missed_ticks=0,
+                      longest_stall_ms=0.0, rt_priority=True, cpu=1)
+    push(controller, make_tick(), health=calm)
+    assert window.findChild(QtWidgets.QLabel, "healthChip").property("level") == "good"
+    controller.silent.emit(0.08)
+    banner = window.findChild(QtWidgets.QFrame, "faultBanner")
+    assert banner.isVisible() and label(window, "faultText").text().startswith("CONTROLLER NOT ANSWERING — no "
+                                                                              "report for 80 ms")
+    chip, line = label(window, "healthChip"), label(window, "loopHealth")
+    assert chip.property("level") == "bad" and "controller not answering for 80 ms" in chip.text()
+    assert "controller not answering" in line.text() and "Loop OK" not in line.text()
+    assert not button(window, "jogXPlus").isEnabled() and not button(window, "tareButton").isEnabled()
+    controller.answering.emit(0.3)
+    assert not banner.isVisible() and chip.property("level") == "good"
+    assert "answers again, after 300 ms" in window.messages().lines()[-1]
+    controller.crashed.emit("The controller process stopped unexpectedly (killed by SIGKILL)")
+    assert chip.property("level") == "bad" and "controller stopped" in line.text()
+
+
 def test_maps_show_new_frames_only_with_the_contact_figures(window, controller):
     pressure = window.findChild(TactileMapWidget, "pressureMap")
     stiffness = window.findChild(TactileMapWidget, "stiffnessMap")
@@ -378,16 +403,22 @@ def test_invalid_ramp_is_refused_with_the_reason_and_never_sent(qtbot, window, c
 def test_gains_are_shown_locked_and_sent_only_once_unlocked(qtbot, window, controller):
     k_z = window.findChild(QtWidgets.QDoubleSpinBox, "stiffness_N_m_z")
     apply = button(window, "gainsApply")
-    assert k_z.value() == 1600.0 and not k_z.isEnabled() and not apply.isEnabled()
+    assert k_z.value() == 20000.0 and not k_z.isEnabled() and not apply.isEnabled()
     qtbot.mouseClick(window.findChild(QtWidgets.QCheckBox, "gainsUnlock"), QtCore.Qt.MouseButton.LeftButton)
     assert k_z.isEnabled()
     k_z.setValue(0.0)
     assert label(window, "gainsSummary").text() == "Refused — K_d z: must be > 0, got 0"
     assert not apply.isEnabled()
-    k_z.setValue(2000.0)
+    # the controller's own stability rule, before anything is sent (issue 49: the panel checked positivity only)
+    b_z = window.findChild(QtWidgets.QDoubleSpinBox, "damping_N_s_m_z")
+    k_z.setValue(25000.0)
+    b_z.setValue(80.0)
+    assert "force control on z would be stable only on tissue up to 1897 N/m" in label(window, "gainsSummary").text()
+    assert not apply.isEnabled()
+    b_z.setValue(200.0)
     qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
     sent = controller.sent[-1]
-    assert sent.gains.stiffness_N_m == (1600.0, 1600.0, 2000.0)
+    assert sent.gains.stiffness_N_m == (1600.0, 1600.0, 25000.0)
     assert not k_z.isEnabled()  # locked again at once
     push(controller, make_tick(), events=[CommandApplied(1.0, sent, "Impedance gains changed.")])
     assert label(window, "gainsStatus").text() == "Applied."
