@@ -59,6 +59,12 @@ class RampSettings(Settings):
         for name in ("force_min_N", "force_max_N", "force_step_N", "rmse_threshold_N", "settle_window_s",
                      "min_settle_s", "level_timeout_s"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
+        # each bounded so that a slip cannot make a ramp that never ends (1e300 s was accepted)
+        for name, top, why in (("rmse_threshold_N", 2.0, "an eps that large settles on anything"),
+                               ("settle_window_s", 2.0, "the paper's eps holds over a fraction of a second"),
+                               ("min_settle_s", 60.0, "a level is recorded within seconds"),
+                               ("level_timeout_s", 120.0, "a level that has not settled in two minutes will not")):
+            bounded(name, getattr(self, name), 0.0, top, why)
         if self.force_max_N < self.force_min_N:
             raise ConfigError("force_max_N", f"must be >= force_min_N ({self.force_min_N:g} N), got {self.force_max_N:g}")
         if self.force_step_N > self.force_max_N - self.force_min_N and self.force_max_N > self.force_min_N:
@@ -101,7 +107,19 @@ class ContactSettings(Settings):
         for name in ("onset_threshold_pa", "confirm_threshold_pa", "min_indentation_m", "retract_height_m",
                      "retract_speed_m_s", "max_seek_depth_m", "pose_history_s"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
-        object.__setattr__(self, "table_height_m", number("table_height_m", self.table_height_m))
+        for name, top, why in (("onset_threshold_pa", 50e3, "half the array's full scale"),
+                               ("confirm_threshold_pa", 95e3, "the element pressure ceiling"),
+                               ("min_indentation_m", 5e-3, "Eq. 1 would be blank for most of a ramp"),
+                               ("retract_height_m", 0.05, "deeper than any palpated tissue is thick"),
+                               ("max_seek_depth_m", 0.1, "the bench robot's height over the table"),
+                               # the loop keeps this much of the robot's path at 1 kHz (1e6 s was 7.45 GiB)
+                               ("pose_history_s", 5.0, "frames come within a few tens of ms")):
+            bounded(name, getattr(self, name), 0.0, top, why)
+        if self.pose_history_s < 0.05:
+            raise ConfigError("pose_history_s", f"must be at least 0.05 s to hold a late frame's pose, got "
+                                                f"{self.pose_history_s:g}")
+        object.__setattr__(self, "table_height_m", bounded("table_height_m", self.table_height_m, -1.0, 1.0,
+                                                           "a bench robot's reach, in m"))
         if self.confirm_threshold_pa <= self.onset_threshold_pa:
             raise ConfigError("confirm_threshold_pa", f"must exceed onset_threshold_pa ({self.onset_threshold_pa:g} Pa)")
 
@@ -169,6 +187,8 @@ class MasterMapping(Settings):
         object.__setattr__(self, "scale", positive("scale", self.scale))
         object.__setattr__(self, "jog_speed_m_s", positive("jog_speed_m_s", self.jog_speed_m_s))
         object.__setattr__(self, "derivative_filter_s", positive("derivative_filter_s", self.derivative_filter_s))
+        bounded("scale", self.scale, 0.0, 100.0, "a master moved a millimetre moves the probe at most 10 cm")
+        bounded("derivative_filter_s", self.derivative_filter_s, 0.0, 1.0, "a slower filter is no velocity")
 
 
 def force_loop_stiffness_limit_N_m(mass_kg: float, damping_N_s_m: float, frame_rate_hz: float, latency_s: float,
@@ -224,6 +244,10 @@ class ControlConfig(Settings):
         if self.max_step_s > 10.0 / self.rate_hz:
             raise ConfigError("max_step_s", f"must be at most ten periods ({10.0 / self.rate_hz:g} s): a longer step "
                                             "moves the reference too far at once")
+        if self.safety.workspace_min_m[2] < self.contact.table_height_m:
+            raise ConfigError("safety.workspace_min_m", f"its z {self.safety.workspace_min_m[2]:g} m lies below the "
+                                                        f"table (contact.table_height_m {self.contact.table_height_m:g} "
+                                                        f"m): the probe could be driven into it")
         if self.ramp.force_max_N > self.safety.force_ceiling_N:
             raise ConfigError("ramp.force_max_N", f"{self.ramp.force_max_N:g} N is above the force ceiling "
                                                   f"({self.safety.force_ceiling_N:g} N): the last level would trip it")

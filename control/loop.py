@@ -25,7 +25,7 @@ from control.law import HybridImpedanceLaw
 from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
                               FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
                               Source, SzChanged, Tare)
-from control.palpation import PalpationStateMachine
+from control.palpation import FRAME_BUFFER, PalpationStateMachine
 from control.safety import (FORCE_RESERVE_N, IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS,
                             UNMEASURED_NEGATIVE_FRACTION, SafetySupervisor)
 from control.telemetry import empty_frame, empty_tick
@@ -80,6 +80,10 @@ class ControlLoop:
         problem = config.gains_problem(config.gains, sensor.frame_rate_hz, sensor.latency_s)
         if problem is not None:  # the configuration was checked against the default array's timing, not this one's
             raise ConfigError("control.gains", problem)
+        if config.ramp.settle_window_s * sensor.frame_rate_hz > FRAME_BUFFER:
+            raise ConfigError("control.ramp.settle_window_s", f"{config.ramp.settle_window_s:g} s holds more than "
+                                                              f"the {FRAME_BUFFER} frames kept of this array at "
+                                                              f"{sensor.frame_rate_hz:g} frames/s")
         self.config = config
         self.sensor = sensor
         self.has_master = has_master

@@ -64,6 +64,11 @@ MAX_LENGTH_M, MAX_WIDTH_M, MAX_THICKNESS_M = 0.5, 0.3, 0.1  # the bench's phanto
 MAX_COORDINATE_M = 1.0  # positions and sizes of features, m
 MAX_GRADIENT = 10.0  # a slope steeper than 84 degrees is a wall
 MAX_MODULUS_PA = 1e9
+MIN_MODULUS_PA = 100.0  # softer than any tissue or gel (1e-300 Pa was accepted, and the solver failed on it)
+MIN_EXTENT_M = 4e-3  # two elements: a smaller block has nothing to palpate (1e-9 m was accepted)
+# Each feature and inclusion is evaluated over the whole surface grid, each region palpated: 3,000 inclusions
+# took 272 s and 4.8 GB to load, and 4,000 surface features kept the parser alone busy for a quarter of an hour
+MAX_FEATURES, MAX_INCLUSIONS, MAX_REGIONS = 20, 20, 200
 FACE_SAMPLE_M = 0.5e-3
 
 
@@ -208,20 +213,21 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
     p = _Reader(src, data).table("phantom")
     # stated maxima, checked before anything is allocated: a bench phantom, whose model's mesh and surface
     # grid grow with its size (a 10 m phantom once asked for 12 GiB before failing)
-    length = p.bounded("length_m", MAX_LENGTH_M, "a bench phantom")
-    width = p.bounded("width_m", MAX_WIDTH_M, "a bench phantom")
+    length = p.bounded("length_m", MAX_LENGTH_M, "a bench phantom", least=MIN_EXTENT_M)
+    width = p.bounded("width_m", MAX_WIDTH_M, "a bench phantom", least=MIN_EXTENT_M)
     thickness = p.bounded("thickness_m", MAX_THICKNESS_M, "a palpated layer")
     nu = p.number("poisson_ratio")
     if not 0.0 <= nu < 0.5:
         p.fail("poisson_ratio", f"must be in [0, 0.5), got {nu:g} (use 0.49-0.499 for nearly incompressible)")
-    surface = tuple(_feature(f) for f in p.list_of_tables("surface"))
+    surface = tuple(_feature(f) for f in p.list_of_tables("surface", MAX_FEATURES))
     base = Phantom(
         name=p.string("name"),
         description=p.string("description", default=""),
         length_m=length,
         width_m=width,
         thickness_m=thickness,
-        youngs_modulus_pa=p.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue"),
+        youngs_modulus_pa=p.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue",
+                                    least=MIN_MODULUS_PA),
         poisson_ratio=nu,
         surface=surface,
         sides=p.choice("sides", SIDES, default="free"),
@@ -232,7 +238,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
         p.fail("surface", f"the surface comes down to {lowest * 1e3:.2f} mm above the table; it must stay at "
                           f"least {MIN_SURFACE_HEIGHT_M * 1e3:g} mm above it everywhere")
     inclusions = []
-    for r in p.list_of_tables("inclusions"):
+    for r in p.list_of_tables("inclusions", MAX_INCLUSIONS):
         inc = _inclusion(r, base)
         for j, other in enumerate(inclusions):
             gap = math.dist((inc.x_m, inc.y_m, inc.z_m), (other.x_m, other.y_m, other.z_m))
@@ -240,7 +246,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
                 r.fail("centre_xy_m", f"overlaps inclusions[{j}] (centres {gap * 1e3:.1f} mm apart)")
         inclusions.append(inc)
     inclusions = tuple(inclusions)
-    regions = tuple(_region(r, base) for r in p.list_of_tables("regions"))
+    regions = tuple(_region(r, base) for r in p.list_of_tables("regions", MAX_REGIONS))
     p.no_unknown({"name", "description", "length_m", "width_m", "thickness_m", "youngs_modulus_pa",
                   "poisson_ratio", "surface", "inclusions", "regions", "sides", "material"})
     return Phantom(**{**base.__dict__, "inclusions": inclusions, "regions": regions, "source": data})
@@ -318,7 +324,8 @@ def _inclusion(r: "_Reader", phantom: Phantom) -> Inclusion:
     if clearance < 0:
         r.fail(key, f"the sphere (centre {z * 1e3:.1f} mm above the table, {d * 1e3:g} mm across) breaks "
                     f"through the surface by {-clearance * 1e3:.2f} mm")
-    return Inclusion(x, y, z, d, r.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue"))
+    return Inclusion(x, y, z, d, r.bounded("youngs_modulus_pa", MAX_MODULUS_PA, "stiffer than bone is not tissue",
+                                           least=MIN_MODULUS_PA))
 
 
 def _region(r: "_Reader", phantom: Phantom) -> tuple[float, float]:
@@ -353,10 +360,12 @@ class _Reader:
             self.fail(key, f"must be one of {', '.join(options)}, got {value!r}")
         return value
 
-    def list_of_tables(self, key: str) -> list["_Reader"]:
+    def list_of_tables(self, key: str, most: int) -> list["_Reader"]:
         value = self.data.get(key, [])
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
             self.fail(key, "must be an array of tables ([[...]])")
+        if len(value) > most:
+            self.fail(key, f"{len(value)} of them; a bench phantom has at most {most}")
         return [_Reader(self.src, v, f"{self.prefix}{key}[{i}].") for i, v in enumerate(value)]
 
     def string(self, key: str, default: str | None = None) -> str:
@@ -375,11 +384,13 @@ class _Reader:
             self.fail(key, f"must be within +-{bound:g}, got {value:g}")
         return float(value)
 
-    def bounded(self, key: str, top: float, why: str) -> float:
-        """A number in (0, top]."""
+    def bounded(self, key: str, top: float, why: str, least: float = 0.0) -> float:
+        """A number in (0, top], and at least ``least``."""
         v = self.positive(key)
         if v > top:
             self.fail(key, f"must be at most {top:g} ({why}), got {v:g}")
+        if v < least:
+            self.fail(key, f"must be at least {least:g}, got {v:g}")
         return v
 
     def positive(self, key: str) -> float:

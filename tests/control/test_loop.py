@@ -99,7 +99,8 @@ def test_a_level_that_never_settles_times_out_with_an_event():
 
 def test_no_tissue_below_aborts_the_seek():
     h = Harness(plant=LayerPlant(surface_m=-1.0))  # nothing to touch
-    h.config = ControlConfig(safety=SafetyLimits(workspace_min_m=(-0.02, -0.02, -0.1)))
+    h.config = ControlConfig.from_mapping({"safety": {"workspace_min_m": [-0.02, -0.02, -0.1]},
+                                           "contact": {"table_height_m": -0.1}})  # the table far below
     h.loop.__init__(h.config, h.loop.sensor, has_master=False)
     start_region(h)
     h.run(20, until=lambda h: phase(h) == Phase.APPROACH)
@@ -509,3 +510,20 @@ def test_a_sensor_too_noisy_to_tell_contact_is_refused():
     (refused,) = h.of(CommandRefused)
     assert "above the face's mean pressure at the first level (4.17 kPa at 1 N)" in refused.reason
     assert phase(h) == Phase.APPROACH and h.loop.law.sz == 1
+
+
+@pytest.mark.parametrize("table, said", [
+    ({"contact": {"pose_history_s": 1e6}}, "contact.pose_history_s: must lie between 0 and 5"),
+    ({"ramp": {"level_timeout_s": 1e300}}, "ramp.level_timeout_s: must lie between 0 and 120"),
+    ({"ramp": {"settle_window_s": 1e300}}, "ramp.settle_window_s: must lie between 0 and 2"),
+    ({"safety": {"workspace_min_m": [-0.02, -0.02, -0.01]}}, "safety.workspace_min_m: its z -0.01 m lies below the table"),
+    ({"master": {"scale": 1e9}}, "master.scale: must lie between 0 and 100"),
+])
+def test_settings_that_would_never_end_or_reach_the_table_are_refused(table, said):
+    """Issue 49: 1e6 s of pose history asked for 7.45 GiB; a 1e300 s level timeout made a ramp that never ends;
+    a workspace floor below the table let the probe be driven into it."""
+    from hardware.settings import ConfigError
+
+    with pytest.raises(ConfigError, match=said.replace("(", r"\(")) as caught:
+        ControlConfig.from_mapping(table)
+    assert "\n" not in str(caught.value)

@@ -115,6 +115,13 @@ def test_the_content_hash_follows_the_content_only():
      "stops rising"),
     (base(material={"law": "yeoh", "c3_over_c1": -0.1}), "phantom.material.c2_over_c1", "stops rising"),
     (base(material="yeoh"), "phantom.material", "must be a table"),
+    # issue 49: too small, too soft, too many (3,000 inclusions took 272 s and 4.8 GB; 4,000 features, the
+    # parser alone more than 15 min)
+    (base(length_m=1e-9), "phantom.length_m", "at least 0.004"),
+    (base(youngs_modulus_pa=1e-300), "phantom.youngs_modulus_pa", "at least 100"),
+    (base(inclusions=[sphere(depth_m=0.005)] * 3000), "phantom.inclusions", "3000 of them; a bench phantom has at most 20"),
+    (base(surface=[{"kind": "slope", "x_range_m": [0, 0.01], "gradient": [0, 0]}] * 4000), "phantom.surface",
+     "at most 20"),
 ])
 def test_a_bad_phantom_names_the_key_and_the_problem(data, key, words):
     with pytest.raises(PhantomError) as err:
