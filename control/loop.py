@@ -29,6 +29,7 @@ from control.palpation import FRAME_BUFFER, PalpationStateMachine
 from control.safety import (FORCE_RESERVE_N, IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS,
                             UNMEASURED_NEGATIVE_FRACTION, SafetySupervisor)
 from control.telemetry import empty_frame, empty_tick
+from hardware.liveness import RepeatWatch, TravelWatch
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
 
 Z = 2
@@ -119,13 +120,11 @@ class ControlLoop:
         self._indentation_m = math.nan
         self._noise = AirNoise(sensor.shape)
         # liveness: a frame that repeats the one before says nothing new, and the array ages as if silent
-        self._prev_pressure = np.full(sensor.shape, np.nan)
+
         # until the array's own noise is measured, what a noisy element may read below zero is not known either
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
-        self._repeats = 0  # frames in a row that repeat the one before
-        self._force_noise_N = 0.0  # the measured force's noise, from the air noise when the area began
-        self._peak_force_N = math.nan  # the most force this area's contact has read, and where
-        self._peak_z = math.nan
+        self._repeats = RepeatWatch(sensor.shape)
+        self._travel = TravelWatch(FORCE_RISE_N)  # the rise is set again from the array's noise at each area
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
         self._stiffness = StiffnessWindow()
         self._too_stiff: str | None = None
@@ -262,7 +261,8 @@ class ControlLoop:
                 sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching,
                          seek_speed_m_s=sm.ramp.force_min_N / self.law.damping_N_s_m(Z))
                 sigma = self._noise.sigma_pa()
-                self._force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
+                force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
+                self._travel.rise_N = max(5.0 * force_noise_N, FORCE_RISE_N)
                 self._set_sz(now_s, False, cmd.source, events)
                 notice = self._noise_notice()
                 if notice:
@@ -384,7 +384,7 @@ class ControlLoop:
             saturated_elements=self._saturated,
             indentation_m=self._indentation_now(),
             sensor_age_s=self._ages[0],
-            sensor_repeats=self._repeats,
+            sensor_repeats=self._repeats.repeats,
             contradiction=self._contradiction,
             too_stiff=self._too_stiff,
             master_age_s=self._ages[1] if self.has_master else None,
@@ -449,12 +449,8 @@ class ControlLoop:
     def _read_frame(self, frame: TactileFrame) -> None:
         self._sensor_seq = frame.seq
         p = frame.pressure_pa
-        if np.array_equal(p, self._prev_pressure):
-            self._repeats += 1  # a frozen array (or a dead one streaming zeros): every real array has noise
-        else:
-            self._repeats = 0
+        if self._repeats.push(p, frame.t_s):  # else a frozen array, or a dead one streaming zeros: not fresh
             self._seen[0] = frame.t_s
-        self._prev_pressure[...] = p
         area = self.sensor.element_area_m2
         self._force_N = float(p.sum()) * area
         self._max_pressure_pa = float(p.max())
@@ -522,7 +518,7 @@ class ControlLoop:
         loop pushes on into the tissue."""
         sm = self.sm
         if sm.phase != Phase.SETTLING:
-            self._peak_force_N = self._peak_z = math.nan
+            self._travel.reset()
             self._contradiction = None
             return
         tracker = sm.tracker
@@ -533,9 +529,7 @@ class ControlLoop:
                 f"Dead tactile array: no element reads contact while the probe is {(top - z_m) * 1e3:.1f} mm below "
                 f"where it confirmed contact; the array is not reading the tissue. The probe was lifted off the tissue.")
             return
-        force = self._force_N
-        if not force <= self._peak_force_N + max(5.0 * self._force_noise_N, FORCE_RISE_N):
-            self._peak_force_N, self._peak_z = force, z_m
+        self._travel.push(self._force_N, z_m)
 
     def _check_stiffness(self, pressure_pa: np.ndarray, z_m: float) -> None:
         """The tissue's stiffness over the newest frames in contact, against the stiffest the force loop and the
@@ -560,11 +554,11 @@ class ControlLoop:
     def _check_travel(self) -> None:
         """The robot, now, below where the array last read the force rise (between frames as well: a frame is
         10-20 ms late, and at 20 mm/s that is a third of a millimetre more)."""
-        travel = self._peak_z - self._x_s[Z]
+        travel = self._travel.travel_m(self._x_s[Z])
         if travel > UNEXPLAINED_TRAVEL_M and self._contradiction is None:
             self._contradiction = (
                 f"Tactile force not rising: the probe went {travel * 1e3:.2f} mm deeper under force control while "
-                f"the array read no more than {self._peak_force_N:.2f} N; it is not reading the tissue (dead, "
+                f"the array read no more than {self._travel.peak_N:.2f} N; it is not reading the tissue (dead, "
                 f"frozen or drifting). The probe was lifted off the tissue.")
 
     def step(
