@@ -90,7 +90,8 @@ class ControlLoop:
         self.has_master = has_master
         self.law = HybridImpedanceLaw(config.gains)
         self.safety = SafetySupervisor(config.safety)
-        self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2)
+        self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2,
+                                        config.safety.element_pressure_ceiling_pa)
         self.history = PoseHistory(config.contact.pose_history_s, config.rate_hz)
         self.tick = empty_tick()
         self.frame = empty_frame()

@@ -9,6 +9,7 @@ reason for a refusal, so the console never matches on message text.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -165,7 +166,10 @@ class LevelTimedOut:
 class RegionDone:
     t_s: float
     region: int
-    n_levels: int
+    n_levels: int  # levels recorded
+    # the force of the last level when the ramp stopped short of F_max because the next level would have pressed
+    # an element past the pressure ceiling (NaN: the ramp reached F_max)
+    capped_N: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)

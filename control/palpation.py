@@ -27,13 +27,20 @@ from control.messages import LevelRecord, LevelRecorded, LevelTimedOut, PhaseCha
 from hardware.interfaces import Phase
 
 FRAME_BUFFER = 512  # frames held for the settle window: 5 s at 100 frames/s
+# A ramp goes on to the next level only if no element is predicted to read more than this share of the element
+# pressure ceiling there: the ceiling would fault the area and lose it, where stopping one level short keeps
+# every level recorded (a gentle slope, or a large stiff tumour near the surface, tripped it at 5-7 N)
+CAP_FRACTION = 0.95
 
 
 class PalpationStateMachine:
-    def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float):
+    def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float,
+                 pressure_ceiling_pa: float = math.inf):
         self.ramp = ramp
         self.contact = contact
         self.area = element_area_m2
+        self.pressure_ceiling_pa = pressure_ceiling_pa
+        self._last_level: tuple[float, np.ndarray] | None = None  # (force, pressure) of this area's last level
         self.tracker = ContactTracker(contact, shape)
         self.phase = Phase.APPROACH
         self.region = -1
@@ -93,6 +100,7 @@ class PalpationStateMachine:
         self.level = 0
         self.force_desired_N = self.ramp.level_force_N(0)
         self.rmse_N = math.nan
+        self._last_level = None
         if not touching:
             self.tracker.reset(thresholds)
         self._t_start = now_s
@@ -214,17 +222,32 @@ class PalpationStateMachine:
             stiffness_pa=stiffness,
         )
         self._events.append(LevelRecorded(t_s, record))
-        if self.level + 1 >= self.n_levels:
+        capped = self.level + 1 < self.n_levels and self._next_level_too_hard(record.force_measured_N, pressure)
+        if self.level + 1 >= self.n_levels or capped:
             self.region_done = True
-            self._events.append(RegionDone(t_s, self.region, self.n_levels))
+            self._events.append(RegionDone(t_s, self.region, self.level + 1,
+                                           self.force_desired_N if capped else math.nan))
             self._finish_ramp()
             self.begin_retract(t_s, z, then=Phase.DONE)
             return
+        self._last_level = (record.force_measured_N, pressure)
         self.level += 1
         self.force_desired_N = self.ramp.level_force_N(self.level)
         self.rmse_N = math.nan
         self._t_level = t_s
         self._enter(t_s, Phase.SETTLING)
+
+    def _next_level_too_hard(self, force_N: float, pressure_pa: np.ndarray) -> bool:
+        """Whether the next level would press an element past CAP_FRACTION of the pressure ceiling: each element's
+        reading carried on from this level along the line through the last one (an element over a stiff spot
+        or a bump rises faster than the force), or in proportion to the force at the first level."""
+        next_N = self.ramp.level_force_N(self.level + 1)
+        if self._last_level is not None and force_N > self._last_level[0]:
+            before_N, before_pa = self._last_level
+            predicted = pressure_pa + (pressure_pa - before_pa) * (next_N - force_N) / (force_N - before_N)
+        else:
+            predicted = pressure_pa * next_N / max(force_N, 1e-9)
+        return bool(np.nanmax(predicted) > CAP_FRACTION * self.pressure_ceiling_pa)
 
     def on_tick(self, now_s: float, tsi_z_m: float) -> None:
         """Time-outs of the ramp; called every tick while in force control."""

@@ -137,7 +137,7 @@ class EventKind:
     PHASE = "phase"  # code = Phase, level, value = number of levels, text = phase name
     LEVEL = "level"  # region, level, value = F_d; the level's data is the matching /levels row
     LEVEL_TIMEOUT = "level_timeout"  # region, level, value = F_d, text = why
-    REGION_DONE = "region_done"  # region, code = number of levels
+    REGION_DONE = "region_done"  # region, code = number of levels, value = the force it was capped at (NaN: none)
     REGION_ABORTED = "region_aborted"  # region, text = why
     FAULT = "fault"  # code = FaultKind, text = message
     FAULT_CLEARED = "fault_cleared"  # code = FaultKind
@@ -212,7 +212,8 @@ def rows_for_event(event) -> tuple[tuple | None, tuple | None]:
         row = event_row(event.t_s, k.LEVEL_TIMEOUT, region=event.region, level=event.level,
                         value=event.force_desired_N, text=event.message)
     elif isinstance(event, RegionDone):
-        row = event_row(event.t_s, k.REGION_DONE, region=event.region, code=event.n_levels)
+        row = event_row(event.t_s, k.REGION_DONE, region=event.region, code=event.n_levels, value=event.capped_N,
+                        text=f"capped at {event.capped_N:g} N" if event.capped_N == event.capped_N else "")
     elif isinstance(event, RegionAborted):
         row = event_row(event.t_s, k.REGION_ABORTED, region=event.region, text=event.reason)
     elif isinstance(event, FaultRaised):

@@ -16,7 +16,9 @@ configured lateral or vertical speed.
 The operator's targets are where it wants the TSI, which it sees on the camera. When the loop hands z
 back after an area it re-clutches the z offset (wherever the TSI is then, possibly still on its way up),
 and clearing a fault re-clutches every axis, so after each area the operator lines its hand up with the
-TSI it sees and aims its moves accordingly, as a person at a clutched master does.
+TSI it sees and aims its moves accordingly, as a person at a clutched master does. After a fault it waits
+until the fault is cleared before it looks: lined up before the clear, it aimed with an offset the clear then
+changed, and took the probe 10 mm into the tissue under position control on its way to the next area.
 """
 
 from __future__ import annotations
@@ -79,6 +81,8 @@ class ScriptedOperator(SimDevice, MasterDevice):
         self._camera_offset_m: Vec3 = (0.0, 0.0, 0.0)  # TSI seen minus hand, at the last look
         self._resolved_s: float | None = None
         self._engaged = False
+        self._faulted = False  # the loop's newest feedback says a fault is latched
+        self._cleared_s = -math.inf  # when the latest fault was seen cleared
         self._last_t = -math.inf
         self._last_seq = -1
         self._latest: MasterState | None = None
@@ -130,7 +134,9 @@ class ScriptedOperator(SimDevice, MasterDevice):
             return self._step_t0 + self._move_s
         if step.kind == "await" and self._resolved_s is not None:
             return self._resolved_s
-        return self._step_t0 + step.duration_s
+        if step.kind == "dwell" and self._faulted:
+            return math.inf  # the operator clears the fault first (whoever does, the script waits for it)
+        return max(self._step_t0 + step.duration_s, self._cleared_s)
 
     def _enter(self, index: int, t0: float) -> None:
         if self._step_t0 is not None:
@@ -207,6 +213,9 @@ class ScriptedOperator(SimDevice, MasterDevice):
         """Watches for the end of the area being palpated; everything else the operator only looks at."""
         if self.finished or self._step_t0 is None or fb.t_s < self._step_t0:
             return
+        if self._faulted and not fb.faulted:
+            self._cleared_s = max(fb.t_s, self._last_t)
+        self._faulted = fb.faulted
         if self._steps[self._index].kind != "await" or self._resolved_s is not None:
             return
         if fb.phase in _ENGAGED:

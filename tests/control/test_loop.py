@@ -527,3 +527,19 @@ def test_settings_that_would_never_end_or_reach_the_table_are_refused(table, sai
     with pytest.raises(ConfigError, match=said.replace("(", r"\(")) as caught:
         ControlConfig.from_mapping(table)
     assert "\n" not in str(caught.value)
+
+
+def test_a_ramp_stops_one_level_short_of_the_element_pressure_ceiling_and_the_area_is_done():
+    """Issue 48: a gentle slope, or a 12 mm tumour 16 times stiffer 3 mm deep, tripped the 95 kPa element
+    ceiling at 5-7 N, and simulate stopped after 1 of 9 or 7 of 9 areas. One element eight times stiffer
+    than the rest reads 95 kPa at about 3.2 N here: the ramp records 1, 2 and 3 N and is done, capped."""
+    stiff = np.zeros((4, 15), bool)
+    stiff[1, 7] = True
+    h = Harness(plant=LayerPlant(stiff_mask=stiff, stiff_factor=8.0))
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE or h.loop.safety.faulted)
+    assert not h.of(FaultRaised)
+    (done,) = h.of(RegionDone)
+    assert done.n_levels == 3 and done.capped_N == 3.0 and h.loop.sm.region_done
+    assert [e.record.force_desired_N for e in h.of(LevelRecorded)] == [1.0, 2.0, 3.0]
+    assert max(e.record.pressure_pa.max() for e in h.of(LevelRecorded)) < h.config.safety.element_pressure_ceiling_pa

@@ -21,7 +21,8 @@ class TimetableLoop:
 
     Like the real loop it reacts a few ticks late, keeps "region done" set until the next area starts (so
     a stale flag is on display when the operator switches off), presses the TSI into the tissue while the
-    switch is off, and when the operator takes z back it re-clutches: X_r = hand + offset from there on.
+    switch is off, and when the operator takes z back it re-clutches: X_r = hand + offset from there on. A
+    fault is cleared 0.3 s after it latched, re-clutching every axis, as clearing one does.
     """
 
     def __init__(self, world, ending="done", ramp_s=0.5, delay_ticks=3, press_m=0.008):
@@ -63,6 +64,10 @@ class TimetableLoop:
                     self.phase, self.faulted = Phase.HOLD, True
             elif t >= self.ramp_s + 0.1 and self.phase == Phase.RETRACT:
                 self.phase = Phase.DONE if self.region_done else Phase.APPROACH
+            elif t >= self.ramp_s + 0.3 and self.faulted:  # cleared (by whoever watches the console): re-clutched
+                self.phase, self.faulted, self._off_since = Phase.APPROACH, False, None
+                self.offset = np.array(self.robot.reference) - hand
+                reference = hand + self.offset
         self.robot.set_reference(tuple(reference), (0.0, 0.0, 0.0))
         return MasterFeedback(now, int(self.phase), self.region_done, 0.0, self.faulted)
 
