@@ -322,9 +322,16 @@ def run_study(cases: list[StudyCase], executor: Executor, out_dir: Path, keep_se
               analysis: dict[str, Any] | None = None) -> tuple[list[dict], float]:
     """Every case's result (in the order of ``cases``) and the study's wall time in seconds; ``settings``
     and ``analysis`` as :func:`run_case` takes them (shipped to every worker: a Dask worker need not see
-    the file)."""
-    return _gathered(cases, executor.run(run_case, cases, str(out_dir), keep_sessions, settings or {},
-                                         analysis or analysis_options()), progress)
+    the file). ``out_dir`` is made absolute here, on the client: a worker elsewhere (a Dask worker in its
+    own folder, on its own machine) writes the cases' files where the study asked, which must then be a
+    folder every worker sees; a result whose session is not found here says so (``session_here``)."""
+    out = str(Path(out_dir).resolve())
+    results, wall_s = _gathered(cases, executor.run(run_case, cases, out, keep_sessions, settings or {},
+                                                    analysis or analysis_options()), progress)
+    for result in results:
+        if result.get("session"):
+            result["session_here"] = Path(result["session"]).is_file()
+    return results, wall_s
 
 
 def reanalyse_study(cases: list[KeptCase], executor: Executor, analysis: dict[str, Any] | None = None,
@@ -500,6 +507,11 @@ def study_main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         executor.close()
+    elsewhere = sum(1 for r in results if r.get("session_here") is False)
+    if elsewhere:
+        print(f"warning: {elsewhere} case(s) kept their session where their worker wrote it, not in "
+              f"{args.out.resolve()}: give --out a folder every Dask worker sees (a shared file system)",
+              file=sys.stderr)
     doc = study_document(cases, results, wall_s, args.seed, executor.workers,
                          "dask" if args.scheduler else "local", analysis)
     doc["config"] = str(args.config) if args.config is not None else None  # what the phantoms were palpated with

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -54,11 +55,13 @@ def test_the_same_seed_gives_the_same_study_and_another_seed_another():
 
 def _without_timings(results) -> str:
     """The results as comparable text (NaN included), without what depends on the machine or the folder."""
-    return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s") and k != "session"} for r in results],
-                      sort_keys=True)
+    return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s") and k not in ("session", "session_here")}
+                       for r in results], sort_keys=True)
 
 
-def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
+def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path, monkeypatch):
+    """The Dask cluster's worker is a process of its own in a folder of its own, as on a real cluster: the
+    study's relative output folder once reached it as it was, and the cases' files landed on its side."""
     distributed = pytest.importorskip("distributed")
     cases = tiny_cases(1, seed=3)
     local = LocalExecutor(workers=1)
@@ -66,19 +69,24 @@ def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path):
         local_results, _ = run_study(cases, local, tmp_path / "local", keep_sessions=False, analysis=DETECTION_ONLY)
     finally:
         local.close()
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+    (tmp_path / "client").mkdir()
+    (tmp_path / "worker").mkdir()
+    monkeypatch.chdir(tmp_path / "client")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  host="127.0.0.1") as cluster, distributed.Client(cluster) as client:
+        client.run(os.chdir, str(tmp_path / "worker"))
         dask = DaskExecutor(client)
         try:
-            dask_results, _ = run_study(cases, dask, tmp_path / "dask", keep_sessions=True, analysis=DETECTION_ONLY)
+            dask_results, _ = run_study(cases, dask, Path("dask"), keep_sessions=True, analysis=DETECTION_ONLY)
         finally:
             dask.close()
     assert [r["name"] for r in local_results] == [c.name for c in cases]
     assert "error" not in local_results[0], local_results[0].get("error")
     assert local_results[0]["regions_aborted"] == {}  # every tiny area's ramp ends done
     assert _without_timings(local_results) == _without_timings(dask_results)
-    kept = tmp_path / "dask" / cases[0].name
+    kept = tmp_path / "client" / "dask" / cases[0].name
     assert kept.with_suffix(".h5").exists() and kept.with_suffix(".toml").exists()
+    assert dask_results[0]["session_here"] and not (tmp_path / "worker" / "dask").exists()
     assert not (tmp_path / "local" / f"{cases[0].name}.h5").exists()
     doc = study_document(cases, local_results, 1.0, 3, 1, "local")
     assert set(ACCURACY_KEYS) <= set(doc) and doc["phantoms"] == 1 and doc["study_wall_s"] == 1.0
