@@ -1,8 +1,9 @@
 """Read a session file, read-only, validating it first.
 
 :func:`open_session` either returns a :class:`Session` or raises :class:`SessionFileError` whose message
-names the file and the problem in words an operator can act on: missing, empty, not HDF5 (a foreign
-file), HDF5 but not a session, a session from a newer version, truncated, corrupt. Nothing in here ever
+names the file and the problem in words an operator can act on: missing, not a regular file (a folder, a
+FIFO, a device: refused without waiting on them), empty, not HDF5 (a foreign file), HDF5 but not a session,
+a session from a newer version, truncated, corrupt. Nothing in here ever
 writes to the file: a session left open by a killed console is opened in HDF5's SWMR-read mode (see
 :mod:`session.writer`), which reads it as it is.
 
@@ -26,6 +27,7 @@ import json
 import math
 import os
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,16 +99,12 @@ class Session:
     Small tables (levels, events, metadata) are read at once; the streams are read on request.
     """
 
-    def __init__(self, path: Path, f: h5py.File, recovered: bool, note: str, damage: str = "",
+    def __init__(self, path: Path, f: h5py.File, size: int, recovered: bool, note: str, damage: str = "",
                  padded: _PaddedFile | None = None):
         self.path = path
         self._f = f
         self._padded = padded
-        try:
-            self._file_bytes = path.stat().st_size
-        except OSError as err:
-            self._close_file()
-            raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+        self._file_bytes = size  # of the file HDF5 opened, as checked before it did
         self.recovered = recovered
         # why the file could not be opened normally (truncated, ...): what a read failure then means
         self._damage = damage or "the file is corrupt"
@@ -478,34 +476,75 @@ class Session:
 def open_session(path: str | Path) -> Session:
     """Open and validate a session file; raises :class:`SessionFileError` naming the problem."""
     path = Path(path)
-    if not path.exists():
-        raise SessionFileError(path, "no such file")
-    if path.is_dir():
-        raise SessionFileError(path, "this is a folder, not a session file")
+    fd, size = _open_regular_file(path)
     try:
-        size = path.stat().st_size
-        with open(path, "rb") as fh:
-            head = fh.read(8)
+        return _open_hdf5(path, fd, size)
+    finally:
+        os.close(fd)  # HDF5 holds a descriptor of its own
+
+
+def _open_regular_file(path: Path) -> tuple[int, int]:
+    """A read-only descriptor of ``path`` and its size, if it is a regular file; else SessionFileError.
+
+    open() of a FIFO waits for a writer (forever, if none comes) and a device such as /dev/zero never ends,
+    so the path is opened without blocking and judged by what the descriptor is, not by what the path was a
+    moment before: it could be swapped in between."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise SessionFileError(path, "no such file") from None
     except OSError as err:
         raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise SessionFileError(path, f"this is {_not_a_file(info.st_mode)}, not a session file")
+    return fd, info.st_size
+
+
+def _not_a_file(mode: int) -> str:
+    """What a path that is not a regular file is, in words."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe (FIFO)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "not a regular file"
+
+
+def _hdf5_name(fd: int, path: Path) -> str:
+    """The name HDF5 is to open: on Linux, /proc/self/fd/<fd>, which opens the very file ``fd`` is, so that
+    nothing swapped in at ``path`` after it was checked (a FIFO, whose open would block) is opened instead;
+    elsewhere the path itself."""
+    own = f"/proc/self/fd/{fd}"
+    return own if os.path.exists(own) else str(path)
+
+
+def _open_hdf5(path: Path, fd: int, size: int) -> Session:
     if size == 0:
         raise SessionFileError(path, "the file is empty (0 bytes): the recording never started writing")
-    if not _looks_like_hdf5(path, head):
+    try:
+        head = os.read(fd, 8)
+    except OSError as err:
+        raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+    name = _hdf5_name(fd, path)
+    if not _looks_like_hdf5(name, head):
         raise SessionFileError(path, "this is not a session file: it is not an HDF5 file at all "
                                      f"(it starts with {head[:8]!r})")
     try:
-        f = h5py.File(path, "r")
-        return Session(path, f, recovered=False, note="")
+        f = h5py.File(name, "r")
+        return Session(path, f, size, recovered=False, note="")
     except SessionFileError:
         raise
     except _READ_ERRORS as plain_err:
         stored_eof = _stored_eof(plain_err)
         if stored_eof is not None:
-            return _open_truncated(path, size, stored_eof, plain_err)
+            return _open_truncated(path, name, size, stored_eof, plain_err)
         # A session the console was killed while recording carries HDF5's "open for writing" mark;
         # SWMR-read mode opens it as it is, without clearing the mark (the reviewer never writes).
         try:
-            f = _open_swmr_read(path)
+            f = _open_swmr_read(name)
         except _READ_ERRORS:
             raise SessionFileError(path, _explain_open_error(plain_err)) from None
         if f is None:
@@ -514,7 +553,7 @@ def open_session(path: str | Path) -> Session:
                                      "so the file is not opened in recovery mode)")
         note = ("The recording did not end cleanly (the console stopped while recording, or the file is "
                 "still being written); showing everything that reached the disk.")
-        return Session(path, f, recovered=True, note=note)
+        return Session(path, f, size, recovered=True, note=note)
 
 
 # HDF5 refuses a file shorter than the end its superblock records, and has no option to read it anyway.
@@ -527,13 +566,13 @@ def _stored_eof(err: BaseException) -> int | None:
     return int(m.group(2)) if m else None
 
 
-def _open_truncated(path: Path, size: int, stored_eof: int, err: BaseException) -> Session:
+def _open_truncated(path: Path, name: str, size: int, stored_eof: int, err: BaseException) -> Session:
     """Open a file cut short as though its missing tail were zeros: HDF5 then reads every object that lies
     wholly in the part that is there, and fails (checksums) on the rest, which the session leaves out."""
     damage = _explain_open_error(err)
     if not size < stored_eof <= _MAX_FILE_BYTES:
         raise SessionFileError(path, damage) from None
-    padded = _PaddedFile(path, stored_eof)
+    padded = _PaddedFile(name, stored_eof)
     try:
         # Not SWMR (only POSIX files can be): a file-object driver does not check the mark a killed writer
         # leaves, and a reader that never writes has no use for it.
@@ -543,15 +582,15 @@ def _open_truncated(path: Path, size: int, stored_eof: int, err: BaseException) 
         raise SessionFileError(path, damage + " and too little of it is left to open") from None
     lost = (stored_eof - size) / stored_eof
     note = f"{damage}; {lost:.1%} of it is missing, showing what could be read from the rest"
-    return Session(path, f, recovered=True, note=note[0].upper() + note[1:], damage=damage, padded=padded)
+    return Session(path, f, size, recovered=True, note=note[0].upper() + note[1:], damage=damage, padded=padded)
 
 
 class _PaddedFile(io.RawIOBase):
     """A read-only view of a file extended with zeros to ``length`` bytes, for h5py's file-object driver."""
 
-    def __init__(self, path: Path, length: int):
+    def __init__(self, name: str, length: int):
         super().__init__()
-        self._file = open(path, "rb")  # noqa: SIM115 - closed by close(), with the session
+        self._file = open(name, "rb")  # noqa: SIM115 - closed by close(), with the session
         self._real = os.fstat(self._file.fileno()).st_size
         self._length = length
         self._pos = 0
@@ -617,22 +656,22 @@ def _hdf5_library() -> ctypes.CDLL | None:
     return None
 
 
-def _open_swmr_read(path: Path) -> h5py.File | None:
+def _open_swmr_read(name: str) -> h5py.File | None:
     lib = _hdf5_library()
     if lib is None:
         return None
     fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
     if lib.H5Pset_metadata_read_attempts(fapl.id, SWMR_READ_ATTEMPTS) < 0:
         return None
-    fid = h5py.h5f.open(os.fsencode(path), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
+    fid = h5py.h5f.open(os.fsencode(name), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
     return h5py.File(fid)
 
 
-def _looks_like_hdf5(path: Path, head: bytes) -> bool:
+def _looks_like_hdf5(name: str, head: bytes) -> bool:
     if head == b"\x89HDF\r\n\x1a\n":
         return True
     try:
-        return bool(h5py.is_hdf5(path))  # the signature may also sit at 512, 1024, ... bytes
+        return bool(h5py.is_hdf5(name))  # the signature may also sit at 512, 1024, ... bytes
     except OSError:
         return False
 
