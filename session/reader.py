@@ -15,7 +15,9 @@ is there is read, and the warnings say what was lost.
 Nothing the file declares is trusted before it is checked against the file itself: a table's rows are
 read only as far as its stored chunks reach inside the file (a crafted header claiming 10^10 rows costs
 nothing), chunks and metadata attributes are bounded in size before HDF5 is asked to load them, and
-positions and the element pitch are checked for sense before anything is laid out on a grid.
+positions and the element pitch are checked for sense before anything is laid out on a grid. Nothing out of
+the file is followed: a link into another file, a soft link that leads there, rows stored in another file or
+gathered from others (a virtual dataset) are refused before HDF5 is asked to follow them.
 """
 
 from __future__ import annotations
@@ -51,6 +53,11 @@ MAX_CHUNK_BYTES = 16 * 2**20
 _CHUNK_SLACK = 1.01
 _CHUNK_OVERHEAD_BYTES = 1024
 MAX_META_BYTES = 16 * 2**20  # a /meta attribute (JSON); ours are a few kB
+# HDF5 follows links, and reads rows, into other files of its own accord: a file named there may be a FIFO,
+# whose open never returns, or any file on the disk. The writer keeps everything in the one file (groups and
+# datasets of its own, no links, no external or virtual storage), so the reader follows nothing out of it.
+_ONE_FILE = "a session keeps all of itself in one file, and nothing out of it is followed"
+MAX_SOFT_LINKS = 16  # soft links followed in a row to one object, as HDF5's own limit (H5L_NUM_LINKS)
 MAX_COORDINATE_M = 1.0  # a position further than this from the tissue frame's origin is not on any tissue
 PITCH_RANGE_M = (0.1e-3, 20e-3)  # tactile element pitches this reader makes sense of
 
@@ -154,9 +161,9 @@ class Session:
         self.software_version = _as_str(attrs.get("software_version", ""))
         self.simulated = bool(attrs.get("simulated", False))
 
-        if "meta" not in f:
+        meta = self._member("meta")
+        if not isinstance(meta, h5py.Group):
             self._fail("the file is damaged: the /meta group is missing")
-        meta = f["meta"]
         values = {}
         for key in _META_KEYS:
             if key not in meta.attrs:
@@ -192,9 +199,10 @@ class Session:
 
         self._ds: dict[str, h5py.Dataset] = {}
         for name, dtype in TABLES.items():
-            if name not in f or not isinstance(f[name], h5py.Dataset):
+            ds = self._member(name)
+            if not isinstance(ds, h5py.Dataset):
                 self._fail(f"the file is damaged: the dataset /{name} is missing")
-            ds = f[name]
+            self._check_rows_are_here(name, ds)
             optional = {column for (table, column), since in ADDED_COLUMNS.items() if table == name and version < since}
             problem = _dtype_problem(ds.dtype, dtype, optional)
             if problem or ds.ndim != 1:
@@ -218,6 +226,47 @@ class Session:
         if self.rows_lost:
             self.warnings.append(f"{self.rows_lost} tick rows were lost before they reached the file "
                                  "(the display fell behind the controller)")
+
+    def _member(self, path: str) -> h5py.HLObject | None:
+        """The object at ``path`` (from the root), or None if there is none, looked up one link at a time so
+        that no link into another file is ever followed (soft links are, within the file)."""
+        obj, trail, todo, hops = self._f, [], [part for part in path.split("/") if part], 0
+        while todo:
+            if not isinstance(obj, h5py.Group):
+                return None
+            part = todo.pop(0)
+            name, links = part.encode(), obj.id.links
+            if not links.exists(name):
+                return None
+            kind = links.get_info(name).type
+            if kind == h5py.h5l.TYPE_HARD:
+                obj = obj[part]
+                trail.append(part)
+            elif kind == h5py.h5l.TYPE_SOFT:
+                hops += 1
+                if hops > MAX_SOFT_LINKS:
+                    self._fail(f"the file is damaged: /{path} is reached through more than {MAX_SOFT_LINKS} soft links "
+                               "in a row (they go round in a loop)")
+                target = _as_str(links.get_val(name))
+                if target.startswith("/"):
+                    obj, trail = self._f, []
+                todo = [p for p in target.split("/") if p] + todo
+            else:
+                where = "/" + "/".join([*trail, part])
+                leads = (f"is a link into another file, {_as_str(links.get_val(name)[0])}"
+                         if kind == h5py.h5l.TYPE_EXTERNAL else "is a user-defined link")
+                self._fail(f"the file was not written by Palpation Console: {where} {leads}; {_ONE_FILE}")
+        return obj
+
+    def _check_rows_are_here(self, name: str, ds: h5py.Dataset) -> None:
+        """Refuses a dataset whose rows HDF5 would read from other files."""
+        if ds.is_virtual:
+            self._fail(f"the file was not written by Palpation Console: /{name} is a virtual dataset, whose rows "
+                       f"HDF5 gathers from other datasets (in other files, too); {_ONE_FILE}")
+        plist = ds.id.get_create_plist()
+        if plist.get_external_count():
+            self._fail(f"the file was not written by Palpation Console: /{name} keeps its rows in another file, "
+                       f"{_as_str(plist.get_external(0)[0])}; {_ONE_FILE}")
 
     def _stored_rows(self, name: str) -> int:
         """How many leading rows of /name lie wholly inside the file (not what its header declares)."""
