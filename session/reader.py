@@ -14,7 +14,9 @@ is there is read, and the warnings say what was lost.
 
 Nothing the file declares is trusted before it is checked against the file itself: a table's rows are
 read only as far as its stored chunks reach inside the file (a crafted header claiming 10^10 rows costs
-nothing), chunks and metadata attributes are bounded in size before HDF5 is asked to load them, and
+nothing), a table whose chunks hold more rows than a session can (:data:`ROW_BOUNDS`) is refused before any
+of them is read, rows are read :data:`MAX_READ_BYTES` at a time, chunks and metadata attributes are bounded
+in size before HDF5 is asked to load them, and
 positions and the element pitch are checked for sense before anything is laid out on a grid. Nothing out of
 the file is followed: a link into another file, a soft link that leads there, rows stored in another file or
 gathered from others (a virtual dataset) are refused before HDF5 is asked to follow them.
@@ -37,6 +39,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from control.config import RATE_HZ_RANGE
 from control.telemetry import TICK_DTYPE
 from session.format import (ADDED_COLUMNS, FORMAT_NAME, FORMAT_VERSION, OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TABLES,
                             EventKind, Overview)
@@ -53,6 +56,38 @@ MAX_CHUNK_BYTES = 16 * 2**20
 _CHUNK_SLACK = 1.01
 _CHUNK_OVERHEAD_BYTES = 1024
 MAX_META_BYTES = 16 * 2**20  # a /meta attribute (JSON); ours are a few kB
+
+# What a session can hold. A table whose chunks hold more rows than this is refused before any of its rows is
+# read, however its header or its chunks divide the claim (many small chunks add up to millions of rows). A
+# session is taken to last at most a working day, 8 hours, recorded without a pause at the highest rates the
+# console records at (at the default 1 kHz loop and 100 Hz frames, the streams' bounds hold 40 hours or more).
+# /levels and /events are read whole: their bounds cap what a session holds in memory, 190 MiB of levels and
+# 513 MiB of events; the streams are read in pieces on request, and their bounds cap the time a pass over one
+# takes (the overview recomputed for a file that lacks it).
+SESSION_BOUND_S = 8 * 3600
+_MAX_TICKS = int(SESSION_BOUND_S * RATE_HZ_RANGE[1])
+ROW_BOUNDS: dict[str, tuple[int, str]] = {
+    # a row per control period, at the fastest rate the loop may run (control.config.RATE_HZ_RANGE)
+    "stream/ticks": (_MAX_TICKS, f"8 hours of control periods at {RATE_HZ_RANGE[1] / 1e3:g} kHz"),
+    # a row per tactile frame, at 1 kHz: no tactile array may send faster (the simulated and the serial one's
+    # bound), one frame per control period at the default rate
+    "stream/frames": (SESSION_BOUND_S * 1000, "8 hours of tactile frames at 1 kHz"),
+    "stream/overview": (-(-_MAX_TICKS // OVERVIEW_BUCKET_ROWS),
+                        f"one per {OVERVIEW_BUCKET_ROWS} of the most control periods"),
+    # a level is recorded once the force has settled over a window of at least min_settle_s (0.5 s by default,
+    # the paper's ramp) since the level before: 2 a second, were the probe never moved between areas
+    "levels": (SESSION_BOUND_S * 2, "8 hours of force levels, one every 0.5 s"),
+    # levels at that pace bring 4 events a second (the level, the next level's phase); the recorder adds a
+    # rows_lost event at most once per batch of rows the display hands it, 60 a second, were it to fall behind
+    # at every refresh for all 8 hours; areas, faults, commands and notes come at an operator's pace
+    "events": (SESSION_BOUND_S * 64, "8 hours of 64 events a second"),
+}
+# The chunks of a table looked through to find where its rows end, at about 3 us each (3 s at most); a real
+# session's largest table has about 225,000 (8 hours of frames at 1 kHz in the writer's 128-row chunks).
+MAX_CHUNKS = 2**20
+# The most one read asks of HDF5: rows are read this much at a time, so that neither the read's buffer nor
+# HDF5's own for it grows with what a caller asks for at once (chunks are decompressed one at a time anyway).
+MAX_READ_BYTES = 4 * 2**20
 # HDF5 follows links, and reads rows, into other files of its own accord: a file named there may be a FIFO,
 # whose open never returns, or any file on the disk. The writer keeps everything in the one file (groups and
 # datasets of its own, no links, no external or virtual storage), so the reader follows nothing out of it.
@@ -279,6 +314,7 @@ class Session:
                 n = declared if ds.id.get_storage_size() >= declared * row_bytes else 0
             else:
                 n = min(declared, max(0, self._file_bytes - offset) // row_bytes)
+            self._check_claim(name, n)
         else:
             rows_per_chunk = ds.chunks[0]
             chunk_bytes = rows_per_chunk * row_bytes
@@ -286,14 +322,24 @@ class Session:
                 self._fail(f"the file is damaged or was not written by Palpation Console: /{name} is stored in "
                            f"chunks of {chunk_bytes / 2**20:,.0f} MB (at most {MAX_CHUNK_BYTES // 2**20} MB expected)")
             largest = chunk_bytes * _CHUNK_SLACK + _CHUNK_OVERHEAD_BYTES
-            intact: list[int] = []
-            oversized: list[int] = []
+            limit = ROW_BOUNDS[name][0]
+            # which chunks of the declared extent lie wholly in the file (no more than MAX_CHUNKS can all be
+            # there), and a slot after them that stays empty
+            present = np.zeros(min(-(-declared // rows_per_chunk), MAX_CHUNKS) + 1, bool)
+            chunks = claimed = oversized = 0
 
-            def visit(chunk) -> None:
+            def visit(chunk) -> str | None:
+                nonlocal chunks, claimed, oversized
+                chunks += 1
+                start = chunk.chunk_offset[0]
+                claimed += max(0, min(rows_per_chunk, declared - start))
+                if chunks > MAX_CHUNKS or claimed > limit:
+                    return "refused"  # below; the rest of the index need not be read
                 if chunk.size > largest:
-                    oversized.append(chunk.size)
-                elif chunk.byte_offset + chunk.size <= self._file_bytes:
-                    intact.append(chunk.chunk_offset[0] // rows_per_chunk)
+                    oversized = max(oversized, chunk.size)
+                elif start // rows_per_chunk < len(present) - 1 and chunk.byte_offset + chunk.size <= self._file_bytes:
+                    present[start // rows_per_chunk] = True
+                return None
 
             try:
                 ds.id.chunk_iter(visit)
@@ -301,25 +347,37 @@ class Session:
                 where = "lies in the part of the file that is missing" if self._padded else "is damaged"
                 self.warnings.append(f"/{name}: the index of its rows {where}, so none of them could be read")
                 return 0
+            if chunks > MAX_CHUNKS:
+                self._fail(f"the file is damaged or was not written by Palpation Console: /{name} is stored in more "
+                           f"than {MAX_CHUNKS:,} chunks (a session's largest table has about 225,000)")
+            self._check_claim(name, claimed)
             if oversized:
-                self._fail(f"the file is damaged: a chunk of /{name} claims {max(oversized):,} bytes, more than its "
+                self._fail(f"the file is damaged: a chunk of /{name} claims {oversized:,} bytes, more than its "
                            f"{chunk_bytes:,} bytes of rows")
-            present = np.zeros(len(intact) + 1, bool)
-            index = np.asarray(intact, np.int64)
-            present[index[index < len(present)]] = True
             n = min(declared, int(np.argmin(present)) * rows_per_chunk)
         if n < declared and name != "stream/overview":  # the overview is recomputed from the ticks
             self.warnings.append(f"/{name}: {declared - n:,} of its {declared:,} rows are not in the file (never "
                                  "written, or in a part of the file that is missing) and were left out")
         return n
 
+    def _check_claim(self, name: str, rows: int) -> None:
+        """Refuses a table holding more rows than a session can (:data:`ROW_BOUNDS`)."""
+        limit, what = ROW_BOUNDS[name]
+        if rows > limit:
+            ds = self._ds[name]
+            declared = ds.shape[0]
+            self._fail(f"the file is damaged or was not written by Palpation Console: /{name} claims {declared:,} rows "
+                       f"({declared * ds.dtype.itemsize / 2**20:,.0f} MB), more than a session can hold ({limit:,}: "
+                       f"{what})")
+
     def _placed_levels(self, levels: np.ndarray) -> np.ndarray:
         """The level records whose recorded position is a place on the tissue (others cannot be mapped)."""
         xy = levels["tsi_position_m"][:, :2]
         placed = np.isfinite(xy).all(axis=1) & (np.abs(xy) <= MAX_COORDINATE_M).all(axis=1)
-        if not placed.all():
-            self.warnings.append(f"/levels: {int((~placed).sum())} level records with a position that is not a number "
-                                 f"or lies beyond {MAX_COORDINATE_M:g} m of the origin were left out")
+        if placed.all():
+            return levels  # not a copy of them: that would double what the levels take
+        self.warnings.append(f"/levels: {int((~placed).sum())} level records with a position that is not a number "
+                             f"or lies beyond {MAX_COORDINATE_M:g} m of the origin were left out")
         return levels[placed]
 
     def _read_numbered(self, name: str) -> np.ndarray:
@@ -338,7 +396,7 @@ class Session:
         if any(f not in ds.dtype.names for f in (fields or TABLES[name].names)):
             stored = [f for f in (fields or TABLES[name].names) if f in ds.dtype.names]
         try:
-            rows = ds.fields(stored)[start:stop] if stored else ds[start:stop]
+            rows = _read_in_pieces(ds, start, stop, stored)
         except _READ_ERRORS as err:
             self._fail(f"{self._damage}: HDF5 could not read rows {start}-{stop} of /{name} ({_first_line(err)})")
         if stored is not fields:  # an older file: give its rows the columns added since, as NaN
@@ -356,7 +414,7 @@ class Session:
                 break
             start = max(0, n - window)
             try:
-                block = ds[start:n]
+                block = _read_in_pieces(ds, start, n)
             except _READ_ERRORS:
                 n = start
                 continue
@@ -723,6 +781,19 @@ def _looks_like_hdf5(name: str, head: bytes) -> bool:
         return bool(h5py.is_hdf5(name))  # the signature may also sit at 512, 1024, ... bytes
     except OSError:
         return False
+
+
+def _read_in_pieces(ds: h5py.Dataset, start: int, stop: int, fields: list[str] | None = None) -> np.ndarray:
+    """Rows ``start`` to ``stop`` of ``ds`` (only ``fields``, if given), asking HDF5 for at most
+    MAX_READ_BYTES of rows at a time."""
+    source = ds.fields(fields) if fields else ds
+    dtype = np.dtype([(f, ds.dtype.fields[f][0]) for f in fields]) if fields else ds.dtype
+    rows = np.empty(max(0, stop - start), dtype)
+    step = max(1, MAX_READ_BYTES // ds.dtype.itemsize)
+    for first in range(start, stop, step):
+        last = min(stop, first + step)
+        rows[first - start:last - start] = source[first:last]
+    return rows
 
 
 def _is_coordinate(value: Any) -> bool:

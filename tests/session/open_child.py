@@ -7,7 +7,8 @@ under the address-space cap set here) instead of stalling or starving the test r
     python -m tests.session.open_child reference PATH    Reference.load(PATH, (4, 15))
 
 A refusal prints its message and exits 0; a file that opens prints "opened" and exits 3. Either way the last
-line is the process's peak resident memory in MiB.
+line is the process's peak resident memory in MiB (VmHWM: getrusage's ru_maxrss would count the memory of
+the parent it was forked from too).
 """
 
 from __future__ import annotations
@@ -26,10 +27,13 @@ from session.reader import SessionFileError, open_session
 ADDRESS_SPACE_BUDGET_BYTES = 1 << 30
 
 
-def _cap_address_space() -> None:
+def _status_kib(key: str) -> int:
     status = Path("/proc/self/status").read_text()
-    in_use = int(next(line for line in status.splitlines() if line.startswith("VmSize:")).split()[1]) * 1024
-    limit = in_use + ADDRESS_SPACE_BUDGET_BYTES
+    return int(next(line for line in status.splitlines() if line.startswith(f"{key}:")).split()[1])
+
+
+def _cap_address_space() -> None:
+    limit = _status_kib("VmSize") * 1024 + ADDRESS_SPACE_BUDGET_BYTES
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
 
@@ -61,7 +65,7 @@ def main(kind: str, path: str) -> int:
     except (SessionFileError, FlatFieldError) as err:
         print(err)
         code = 0
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)
+    print(_status_kib("VmHWM") // 1024)
     return code
 
 
