@@ -182,7 +182,7 @@ class Session:
                        f"expected {FORMAT_NAME!r}")
         try:
             version = int(attrs["format_version"])
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):  # OverflowError: infinity
             self._fail("the session has no readable 'format_version' attribute: the file is damaged")
         if version > FORMAT_VERSION:
             self._fail(f"the session was written by a newer Palpation Console (session format version {version}; "
@@ -257,7 +257,7 @@ class Session:
             self.warnings.append(f"The controller stopped on its own at t = {float(row['t_s']):.1f} s (loop time): "
                                  f"{_as_str(row['text'])}")
         lost = self.events[self.events["kind"] == EventKind.ROWS_LOST.encode()]["value"]
-        self.rows_lost = int(np.nansum(lost)) if len(lost) else 0
+        self.rows_lost = int(lost[np.isfinite(lost)].sum())  # an infinite count is damage, and no int
         if self.rows_lost:
             self.warnings.append(f"{self.rows_lost} tick rows were lost before they reached the file "
                                  "(the display fell behind the controller)")
