@@ -69,8 +69,8 @@ _MAX_TICKS = int(SESSION_BOUND_S * RATE_HZ_RANGE[1])
 ROW_BOUNDS: dict[str, tuple[int, str]] = {
     # a row per control period, at the fastest rate the loop may run (control.config.RATE_HZ_RANGE)
     "stream/ticks": (_MAX_TICKS, f"8 hours of control periods at {RATE_HZ_RANGE[1] / 1e3:g} kHz"),
-    # a row per tactile frame, at 1 kHz: no tactile array may send faster (the simulated and the serial one's
-    # bound), one frame per control period at the default rate
+    # a row per tactile frame, at 1 kHz: no tactile array the console drives sends faster (the simulated and
+    # the serial array's bound; the UDP one forwards the slave's), one frame per control period by default
     "stream/frames": (SESSION_BOUND_S * 1000, "8 hours of tactile frames at 1 kHz"),
     "stream/overview": (-(-_MAX_TICKS // OVERVIEW_BUCKET_ROWS),
                         f"one per {OVERVIEW_BUCKET_ROWS} of the most control periods"),

@@ -1,6 +1,7 @@
 """Files that would make a reader wait forever or eat the machine's memory (issue 49): a FIFO or a device for a
-path, a session whose parts live in other files. Each is refused in one line, in a child process (the reader's
-own time-out and memory cap), so that a regression fails its test instead of stalling the run."""
+path, a session whose parts live in other files, tables whose chunks claim more rows than a session holds.
+Each is refused in one line, opened in a child process with a time-out and a memory cap, so that a regression
+fails its test instead of stalling the run or starving the machine."""
 
 from __future__ import annotations
 
@@ -198,8 +199,9 @@ def test_tables_whose_many_small_chunks_add_up_to_more_than_a_session_holds_are_
 
 
 def test_a_claim_of_gigabytes_costs_neither_memory_nor_time(tmp_path):
-    """A 3 MB file whose /levels claims 3.3 GB (a million levels) is refused at once, in a process that could not
-    have read it (open_child.py caps its memory), having needed about as much memory as importing the reader."""
+    """A 3 MB file whose /levels claims 3.3 GB (a million levels) is refused within the child's time-out, in a
+    process that could not have read it (open_child.py caps its memory), having needed about as much memory as
+    importing the reader does (45 MiB)."""
     path = claiming(tmp_path / "huge.h5", "levels", 245 * 4096, 4096)
     assert path.stat().st_size < 4 * 2**20
     code, message, peak_mib = run_child("session", path)
