@@ -50,6 +50,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,6 +75,10 @@ PART_RANGE = 0.3
 # side, lifting one of the four, moved their level and was found 2-3 mm off or missed.
 MIN_PART_LEVEL = 10
 REFERENCE_FORMAT = "palpation-console-reference"
+# A saved reference holds two numbers per element and force level, about 25 bytes each: 0.6 MB for the 4 x 15
+# array at the most levels a ramp has (200). A larger file is not one and is not read, so that loading what a
+# path names costs at most this much text and about half as much again parsed (a fraction of a second).
+MAX_REFERENCE_BYTES = 4 * 2**20
 
 
 class FlatFieldError(ValueError):
@@ -143,7 +149,17 @@ class Reference:
     @classmethod
     def load(cls, path: str | Path, shape: tuple[int, int]) -> Reference:
         try:
-            data = json.loads(Path(path).read_text(encoding="utf-8"))
+            # opened without blocking, so that a FIFO with no writer is refused instead of waited on
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+            if not stat.S_ISREG(os.fstat(fd).st_mode):  # a folder, a FIFO, a device (/dev/zero never ends)
+                os.close(fd)
+                raise FlatFieldError(f"{path}: not a regular file: not a reference palpation")
+            with open(fd, "rb") as f:
+                raw = f.read(MAX_REFERENCE_BYTES + 1)
+            if len(raw) > MAX_REFERENCE_BYTES:
+                raise FlatFieldError(f"{path}: larger than {MAX_REFERENCE_BYTES >> 20} MB: not a reference palpation "
+                                     "(one is well under 1 MB)")
+            data = json.loads(raw.decode("utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise FlatFieldError(f"{path}: cannot read the reference palpation ({err})") from None
         return cls.from_json(data, shape, str(path))

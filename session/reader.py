@@ -1,8 +1,9 @@
 """Read a session file, read-only, validating it first.
 
 :func:`open_session` either returns a :class:`Session` or raises :class:`SessionFileError` whose message
-names the file and the problem in words an operator can act on: missing, empty, not HDF5 (a foreign
-file), HDF5 but not a session, a session from a newer version, truncated, corrupt. Nothing in here ever
+names the file and the problem in words an operator can act on: missing, not a regular file (a folder, a
+FIFO, a device: refused without waiting on them), empty, not HDF5 (a foreign file), HDF5 but not a session,
+a session from a newer version, truncated, corrupt. Nothing in here ever
 writes to the file: a session left open by a killed console is opened in HDF5's SWMR-read mode (see
 :mod:`session.writer`), which reads it as it is.
 
@@ -13,8 +14,12 @@ is there is read, and the warnings say what was lost.
 
 Nothing the file declares is trusted before it is checked against the file itself: a table's rows are
 read only as far as its stored chunks reach inside the file (a crafted header claiming 10^10 rows costs
-nothing), chunks and metadata attributes are bounded in size before HDF5 is asked to load them, and
-positions and the element pitch are checked for sense before anything is laid out on a grid.
+nothing), a table whose chunks hold more rows than a session can (:data:`ROW_BOUNDS`) is refused before any
+of them is read, rows are read :data:`MAX_READ_BYTES` at a time, chunks and metadata attributes are bounded
+in size before HDF5 is asked to load them, and
+positions and the element pitch are checked for sense before anything is laid out on a grid. Nothing out of
+the file is followed: a link into another file, a soft link that leads there, rows stored in another file or
+gathered from others (a virtual dataset) are refused before HDF5 is asked to follow them.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import json
 import math
 import os
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +39,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from control.config import RATE_HZ_RANGE
 from control.telemetry import TICK_DTYPE
 from session.format import (ADDED_COLUMNS, FORMAT_NAME, FORMAT_VERSION, OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TABLES,
                             EventKind, Overview)
@@ -49,6 +56,43 @@ MAX_CHUNK_BYTES = 16 * 2**20
 _CHUNK_SLACK = 1.01
 _CHUNK_OVERHEAD_BYTES = 1024
 MAX_META_BYTES = 16 * 2**20  # a /meta attribute (JSON); ours are a few kB
+
+# What a session can hold. A table whose chunks hold more rows than this is refused before any of its rows is
+# read, however its header or its chunks divide the claim (many small chunks add up to millions of rows). A
+# session is taken to last at most a working day, 8 hours, recorded without a pause at the highest rates the
+# console records at (at the default 1 kHz loop and 100 Hz frames, the streams' bounds hold 40 hours or more).
+# /levels and /events are read whole: their bounds cap what a session holds in memory, 190 MiB of levels and
+# 513 MiB of events; the streams are read in pieces on request, and their bounds cap the time a pass over one
+# takes (the overview recomputed for a file that lacks it).
+SESSION_BOUND_S = 8 * 3600
+_MAX_TICKS = int(SESSION_BOUND_S * RATE_HZ_RANGE[1])
+ROW_BOUNDS: dict[str, tuple[int, str]] = {
+    # a row per control period, at the fastest rate the loop may run (control.config.RATE_HZ_RANGE)
+    "stream/ticks": (_MAX_TICKS, f"8 hours of control periods at {RATE_HZ_RANGE[1] / 1e3:g} kHz"),
+    # a row per tactile frame, at 1 kHz: no tactile array the console drives sends faster (the simulated and
+    # the serial array's bound; the UDP one forwards the slave's), one frame per control period by default
+    "stream/frames": (SESSION_BOUND_S * 1000, "8 hours of tactile frames at 1 kHz"),
+    "stream/overview": (-(-_MAX_TICKS // OVERVIEW_BUCKET_ROWS),
+                        f"one per {OVERVIEW_BUCKET_ROWS} of the most control periods"),
+    # a level is recorded once the force has settled over a window of at least min_settle_s (0.5 s by default,
+    # the paper's ramp) since the level before: 2 a second, were the probe never moved between areas
+    "levels": (SESSION_BOUND_S * 2, "8 hours of force levels, one every 0.5 s"),
+    # levels at that pace bring 4 events a second (the level, the next level's phase); the recorder adds a
+    # rows_lost event at most once per batch of rows the display hands it, 60 a second, were it to fall behind
+    # at every refresh for all 8 hours; areas, faults, commands and notes come at an operator's pace
+    "events": (SESSION_BOUND_S * 64, "8 hours of 64 events a second"),
+}
+# The chunks of a table looked through to find where its rows end, at about 3 us each (3 s at most); a real
+# session's largest table has about 225,000 (8 hours of frames at 1 kHz in the writer's 128-row chunks).
+MAX_CHUNKS = 2**20
+# The most one read asks of HDF5: rows are read this much at a time, so that neither the read's buffer nor
+# HDF5's own for it grows with what a caller asks for at once (chunks are decompressed one at a time anyway).
+MAX_READ_BYTES = 4 * 2**20
+# HDF5 follows links, and reads rows, into other files of its own accord: a file named there may be a FIFO,
+# whose open never returns, or any file on the disk. The writer keeps everything in the one file (groups and
+# datasets of its own, no links, no external or virtual storage), so the reader follows nothing out of it.
+_ONE_FILE = "a session keeps all of itself in one file, and nothing out of it is followed"
+MAX_SOFT_LINKS = 16  # soft links followed in a row to one object, as HDF5's own limit (H5L_NUM_LINKS)
 MAX_COORDINATE_M = 1.0  # a position further than this from the tissue frame's origin is not on any tissue
 PITCH_RANGE_M = (0.1e-3, 20e-3)  # tactile element pitches this reader makes sense of
 
@@ -97,16 +141,12 @@ class Session:
     Small tables (levels, events, metadata) are read at once; the streams are read on request.
     """
 
-    def __init__(self, path: Path, f: h5py.File, recovered: bool, note: str, damage: str = "",
+    def __init__(self, path: Path, f: h5py.File, size: int, recovered: bool, note: str, damage: str = "",
                  padded: _PaddedFile | None = None):
         self.path = path
         self._f = f
         self._padded = padded
-        try:
-            self._file_bytes = path.stat().st_size
-        except OSError as err:
-            self._close_file()
-            raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+        self._file_bytes = size  # of the file HDF5 opened, as checked before it did
         self.recovered = recovered
         # why the file could not be opened normally (truncated, ...): what a read failure then means
         self._damage = damage or "the file is corrupt"
@@ -142,7 +182,7 @@ class Session:
                        f"expected {FORMAT_NAME!r}")
         try:
             version = int(attrs["format_version"])
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):  # OverflowError: infinity
             self._fail("the session has no readable 'format_version' attribute: the file is damaged")
         if version > FORMAT_VERSION:
             self._fail(f"the session was written by a newer Palpation Console (session format version {version}; "
@@ -156,9 +196,9 @@ class Session:
         self.software_version = _as_str(attrs.get("software_version", ""))
         self.simulated = bool(attrs.get("simulated", False))
 
-        if "meta" not in f:
+        meta = self._member("meta")
+        if not isinstance(meta, h5py.Group):
             self._fail("the file is damaged: the /meta group is missing")
-        meta = f["meta"]
         values = {}
         for key in _META_KEYS:
             if key not in meta.attrs:
@@ -194,9 +234,10 @@ class Session:
 
         self._ds: dict[str, h5py.Dataset] = {}
         for name, dtype in TABLES.items():
-            if name not in f or not isinstance(f[name], h5py.Dataset):
+            ds = self._member(name)
+            if not isinstance(ds, h5py.Dataset):
                 self._fail(f"the file is damaged: the dataset /{name} is missing")
-            ds = f[name]
+            self._check_rows_are_here(name, ds)
             optional = {column for (table, column), since in ADDED_COLUMNS.items() if table == name and version < since}
             problem = _dtype_problem(ds.dtype, dtype, optional)
             if problem or ds.ndim != 1:
@@ -216,10 +257,51 @@ class Session:
             self.warnings.append(f"The controller stopped on its own at t = {float(row['t_s']):.1f} s (loop time): "
                                  f"{_as_str(row['text'])}")
         lost = self.events[self.events["kind"] == EventKind.ROWS_LOST.encode()]["value"]
-        self.rows_lost = int(np.nansum(lost)) if len(lost) else 0
+        self.rows_lost = int(lost[np.isfinite(lost)].sum())  # an infinite count is damage, and no int
         if self.rows_lost:
             self.warnings.append(f"{self.rows_lost} tick rows were lost before they reached the file "
                                  "(the display fell behind the controller)")
+
+    def _member(self, path: str) -> h5py.HLObject | None:
+        """The object at ``path`` (from the root), or None if there is none, looked up one link at a time so
+        that no link into another file is ever followed (soft links are, within the file)."""
+        obj, trail, todo, hops = self._f, [], [part for part in path.split("/") if part], 0
+        while todo:
+            if not isinstance(obj, h5py.Group):
+                return None
+            part = todo.pop(0)
+            name, links = part.encode(), obj.id.links
+            if not links.exists(name):
+                return None
+            kind = links.get_info(name).type
+            if kind == h5py.h5l.TYPE_HARD:
+                obj = obj[part]
+                trail.append(part)
+            elif kind == h5py.h5l.TYPE_SOFT:
+                hops += 1
+                if hops > MAX_SOFT_LINKS:
+                    self._fail(f"the file is damaged: /{path} is reached through more than {MAX_SOFT_LINKS} soft links "
+                               "in a row (they go round in a loop)")
+                target = _as_str(links.get_val(name))
+                if target.startswith("/"):
+                    obj, trail = self._f, []
+                todo = [p for p in target.split("/") if p] + todo
+            else:
+                where = "/" + "/".join([*trail, part])
+                leads = (f"is a link into another file, {_as_str(links.get_val(name)[0])}"
+                         if kind == h5py.h5l.TYPE_EXTERNAL else "is a user-defined link")
+                self._fail(f"the file was not written by Palpation Console: {where} {leads}; {_ONE_FILE}")
+        return obj
+
+    def _check_rows_are_here(self, name: str, ds: h5py.Dataset) -> None:
+        """Refuses a dataset whose rows HDF5 would read from other files."""
+        if ds.is_virtual:
+            self._fail(f"the file was not written by Palpation Console: /{name} is a virtual dataset, whose rows "
+                       f"HDF5 gathers from other datasets (in other files, too); {_ONE_FILE}")
+        plist = ds.id.get_create_plist()
+        if plist.get_external_count():
+            self._fail(f"the file was not written by Palpation Console: /{name} keeps its rows in another file, "
+                       f"{_as_str(plist.get_external(0)[0])}; {_ONE_FILE}")
 
     def _stored_rows(self, name: str) -> int:
         """How many leading rows of /name lie wholly inside the file (not what its header declares)."""
@@ -232,6 +314,7 @@ class Session:
                 n = declared if ds.id.get_storage_size() >= declared * row_bytes else 0
             else:
                 n = min(declared, max(0, self._file_bytes - offset) // row_bytes)
+            self._check_claim(name, n)
         else:
             rows_per_chunk = ds.chunks[0]
             chunk_bytes = rows_per_chunk * row_bytes
@@ -239,14 +322,24 @@ class Session:
                 self._fail(f"the file is damaged or was not written by Palpation Console: /{name} is stored in "
                            f"chunks of {chunk_bytes / 2**20:,.0f} MB (at most {MAX_CHUNK_BYTES // 2**20} MB expected)")
             largest = chunk_bytes * _CHUNK_SLACK + _CHUNK_OVERHEAD_BYTES
-            intact: list[int] = []
-            oversized: list[int] = []
+            limit = ROW_BOUNDS[name][0]
+            # which chunks of the declared extent lie wholly in the file (no more than MAX_CHUNKS can all be
+            # there), and a slot after them that stays empty
+            present = np.zeros(min(-(-declared // rows_per_chunk), MAX_CHUNKS) + 1, bool)
+            chunks = claimed = oversized = 0
 
-            def visit(chunk) -> None:
+            def visit(chunk) -> str | None:
+                nonlocal chunks, claimed, oversized
+                chunks += 1
+                start = chunk.chunk_offset[0]
+                claimed += max(0, min(rows_per_chunk, declared - start))
+                if chunks > MAX_CHUNKS or claimed > limit:
+                    return "refused"  # below; the rest of the index need not be read
                 if chunk.size > largest:
-                    oversized.append(chunk.size)
-                elif chunk.byte_offset + chunk.size <= self._file_bytes:
-                    intact.append(chunk.chunk_offset[0] // rows_per_chunk)
+                    oversized = max(oversized, chunk.size)
+                elif start // rows_per_chunk < len(present) - 1 and chunk.byte_offset + chunk.size <= self._file_bytes:
+                    present[start // rows_per_chunk] = True
+                return None
 
             try:
                 ds.id.chunk_iter(visit)
@@ -254,25 +347,37 @@ class Session:
                 where = "lies in the part of the file that is missing" if self._padded else "is damaged"
                 self.warnings.append(f"/{name}: the index of its rows {where}, so none of them could be read")
                 return 0
+            if chunks > MAX_CHUNKS:
+                self._fail(f"the file is damaged or was not written by Palpation Console: /{name} is stored in more "
+                           f"than {MAX_CHUNKS:,} chunks (a session's largest table has about 225,000)")
+            self._check_claim(name, claimed)
             if oversized:
-                self._fail(f"the file is damaged: a chunk of /{name} claims {max(oversized):,} bytes, more than its "
+                self._fail(f"the file is damaged: a chunk of /{name} claims {oversized:,} bytes, more than its "
                            f"{chunk_bytes:,} bytes of rows")
-            present = np.zeros(len(intact) + 1, bool)
-            index = np.asarray(intact, np.int64)
-            present[index[index < len(present)]] = True
             n = min(declared, int(np.argmin(present)) * rows_per_chunk)
         if n < declared and name != "stream/overview":  # the overview is recomputed from the ticks
             self.warnings.append(f"/{name}: {declared - n:,} of its {declared:,} rows are not in the file (never "
                                  "written, or in a part of the file that is missing) and were left out")
         return n
 
+    def _check_claim(self, name: str, rows: int) -> None:
+        """Refuses a table holding more rows than a session can (:data:`ROW_BOUNDS`)."""
+        limit, what = ROW_BOUNDS[name]
+        if rows > limit:
+            ds = self._ds[name]
+            declared = ds.shape[0]
+            self._fail(f"the file is damaged or was not written by Palpation Console: /{name} claims {declared:,} rows "
+                       f"({declared * ds.dtype.itemsize / 2**20:,.0f} MB), more than a session can hold ({limit:,}: "
+                       f"{what})")
+
     def _placed_levels(self, levels: np.ndarray) -> np.ndarray:
         """The level records whose recorded position is a place on the tissue (others cannot be mapped)."""
         xy = levels["tsi_position_m"][:, :2]
         placed = np.isfinite(xy).all(axis=1) & (np.abs(xy) <= MAX_COORDINATE_M).all(axis=1)
-        if not placed.all():
-            self.warnings.append(f"/levels: {int((~placed).sum())} level records with a position that is not a number "
-                                 f"or lies beyond {MAX_COORDINATE_M:g} m of the origin were left out")
+        if placed.all():
+            return levels  # not a copy of them: that would double what the levels take
+        self.warnings.append(f"/levels: {int((~placed).sum())} level records with a position that is not a number "
+                             f"or lies beyond {MAX_COORDINATE_M:g} m of the origin were left out")
         return levels[placed]
 
     def _read_numbered(self, name: str) -> np.ndarray:
@@ -291,7 +396,7 @@ class Session:
         if any(f not in ds.dtype.names for f in (fields or TABLES[name].names)):
             stored = [f for f in (fields or TABLES[name].names) if f in ds.dtype.names]
         try:
-            rows = ds.fields(stored)[start:stop] if stored else ds[start:stop]
+            rows = _read_in_pieces(ds, start, stop, stored)
         except _READ_ERRORS as err:
             self._fail(f"{self._damage}: HDF5 could not read rows {start}-{stop} of /{name} ({_first_line(err)})")
         if stored is not fields:  # an older file: give its rows the columns added since, as NaN
@@ -309,7 +414,7 @@ class Session:
                 break
             start = max(0, n - window)
             try:
-                block = ds[start:n]
+                block = _read_in_pieces(ds, start, n)
             except _READ_ERRORS:
                 n = start
                 continue
@@ -478,34 +583,75 @@ class Session:
 def open_session(path: str | Path) -> Session:
     """Open and validate a session file; raises :class:`SessionFileError` naming the problem."""
     path = Path(path)
-    if not path.exists():
-        raise SessionFileError(path, "no such file")
-    if path.is_dir():
-        raise SessionFileError(path, "this is a folder, not a session file")
+    fd, size = _open_regular_file(path)
     try:
-        size = path.stat().st_size
-        with open(path, "rb") as fh:
-            head = fh.read(8)
+        return _open_hdf5(path, fd, size)
+    finally:
+        os.close(fd)  # HDF5 holds a descriptor of its own
+
+
+def _open_regular_file(path: Path) -> tuple[int, int]:
+    """A read-only descriptor of ``path`` and its size, if it is a regular file; else SessionFileError.
+
+    open() of a FIFO waits for a writer (forever, if none comes) and a device such as /dev/zero never ends,
+    so the path is opened without blocking and judged by what the descriptor is, not by what the path was a
+    moment before: it could be swapped in between."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise SessionFileError(path, "no such file") from None
     except OSError as err:
         raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise SessionFileError(path, f"this is {_not_a_file(info.st_mode)}, not a session file")
+    return fd, info.st_size
+
+
+def _not_a_file(mode: int) -> str:
+    """What a path that is not a regular file is, in words."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe (FIFO)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "not a regular file"
+
+
+def _hdf5_name(fd: int, path: Path) -> str:
+    """The name HDF5 is to open: on Linux, /proc/self/fd/<fd>, which opens the very file ``fd`` is, so that
+    nothing swapped in at ``path`` after it was checked (a FIFO, whose open would block) is opened instead;
+    elsewhere the path itself."""
+    own = f"/proc/self/fd/{fd}"
+    return own if os.path.exists(own) else str(path)
+
+
+def _open_hdf5(path: Path, fd: int, size: int) -> Session:
     if size == 0:
         raise SessionFileError(path, "the file is empty (0 bytes): the recording never started writing")
-    if not _looks_like_hdf5(path, head):
+    try:
+        head = os.read(fd, 8)
+    except OSError as err:
+        raise SessionFileError(path, f"the file cannot be read ({err.strerror or err})") from None
+    name = _hdf5_name(fd, path)
+    if not _looks_like_hdf5(name, head):
         raise SessionFileError(path, "this is not a session file: it is not an HDF5 file at all "
                                      f"(it starts with {head[:8]!r})")
     try:
-        f = h5py.File(path, "r")
-        return Session(path, f, recovered=False, note="")
+        f = h5py.File(name, "r")
+        return Session(path, f, size, recovered=False, note="")
     except SessionFileError:
         raise
     except _READ_ERRORS as plain_err:
         stored_eof = _stored_eof(plain_err)
         if stored_eof is not None:
-            return _open_truncated(path, size, stored_eof, plain_err)
+            return _open_truncated(path, name, size, stored_eof, plain_err)
         # A session the console was killed while recording carries HDF5's "open for writing" mark;
         # SWMR-read mode opens it as it is, without clearing the mark (the reviewer never writes).
         try:
-            f = _open_swmr_read(path)
+            f = _open_swmr_read(name)
         except _READ_ERRORS:
             raise SessionFileError(path, _explain_open_error(plain_err)) from None
         if f is None:
@@ -514,7 +660,7 @@ def open_session(path: str | Path) -> Session:
                                      "so the file is not opened in recovery mode)")
         note = ("The recording did not end cleanly (the console stopped while recording, or the file is "
                 "still being written); showing everything that reached the disk.")
-        return Session(path, f, recovered=True, note=note)
+        return Session(path, f, size, recovered=True, note=note)
 
 
 # HDF5 refuses a file shorter than the end its superblock records, and has no option to read it anyway.
@@ -527,13 +673,13 @@ def _stored_eof(err: BaseException) -> int | None:
     return int(m.group(2)) if m else None
 
 
-def _open_truncated(path: Path, size: int, stored_eof: int, err: BaseException) -> Session:
+def _open_truncated(path: Path, name: str, size: int, stored_eof: int, err: BaseException) -> Session:
     """Open a file cut short as though its missing tail were zeros: HDF5 then reads every object that lies
     wholly in the part that is there, and fails (checksums) on the rest, which the session leaves out."""
     damage = _explain_open_error(err)
     if not size < stored_eof <= _MAX_FILE_BYTES:
         raise SessionFileError(path, damage) from None
-    padded = _PaddedFile(path, stored_eof)
+    padded = _PaddedFile(name, stored_eof)
     try:
         # Not SWMR (only POSIX files can be): a file-object driver does not check the mark a killed writer
         # leaves, and a reader that never writes has no use for it.
@@ -543,15 +689,15 @@ def _open_truncated(path: Path, size: int, stored_eof: int, err: BaseException) 
         raise SessionFileError(path, damage + " and too little of it is left to open") from None
     lost = (stored_eof - size) / stored_eof
     note = f"{damage}; {lost:.1%} of it is missing, showing what could be read from the rest"
-    return Session(path, f, recovered=True, note=note[0].upper() + note[1:], damage=damage, padded=padded)
+    return Session(path, f, size, recovered=True, note=note[0].upper() + note[1:], damage=damage, padded=padded)
 
 
 class _PaddedFile(io.RawIOBase):
     """A read-only view of a file extended with zeros to ``length`` bytes, for h5py's file-object driver."""
 
-    def __init__(self, path: Path, length: int):
+    def __init__(self, name: str, length: int):
         super().__init__()
-        self._file = open(path, "rb")  # noqa: SIM115 - closed by close(), with the session
+        self._file = open(name, "rb")  # noqa: SIM115 - closed by close(), with the session
         self._real = os.fstat(self._file.fileno()).st_size
         self._length = length
         self._pos = 0
@@ -617,24 +763,37 @@ def _hdf5_library() -> ctypes.CDLL | None:
     return None
 
 
-def _open_swmr_read(path: Path) -> h5py.File | None:
+def _open_swmr_read(name: str) -> h5py.File | None:
     lib = _hdf5_library()
     if lib is None:
         return None
     fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
     if lib.H5Pset_metadata_read_attempts(fapl.id, SWMR_READ_ATTEMPTS) < 0:
         return None
-    fid = h5py.h5f.open(os.fsencode(path), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
+    fid = h5py.h5f.open(os.fsencode(name), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
     return h5py.File(fid)
 
 
-def _looks_like_hdf5(path: Path, head: bytes) -> bool:
+def _looks_like_hdf5(name: str, head: bytes) -> bool:
     if head == b"\x89HDF\r\n\x1a\n":
         return True
     try:
-        return bool(h5py.is_hdf5(path))  # the signature may also sit at 512, 1024, ... bytes
+        return bool(h5py.is_hdf5(name))  # the signature may also sit at 512, 1024, ... bytes
     except OSError:
         return False
+
+
+def _read_in_pieces(ds: h5py.Dataset, start: int, stop: int, fields: list[str] | None = None) -> np.ndarray:
+    """Rows ``start`` to ``stop`` of ``ds`` (only ``fields``, if given), asking HDF5 for at most
+    MAX_READ_BYTES of rows at a time."""
+    source = ds.fields(fields) if fields else ds
+    dtype = np.dtype([(f, ds.dtype.fields[f][0]) for f in fields]) if fields else ds.dtype
+    rows = np.empty(max(0, stop - start), dtype)
+    step = max(1, MAX_READ_BYTES // ds.dtype.itemsize)
+    for first in range(start, stop, step):
+        last = min(stop, first + step)
+        rows[first - start:last - start] = source[first:last]
+    return rows
 
 
 def _is_coordinate(value: Any) -> bool:

@@ -4,6 +4,7 @@ palpation is saved and reused, and a file that is not one is refused in one line
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from session.detect import detect
 from session.flatfield import FlatFieldError, Reference, contrast
 from session.synthetic import level_record
 
+from tests.session.test_hostile_files import refusal
 from tests.session.test_stitch import PITCH, levels_of
 
 AREAS_X = (0.012, 0.020, 0.028, 0.036, 0.044)
@@ -103,6 +105,20 @@ def test_a_file_that_is_not_a_reference_is_refused_in_one_line(tmp_path, content
     with pytest.raises(FlatFieldError) as info:
         Reference.load(path, (4, 15))
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_fifo_a_device_or_a_huge_file_is_refused_without_waiting_on_it_or_reading_it(tmp_path):
+    """Each in a child process (tests/session/open_child.py): a FIFO's open would wait for ever, /dev/zero
+    never ends, and reading a file of gigabytes would take them (the child's memory is capped)."""
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)
+    for path in (fifo, "/dev/zero", tmp_path):
+        assert refusal(path, "reference") == f"{path}: not a regular file: not a reference palpation"
+    huge = tmp_path / "huge.json"
+    with open(huge, "wb") as f:
+        f.truncate(5 * 2**30)  # 5 GB of zeros, sparse: no room on the disk
+    assert refusal(huge, "reference") == (f"{huge}: larger than 4 MB: not a reference palpation (one is well under "
+                                          "1 MB)")
 
 
 def test_the_side_columns_the_physics_knows_less_well_do_not_raise_spots():

@@ -310,3 +310,23 @@ def test_a_version_1_file_opens_without_the_levels_scatter_and_a_version_2_file_
         assert np.allclose(s.levels["pressure_pa"], level_record(0, 0, 1.0, (0.004, 0.015)).pressure_pa)
     _drop_columns(tmp_path / "v2.h5", "levels", {"window_frames"}, version=None)
     expect_problem(tmp_path / "v2.h5", "damaged", "/levels", "window_frames")
+
+
+def test_numbers_no_integer_holds_are_damage_not_an_overflow(tmp_path):
+    path = tmp_path / "s.h5"
+    rec = SessionRecorder(path, INFO)
+    rec.add_ticks(tick_rows(0, 100))
+    rec.add_ticks(tick_rows(150, 100))  # 50 rows lost, twice
+    rec.add_ticks(tick_rows(300, 100))
+    rec.close()
+    with h5py.File(path, "r+") as f:
+        events = f["events"][()]
+        lost = np.flatnonzero(events["kind"] == b"rows_lost")
+        assert len(lost) == 2
+        events["value"][lost[1]] = np.inf
+        f["events"][...] = events
+    with open_session(path) as s:
+        assert s.rows_lost == 50
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = np.inf
+    expect_problem(path, "no readable 'format_version' attribute")

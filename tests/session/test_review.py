@@ -20,6 +20,7 @@ from session.writer import SessionRecorder
 from widgets.review import RecentSessions, ReviewWindow
 from widgets.tactile_map import TactileMapWidget
 
+from tests.session.test_hostile_files import claiming, small_session
 from tests.session.test_reader import sha256
 from tests.session.test_recorder import INFO
 
@@ -211,6 +212,25 @@ def test_a_bad_file_is_explained_and_the_open_session_stays(qtbot, window, recor
     banner = child(window, QtWidgets.QLabel, "banner")
     assert banner.isVisible() and "Cannot open the session" in banner.text()
     assert window.session is not None and window.session.path == recorded[0]
+
+
+def test_a_file_claiming_more_than_a_session_holds_or_reaching_into_another_is_explained_not_raised(
+        qtbot, window, recorded, tmp_path):
+    """issue 49: such files cost the reviewer gigabytes (a MemoryError out of open_file) or hung it."""
+    open_in(qtbot, window, recorded[0])
+    claims = claiming(tmp_path / "claims.h5", "levels", 57_616, 16)
+    linked = small_session(tmp_path / "linked.h5")
+    with h5py.File(linked, "r+") as f:
+        del f["meta"]
+        f["meta"] = h5py.ExternalLink(str(recorded[0]), "/meta")
+    banner = child(window, QtWidgets.QLabel, "banner")
+    for path, problem in ((claims, "/levels claims 57,616 rows (190 MB), more than a session can hold"),
+                          (linked, f"/meta is a link into another file, {recorded[0]}")):
+        with qtbot.waitSignal(window.open_failed, timeout=10000) as blocker:
+            assert not window.open_file(path)
+        assert blocker.args[0].startswith(f"{path}: ") and problem in blocker.args[0] and "\n" not in blocker.args[0]
+        assert banner.isVisible() and banner.text() == f"Cannot open the session: {blocker.args[0]}"
+        assert window.session is not None and window.session.path == recorded[0]
 
 
 def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window, tmp_path):
