@@ -63,7 +63,8 @@ def test_the_depth_models_error_is_an_analysis_parameter_that_sets_the_intervals
                                             depth_model=model) for e in (0.1, 0.8))
     assert len(narrow.tumours) == len(wide.tumours) > 0
     assert all(w >= n for n, w in zip(_widths(narrow), _widths(wide)))
-    assert sum(_widths(wide)) > 1.2 * sum(_widths(narrow))
+    # (1.17 on this recording since the force loop's damping on z changed, issue 49; more than 1.2 before)
+    assert sum(_widths(wide)) > 1.1 * sum(_widths(narrow))
     assert model.model_error == DepthParams().model_error  # the caller's model is left as it was
 
 
