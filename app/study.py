@@ -44,6 +44,15 @@ from tissue.generator import StudyDistribution, draw_phantom, surface_kind
 
 # ---- one case ------------------------------------------------------------------------------------------
 
+# The worlds a study palpates in, as the settings every case's rig is built with. "ideal": the analysis and the
+# simulator share the mechanics, and the array's only fast error is white noise. "realistic": the array has
+# the errors a real capacitive array has (hardware/sim/settings.py, SENSOR_MODELS), which the analysis does
+# not know of.
+WORLDS: dict[str, dict[str, Any]] = {
+    "ideal": {"sim": {"sensor": {"model": "ideal"}}},
+    "realistic": {"sim": {"sensor": {"model": "realistic"}}},
+}
+
 
 @dataclass(frozen=True)
 class StudyCase:
@@ -54,6 +63,7 @@ class StudyCase:
     force_max_N: float = 7.0  # the ramp runs from 1 N in 1 N steps to this
     paper: bool = False  # one of the paper's two phantoms
     tissue: str = "continuum"  # the simulator's tissue model (hardware.sim.settings.TISSUE_MODELS)
+    world: str = "ideal"  # WORLDS
 
 
 def ramp_for(phantom: dict[str, Any]) -> float:
@@ -131,7 +141,7 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     folder.mkdir(parents=True, exist_ok=True)
     phantom_path = folder / f"{case.name}.toml"
     phantom_path.write_text(tomli_w.dumps(case.phantom), encoding="utf-8")
-    config = load_config(None, merge_tables(settings, {
+    config = load_config(None, merge_tables(merge_tables(settings, WORLDS[case.world]), {
         "rig": {"backend": "sim", "phantom": str(phantom_path), "seed": case.rig_seed},
         "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue},
         "control": {"ramp": {"force_max_N": case.force_max_N}}}))
@@ -373,7 +383,7 @@ def study_document(cases: list, results: list[dict], wall_s: float, seed: int | 
 
 # what only palpating a study takes; re-analysing kept cases refuses them
 _PALPATION_OPTIONS = {"phantoms": "-n/--phantoms", "seed": "--seed", "paper": "--paper", "config": "--config",
-                      "no_sessions": "--no-sessions"}
+                      "no_sessions": "--no-sessions", "world": "--world"}
 
 
 def study_parser():
@@ -404,6 +414,9 @@ def study_parser():
                         help="run on this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786) instead of "
                              "local processes; needs pip install 'palpation-console[study]'")
     parser.add_argument("--no-sessions", action="store_true", help="do not keep the session files")
+    parser.add_argument("--world", choices=list(WORLDS),
+                        help="ideal: the array's only fast error is white noise; realistic: the errors a real "
+                             "capacitive array has, which the analysis does not know of (default ideal)")
     parser.add_argument("--config", type=Path, help="a TOML configuration whose [control] and [sim] settings "
                         "(ramp steps, gains, contact, safety; sensor noise, tissue model) every phantom is "
                         "palpated with; each case keeps its own phantom, seeds and top force")
@@ -471,7 +484,8 @@ def study_main(argv: list[str] | None = None) -> int:
     json_path = args.json or folder / f"{stem}.json"
     plot_path = args.plot or folder / f"{stem}.png"
     try:
-        cases = kept_cases(args.reanalyse) if args.reanalyse else study_cases(args.phantoms, args.seed, args.paper)
+        cases = (kept_cases(args.reanalyse) if args.reanalyse
+                 else study_cases(args.phantoms, args.seed, args.paper, world=args.world or "ideal"))
         if not args.reanalyse:
             args.out.mkdir(parents=True, exist_ok=True)
         executor = DaskExecutor(args.scheduler) if args.scheduler else LocalExecutor(args.workers)
@@ -515,6 +529,7 @@ def study_main(argv: list[str] | None = None) -> int:
     doc = study_document(cases, results, wall_s, args.seed, executor.workers,
                          "dask" if args.scheduler else "local", analysis)
     doc["config"] = str(args.config) if args.config is not None else None  # what the phantoms were palpated with
+    doc["world"] = None if args.reanalyse else args.world or "ideal"
     if args.reanalyse:
         doc["reanalysed"] = str(args.reanalyse)
     print_summary(doc["maps"], wall_s)

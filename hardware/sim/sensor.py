@@ -46,6 +46,10 @@ from hardware.sim.world import SimDevice, SimWorld
 from tissue.face import cover_operators, cover_weight
 
 
+LOADED_PA = 10.0  # an element under less than this carries no press (a fraction of the array's noise)
+PRESS_STEP_M = 0.1e-3  # how much deeper the tissue is asked, to read its stiffness under each element
+
+
 class SimTactileSensor(SimDevice, TactileSensor):
     name = "sim-tsi"
 
@@ -62,7 +66,16 @@ class SimTactileSensor(SimDevice, TactileSensor):
         # log-normal: a relative spread that can never make an element's sensitivity negative
         self._gain = np.exp(s.gain_spread * made.standard_normal(shape))
         self._offset_pa = np.clip(s.zero_offset_pa + s.zero_offset_spread_pa * made.standard_normal(shape), 0.0, None)
+        # this session's move of the rest offsets since the array was made (the tare takes it out)
+        self._offset_pa += s.session_offset_fraction * s.full_scale_pa * np.random.default_rng(
+            [seed, 2]).uniform(-1.0, 1.0, shape)
         self._noise = np.random.default_rng(seed)
+        # presses (see _pressed): their own draws, so that white noise alone is the same with or without them
+        self._presses = np.random.default_rng([seed, 1])
+        self._press_m = np.zeros(shape)  # each element's offset for the press it is in
+        self._pressed = np.zeros(shape, dtype=bool)
+        self._released_s = np.full(shape, -np.inf)  # when each element was last unloaded
+        self._face_press_m = 0.0
         self._area_m2 = self.constraints.element_area_m2
         self._raw_max_pa = s.full_scale_pa + s.zero_offset_pa
         # frames in flight: [readable at, seq, sampling instant, raw reading (None until computed)]
@@ -150,6 +163,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
         # in place where it can be: this runs on a control tick, and every temporary costs a microsecond
         s = self.settings
         p = self.true_pressure_pa(t_s)
+        if s.press_offset_m or s.press_offset_element_m or s.first_press_m:
+            p = self._pressed_pa(p, t_s)
         creep = self._creep_pa
         if self._creep_t is not None:
             # exact first-order update, taking the load over the interval to be the one sampled at its end
@@ -169,6 +184,32 @@ class SimTactileSensor(SimDevice, TactileSensor):
             np.round(raw, out=raw)
             raw *= s.quantisation_pa
         return np.clip(raw, 0.0, self._raw_max_pa, out=raw)
+
+    def _pressed_pa(self, p: np.ndarray, t_s: float) -> np.ndarray:
+        """``p`` as each loaded element reads it in its current press: as if the face stood deeper by the
+        press's offset. A press begins when an unloaded element is loaded; its offset is drawn then: the
+        face's (when it was unloaded throughout), the element's own, and the first-press excess, which grows
+        back while the element rests unloaded. The reading moves by the element's own stiffness times the
+        offset (the tissue's response to a little more depth), never below zero."""
+        s = self.settings
+        loaded = p > LOADED_PA
+        if loaded.any() and not self._pressed.any():
+            self._face_press_m = s.press_offset_m * float(self._presses.standard_normal())
+        begun = loaded & ~self._pressed
+        if begun.any():
+            rest = t_s - self._released_s[begun]
+            self._press_m[begun] = (self._face_press_m
+                                    + s.press_offset_element_m * self._presses.standard_normal(int(begun.sum()))
+                                    + s.first_press_m * -np.expm1(-rest / s.first_press_recovery_s))
+        self._released_s[self._pressed & ~loaded] = t_s
+        self._pressed = loaded
+        if not loaded.any():
+            return p
+        x, y, z = self.world.state_at(t_s)[0]
+        deeper = self._through_cover(np.asarray(self.world.tissue.element_forces_N(x, y, z - PRESS_STEP_M),
+                                                dtype=float) / self._area_m2)
+        stiffness = (deeper - p) / PRESS_STEP_M  # Pa per m of depth
+        return np.where(loaded, np.maximum(p + stiffness * self._press_m, 0.0), p)
 
     def _hysteresis(self, p: np.ndarray) -> None:
         """Move each element's hysteresis memory by its load's relative change since the last frame."""

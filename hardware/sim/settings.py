@@ -25,6 +25,20 @@ def _at_most(key: str, v: float, limit: float, why: str) -> None:
 
 TISSUE_MODELS = ("continuum", "winkler")
 
+# The simulated array's presets. "ideal": white noise, a 3 % gain spread, creep and hysteresis, and nothing
+# else. "realistic": the errors measured on a real capacitive array pressing silicone (the public CySkin
+# robotic-palpation recordings, 16-bit, 20 Hz: Scimeca et al., Autonomous Robots 2020), which act like an
+# offset of the indentation rather than noise: pressing the same spot again moved the reading 3-11 % of full
+# scale at 2-5 mm, about 0.4 mm of indentation (split here, our assumption, between the face and its
+# elements); the first press after a pause read high by the equivalent of 0.6-0.8 mm (the 10 s recovery is
+# our assumption); element gains spread 6-8 % as a fixed pattern; rest offsets moved about 2 % of full scale
+# between days.
+SENSOR_MODELS: dict[str, dict] = {
+    "ideal": {},
+    "realistic": {"gain_spread": 0.07, "press_offset_m": 0.3e-3, "press_offset_element_m": 0.25e-3,
+                  "first_press_m": 0.7e-3, "first_press_recovery_s": 10.0, "session_offset_fraction": 0.02},
+}
+
 
 @dataclass(frozen=True)
 class SensorSimSettings(Settings):
@@ -52,14 +66,45 @@ class SensorSimSettings(Settings):
     # 8:705662, 2022, Table 2), so the default is a pessimistic 5 %, not zero.
     hysteresis_fraction: float = 0.05
     cover_spread_m: float = COVER_SPREAD_M  # the elastomer cover spreads load sideways by about its thickness
+    # What a real array does besides white noise (docs/phantoms.md, section 2): none of it by default ("ideal"),
+    # the measured figures with ``model = "realistic"`` (SENSOR_MODELS). Each press of an element reads as if
+    # the face stood deeper by an offset drawn for that press, common to the face and the element's own
+    # (standard deviations), and a press after a rest reads deeper still, fully after a long rest.
+    press_offset_m: float = 0.0
+    press_offset_element_m: float = 0.0
+    first_press_m: float = 0.0
+    first_press_recovery_s: float = 10.0
+    # how far each element's rest reading has moved since the array was made, drawn for each session (uniform
+    # within this share of full scale either way): the tare takes it out, a calibration from another day not
+    session_offset_fraction: float = 0.0
+    model: str = "ideal"  # the preset the other keys started from (SENSOR_MODELS)
     seed: int = 0
+
+    @classmethod
+    def from_mapping(cls, data, prefix: str = ""):
+        """A ``model`` key starts from that preset (SENSOR_MODELS); the table's other keys override it."""
+        if isinstance(data, dict) and "model" in data:
+            preset = SENSOR_MODELS.get(data["model"]) if isinstance(data["model"], str) else None
+            if preset is None:
+                raise ConfigError(f"{prefix}model", f"must be one of {', '.join(SENSOR_MODELS)}, got {data['model']!r}")
+            data = {**preset, **data}
+        return super().from_mapping(data, prefix)
 
     def __post_init__(self):
         for name in ("full_scale_pa", "frame_rate_hz", "creep_time_constant_s"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
-                     "zero_offset_spread_pa", "creep_fraction", "hysteresis_fraction", "cover_spread_m"):
+                     "zero_offset_spread_pa", "creep_fraction", "hysteresis_fraction", "cover_spread_m",
+                     "press_offset_m", "press_offset_element_m", "first_press_m", "session_offset_fraction"):
             object.__setattr__(self, name, non_negative(name, getattr(self, name)))
+        object.__setattr__(self, "first_press_recovery_s", positive("first_press_recovery_s",
+                                                                    self.first_press_recovery_s))
+        for name in ("press_offset_m", "press_offset_element_m", "first_press_m"):
+            _at_most(name, getattr(self, name), 3e-3, "an offset that large is a loose array, not a reading error")
+        _at_most("first_press_recovery_s", self.first_press_recovery_s, 3600.0, "an hour's rest is a long one")
+        _at_most("session_offset_fraction", self.session_offset_fraction, 0.2, "a tare refuses more")
+        if self.model not in SENSOR_MODELS:
+            raise ConfigError("model", f"must be one of {', '.join(SENSOR_MODELS)}, got {self.model!r}")
         _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
         _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
         _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")

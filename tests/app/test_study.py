@@ -34,8 +34,8 @@ NO_PHYSICS = analysis_options(physics="none")
 DETECTION_ONLY = analysis_options(physics="none", no_depth_model=True)
 
 
-def tiny_cases(n: int, seed: int):
-    return study_cases(n, seed, dist=TINY, tissue="winkler", force_max_N=2.0)
+def tiny_cases(n: int, seed: int, world: str = "ideal"):
+    return study_cases(n, seed, dist=TINY, tissue="winkler", force_max_N=2.0, world=world)
 
 
 def test_the_same_seed_gives_the_same_study_and_another_seed_another():
@@ -139,7 +139,7 @@ def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys,
     assert "nothing to run" in capsys.readouterr().err
     assert study_main(["--phantoms", "-3"]) == 2
     assert "--phantoms must be within" in capsys.readouterr().err
-    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper: tiny_cases(n, seed))
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
     out = tmp_path / "s"
     assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--no-sessions",
                        "--physics", "none"]) == 0
@@ -158,16 +158,21 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
     from app.cli import main
     from session.reader import open_session
 
-    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper: tiny_cases(n, seed))
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
     config = tmp_path / "fine-ramp.toml"
     config.write_text("[control.ramp]\nforce_min_N = 0.5\nforce_step_N = 0.5\n")
     out = tmp_path / "s"
     assert main(["--config", str(config), "study", "-n", "1", "--seed", "2", "--workers", "1",
-                 "--out", str(out), "--physics", "none", "--no-depth-model"]) == 0
+                 "--out", str(out), "--physics", "none", "--no-depth-model", "--world", "realistic"]) == 0
     doc = json.loads((out / "study.json").read_text())
-    assert doc["config"] == str(config)
+    assert doc["config"] == str(config) and doc["world"] == "realistic"
     with open_session(doc["cases"][0]["session"]) as session:
         assert sorted(set(np.round(session.levels["force_desired_N"], 3))) == [0.5, 1.0, 1.5, 2.0]
+        # the realistic world's array (issue 48), as the session recorded it
+        from hardware.sim.settings import SimSettings
+
+        sensor = SimSettings.from_mapping(session.config["sim"]).sensor
+        assert sensor.model == "realistic" and sensor.gain_spread == 0.07 and sensor.press_offset_m > 0
     capsys.readouterr()
     config.write_text("[control.ramp]\nforce_step_N = -1.0\n")
     assert study_main(["-n", "1", "--out", str(out), "--config", str(config)]) == 2

@@ -325,3 +325,71 @@ def test_the_cover_spreads_an_edge_peak_to_its_neighbours_and_keeps_the_total_fo
     assert seen.sum() == pytest.approx(p.sum())
     assert seen[0, 0] < p[0, 0] and seen[0, 1] > p[0, 1]
     assert seen[1, 0] == pytest.approx(10e3 - w * 8e3)  # lost to the neighbour column, none across rows
+
+
+class Layer:
+    """Tissue double: every element a linear spring on a flat surface at 25 mm, ``k_N_m`` each."""
+
+    def __init__(self, k_N_m=200.0):
+        self.phantom = load_phantom("flat")
+        self.k_N_m = k_N_m
+
+    def element_forces_N(self, x_m, y_m, z_m):
+        return np.full((4, 15), self.k_N_m * max(0.025 - z_m, 0.0))
+
+
+def presses(sensor, n, depth_m=1e-3, press_s=0.3, rest_s=0.3, first_rest_s=0.0):
+    """The mean reading of each of ``n`` presses ``depth_m`` into the Layer, over their last 0.1 s."""
+    robot = sensor.world.robot
+    readings, now = [], T0
+    for k in range(n):
+        for z, span in ((0.027, first_rest_s if k == 0 else rest_s), (0.025 - depth_m, press_s)):
+            robot.position = [0.036, 0.015, z]
+            robot.set_reference((0.036, 0.015, z), (0.0, 0.0, 0.0))
+            frames, _ = run(sensor, now, span)
+            now += span + MS
+        readings.append(np.mean([f.pressure_pa for f in frames if f.t_s > now - 0.1 - sensor.settings.latency_s],
+                                axis=0))
+    return np.array(readings)
+
+
+def test_a_realistic_array_reads_each_press_as_if_the_face_stood_at_another_depth():
+    """Issue 48: pressing the same spot again moved a real array's reading like a 0.3-1 mm offset of the
+    indentation, not like noise; the ideal array repeats itself up to its noise."""
+    quiet = dict(noise_std_pa=5.0, quantisation_pa=0.0, creep_fraction=0.0, hysteresis_fraction=0.0,
+                 cover_spread_m=0.0, gain_spread=0.0)
+    k = 200.0
+    per_mm = k * 1e-3 / AREA  # an element's reading per mm of indentation
+    realistic = presses(make_sensor(Layer(k), run_seed=4, **{**SensorSimSettings.from_mapping(
+        {"model": "realistic"}).to_mapping(), **quiet, "first_press_m": 0.0}), 40)
+    face = realistic.mean(axis=(1, 2)) / per_mm  # each press's offset, common to the face, in mm
+    own = (realistic - realistic.mean(axis=(1, 2), keepdims=True)) / per_mm  # each element's own
+    assert 0.2 < face.std() < 0.45 and 0.17 < own.std() < 0.35  # drawn at 0.3 mm and 0.25 mm
+    assert abs(face.mean() - 1.0) < 0.15  # about the true indentation, 1 mm
+    ideal = presses(make_sensor(Layer(k), run_seed=4, **quiet), 10)
+    assert (ideal.mean(axis=(1, 2)) / per_mm).std() < 0.01
+
+
+def test_a_press_after_a_rest_reads_deeper_and_less_so_after_a_short_one():
+    quiet = dict(noise_std_pa=0.0, quantisation_pa=0.0, creep_fraction=0.0, hysteresis_fraction=0.0,
+                 cover_spread_m=0.0, gain_spread=0.0)
+    k = 200.0
+    per_mm = k * 1e-3 / AREA
+    sensor = make_sensor(Layer(k), **quiet, first_press_m=0.7e-3, first_press_recovery_s=10.0)
+    first, again = presses(sensor, 2, rest_s=0.3).mean(axis=(1, 2)) / per_mm
+    assert first == pytest.approx(1.7, abs=0.01)  # the session's first press: a full rest before it
+    assert again == pytest.approx(1.0 + 0.7 * (1 - math.exp(-0.3 / 10.0)), abs=0.01)
+    sensor = make_sensor(Layer(k), **quiet, first_press_m=0.7e-3, first_press_recovery_s=10.0)
+    _, after_20_s = presses(sensor, 2, rest_s=20.0).mean(axis=(1, 2)) / per_mm
+    assert after_20_s == pytest.approx(1.0 + 0.7 * (1 - math.exp(-2.0)), abs=0.01)
+
+
+def test_rest_offsets_move_between_sessions_and_the_tare_takes_them_out():
+    offsets = []
+    for seed in (1, 2):
+        sensor = make_sensor(run_seed=seed, noise_std_pa=0.0, session_offset_fraction=0.02)
+        frames, _ = run(sensor, T0, 0.05)
+        offsets.append(sensor._latest_raw.copy())
+        assert np.abs(frames[-1].pressure_pa).max() < 50.0  # tared at connection
+    moved = np.abs(offsets[0] - offsets[1])
+    assert 500.0 < moved.max() <= 4000.0  # each within 2 % of the 100 kPa full scale either way
