@@ -26,7 +26,6 @@ import statistics
 import sys
 import tempfile
 import time
-import tomllib
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -36,7 +35,7 @@ from typing import Any, Protocol
 import numpy as np
 import tomli_w
 
-from hardware.settings import ConfigError
+from hardware.settings import ConfigError, read_toml
 from session.scoring import case_failures, print_summary, score
 from tissue.generator import StudyDistribution, draw_phantom, surface_kind
 
@@ -90,7 +89,7 @@ def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution 
         from tissue.phantom import PHANTOM_DIR
 
         for name in ("flat", "uneven"):
-            data = tomllib.loads((PHANTOM_DIR / f"{name}.toml").read_text(encoding="utf-8"))
+            data = read_toml(PHANTOM_DIR / f"{name}.toml", "phantom file")
             cases.append(StudyCase(f"paper-{name}", data, rig_seed=seed, sensor_seed=0, paper=True,
                                    **{k: v for k, v in overrides.items() if k != "force_max_N"}))
     return cases
@@ -225,16 +224,16 @@ def kept_cases(folder: Path) -> list[KeptCase]:
 
     if not folder.is_dir():
         raise ConfigError("--reanalyse", f"{folder} is not a folder")
-    paper = [tomllib.loads((PHANTOM_DIR / f"{n}.toml").read_text(encoding="utf-8")) for n in ("flat", "uneven")]
+    paper = [read_toml(PHANTOM_DIR / f"{n}.toml", "phantom file") for n in ("flat", "uneven")]
     cases = []
     for session in sorted(folder.glob("*.h5")):
         toml = session.with_suffix(".toml")
         try:
-            phantom = tomllib.loads(toml.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            continue  # not a case of a study (a session put there by hand)
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-            raise ConfigError("--reanalyse", f"cannot read the phantom {toml}: {err}") from None
+            phantom = read_toml(toml, "phantom file")
+        except ConfigError as err:
+            if not toml.exists():
+                continue  # not a case of a study (a session put there by hand)
+            raise ConfigError("--reanalyse", f"cannot read the phantom {toml}: {err.problem}") from None
         cases.append(KeptCase(session.stem, phantom, str(session), phantom in paper))
     if not cases:
         raise ConfigError("--reanalyse", f"{folder} holds no kept study case (NAME.h5 beside NAME.toml); "
