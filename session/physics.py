@@ -584,10 +584,15 @@ class PhantomResponse(HomogeneousTissue):
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
         """The phantom's own surface whatever ``measured_surface`` says: this is the exact answer."""
+        from tissue.mechanics.study import height_for_force
+
         out = np.full(levels["pressure_pa"].shape, np.nan)
         for k, row in enumerate(levels):
-            x, y, z = (float(v) for v in row["tsi_position_m"])
-            out[k] = self._finish(_at_force(self.tissue, x, y, z, float(row["force_measured_N"])))
+            x, y = (float(v) for v in row["tsi_position_m"][:2])
+            # where this tissue carries the measured force (NaN: not even down at the table; no pattern then)
+            z = height_for_force(self.tissue, x, y, float(row["force_measured_N"]))
+            if np.isfinite(z):
+                out[k] = self._finish(self.tissue.element_forces_N(x, y, z))
         return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan), np.zeros((len(out), 0) + out.shape[1:]))
 
 
@@ -643,23 +648,6 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
                           block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio)
     sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
     return homogeneous_stiffening(homogeneous, sensor, cache_dir)
-
-
-def _at_force(tissue, x: float, y: float, z_guess: float, force_N: float) -> np.ndarray:
-    """The element forces with the face where the tissue carries ``force_N`` (bisection in height: the
-    force falls monotonically as the face rises)."""
-    lo, hi = z_guess - 0.01, z_guess + 0.01
-    while tissue.element_forces_N(x, y, lo).sum() < force_N and lo > -0.1:
-        lo -= 0.01
-    while tissue.element_forces_N(x, y, hi).sum() > force_N and hi < 0.5:
-        hi += 0.01
-    for _ in range(40):  # 20 mm / 2^40: far below a micrometre
-        mid = 0.5 * (lo + hi)
-        if tissue.element_forces_N(x, y, mid).sum() >= force_N:
-            lo = mid
-        else:
-            hi = mid
-    return tissue.element_forces_N(x, y, 0.5 * (lo + hi))
 
 
 def _cover_of(session: Session | SessionInfo) -> float:
