@@ -598,28 +598,22 @@ class PhantomResponse(HomogeneousTissue):
 
 def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """(C, node (x, y)): the block's surface compliance (vertical displacement per vertical force between
-    its top nodes, every other node free) and where those nodes are; computed once per block and cached."""
-    from tissue.mechanics import cache as cache_mod
-    from tissue.mechanics.fem import condensed_surface_stiffness
-    from tissue.mechanics.model import MeshSettings, phantom_grid, phantom_material
+    """(C, node (x, y)): the block's surface compliance and where its top nodes are
+    (:func:`tissue.mechanics.model.surface_compliance`), computed once per block and cached."""
+    from tissue.mechanics.cache import default_cache_dir
+    from tissue.mechanics.model import cached, surface_compliance
 
-    folder = cache_dir if cache_dir is not None else cache_mod.default_cache_dir()
-    key = f"block-{block.content_hash()}"
-    path = cache_mod.cache_path(folder, key)
-    arrays = cache_mod.load(path, key)
-    if arrays is not None and {"compliance", "nodes"} <= set(arrays):
-        return arrays["compliance"], arrays["nodes"]
-    grid = phantom_grid(block, MeshSettings())
-    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(block), progress=progress)
-    compliance = np.linalg.inv(stiffness)
-    compliance = 0.5 * (compliance + compliance.T)
-    nodes = np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
-    try:
-        cache_mod.store(path, key, {"compliance": compliance, "nodes": nodes})
-    except OSError:
-        pass  # an unwritable cache only costs the recomputation next time
-    return compliance, nodes
+    def solve():
+        compliance, nodes = surface_compliance(block, progress=progress)
+        return {"compliance": compliance, "nodes": nodes}
+
+    def check(arrays):
+        if np.shape(arrays["compliance"]) != (len(arrays["nodes"]),) * 2:
+            raise ValueError("inconsistent cache entry")
+
+    arrays = cached(cache_dir if cache_dir is not None else default_cache_dir(), f"block-{block.content_hash()}",
+                    solve, check)
+    return arrays["compliance"], arrays["nodes"]
 
 
 def _finite(finite_strain: FiniteStrain | None) -> str:
