@@ -27,9 +27,9 @@ import numpy as np
 from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, tare_problem
 from hardware.serial_tactile.calibration import Calibration, CalibrationError, load_equilibration
 from hardware.serial_tactile.clock import DeviceClock
-from hardware.serial_tactile.config import boolean, in_range, optional_path
+from hardware.serial_tactile.config import boolean, optional_path
 from hardware.serial_tactile.driver import U32, FrameParser, RawFrame
-from hardware.settings import ConfigError, Settings
+from hardware.settings import ConfigError, Settings, bounded
 
 CONVERTER_BITS = 12  # an uncalibrated device: full scale over a 12-bit converter
 
@@ -50,10 +50,10 @@ class TactileSettings(Settings):
         self._set("calibration", optional_path("calibration", self.calibration))
         self._set("equilibration", optional_path("equilibration", self.equilibration))
         self._set("tare_on_open", boolean("tare_on_open", self.tare_on_open))
-        self._set("frame_rate_hz", in_range("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
-        self._set("full_scale_pa", in_range("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
-        self._set("frame_timeout_s", in_range("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
-        self._set("reconnect_interval_s", in_range("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
+        self._set("frame_rate_hz", bounded("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
+        self._set("full_scale_pa", bounded("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
+        self._set("frame_timeout_s", bounded("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
+        self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         if self.frame_timeout_s * self.frame_rate_hz < 2:
             raise ConfigError("frame_timeout_s", f"must span at least two frames at {self.frame_rate_hz:g} frames/s")
 

@@ -35,8 +35,8 @@ import numpy as np
 
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
                                  TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3, tare_problem)
-from hardware.serial_tactile.config import in_range, integer, text
-from hardware.settings import ConfigError, Settings
+from hardware.serial_tactile.config import integer, text
+from hardware.settings import ConfigError, Settings, bounded
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake
 from hardware.udp.protocol import is_loopback
@@ -64,17 +64,17 @@ class UdpLinkSettings(Settings):
         self._set("port", integer("port", self.port, 1, 65535))
         self._set("bind_host", text("bind_host", self.bind_host))
         self._set("bind_port", integer("bind_port", self.bind_port, 0, 65535))
-        self._set("timeout_s", in_range("timeout_s", self.timeout_s, 0.002, 5.0))
-        self._set("clock_window_s", in_range("clock_window_s", self.clock_window_s, 0.1, 60.0))
+        self._set("timeout_s", bounded("timeout_s", self.timeout_s, 0.002, 5.0))
+        self._set("clock_window_s", bounded("clock_window_s", self.clock_window_s, 0.1, 60.0))
         self._set("max_packets_per_poll", integer("max_packets_per_poll", self.max_packets_per_poll, 1, 4096))
-        self._set("tactile_timeout_s", in_range("tactile_timeout_s", self.tactile_timeout_s, 0.01, 10.0))
-        self._set("max_speed_m_s", in_range("max_speed_m_s", self.max_speed_m_s, 1e-3, 10.0))
-        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 1.0, 10e3))
+        self._set("tactile_timeout_s", bounded("tactile_timeout_s", self.tactile_timeout_s, 0.01, 10.0))
+        self._set("max_speed_m_s", bounded("max_speed_m_s", self.max_speed_m_s, 1e-3, 10.0))
+        self._set("rate_hz", bounded("rate_hz", self.rate_hz, 1.0, 10e3))
         for name in ("workspace_min_m", "workspace_max_m"):
             value = getattr(self, name)
             if isinstance(value, (str, bytes)) or len(value) != 3:
                 raise ConfigError(name, f"must be three numbers [x, y, z], got {value!r}")
-            self._set(name, tuple(in_range(f"{name}[{i}]", v, -10.0, 10.0) for i, v in enumerate(value)))
+            self._set(name, tuple(bounded(f"{name}[{i}]", v, -10.0, 10.0) for i, v in enumerate(value)))
         for i, axis in enumerate("xyz"):
             if self.workspace_max_m[i] <= self.workspace_min_m[i]:
                 raise ConfigError("workspace_max_m", f"{axis} upper bound must exceed the lower bound")

@@ -33,8 +33,8 @@ import usb.core
 
 from hardware.interfaces import (ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback,
                                  MasterState, Phase, Vec3)
-from hardware.serial_tactile.config import format_vid_pid, in_range, integer, text, vid_pid
-from hardware.settings import ConfigError, Settings
+from hardware.serial_tactile.config import format_vid_pid, integer, text, vid_pid
+from hardware.settings import ConfigError, Settings, bounded
 from hardware.usb.transport import Attached, Lost, UsbInPipe
 
 KNOWN_SPACEMICE: dict[tuple[int, int], str] = {
@@ -124,17 +124,17 @@ class SpaceMouseSettings(Settings):
         self._set("serial_number", text("serial_number", self.serial_number, allow_empty=True))
         self._set("interface", integer("interface", self.interface, 0, 255))
         self._set("endpoint", integer("endpoint", self.endpoint, 0x81, 0x8F))
-        self._set("speed_m_s", in_range("speed_m_s", self.speed_m_s, 1e-4, 0.1, "the loop's velocity limit"))
-        self._set("full_scale_counts", in_range("full_scale_counts", self.full_scale_counts, 10.0, 32767.0))
-        self._set("deadband_counts", in_range("deadband_counts", self.deadband_counts, 0.0, self.full_scale_counts / 2))
+        self._set("speed_m_s", bounded("speed_m_s", self.speed_m_s, 1e-4, 0.1, "the loop's velocity limit"))
+        self._set("full_scale_counts", bounded("full_scale_counts", self.full_scale_counts, 10.0, 32767.0))
+        self._set("deadband_counts", bounded("deadband_counts", self.deadband_counts, 0.0, self.full_scale_counts / 2))
         signs = self.axis_signs
         if isinstance(signs, (str, bytes)) or len(signs) != 3 or any(s not in (1, -1) for s in signs):
             raise ConfigError("axis_signs", f"must be three of 1 or -1, got {signs!r}")
         self._set("axis_signs", tuple(float(s) for s in signs))
         self._set("sz_button", integer("sz_button", self.sz_button, 0, 31))
-        self._set("report_timeout_s", in_range("report_timeout_s", self.report_timeout_s, 0.02, 5.0))
-        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 10.0, 10e3))
-        self._set("reconnect_interval_s", in_range("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
+        self._set("report_timeout_s", bounded("report_timeout_s", self.report_timeout_s, 0.02, 5.0))
+        self._set("rate_hz", bounded("rate_hz", self.rate_hz, 10.0, 10e3))
+        self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         self._set("read_timeout_ms", integer("read_timeout_ms", self.read_timeout_ms, 1, 1000))
 
     def shaped(self, counts: int) -> float:
