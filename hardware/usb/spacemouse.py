@@ -31,6 +31,7 @@ from typing import Any
 
 import usb.core
 
+from hardware.connection import Connection
 from hardware.interfaces import (ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback,
                                  MasterState, Phase, Vec3)
 from hardware.serial_tactile.config import format_vid_pid, integer, text, vid_pid
@@ -158,16 +159,16 @@ def find_spacemouse_ids(backend=None) -> tuple[int, int]:
     return dev.idVendor, dev.idProduct
 
 
-class SpaceMouseMaster(MasterDevice):
+class SpaceMouseMaster(Connection, MasterDevice):
     name = "spacemouse"
 
     def __init__(self, settings: SpaceMouseSettings | None = None, backend=None):
+        super().__init__()
         self.settings = settings if settings is not None else SpaceMouseSettings()
         self.constraints = MasterConstraints(rate_hz=self.settings.rate_hz, has_sz_switch=True)
         self._backend = backend
         self.pipe: UsbInPipe | None = None
         self.decoder = ReportDecoder()
-        self._state = ConnectionState.DISCONNECTED
         self._position = [0.0, 0.0, 0.0]
         self._sz = True  # position control
         self._buttons = 0
@@ -177,15 +178,8 @@ class SpaceMouseMaster(MasterDevice):
         self._last_report: float | None = None
         self._timed_out = False
         self.counters = dict.fromkeys(("reports", "ignored_reports", "report_timeouts", "sz_presses"), 0)
-        self.last_error = ""
 
-    @property
-    def connection(self) -> ConnectionState:
-        return self._state
-
-    def open(self) -> None:
-        if self._state != ConnectionState.DISCONNECTED:
-            return
+    def _connect(self) -> ConnectionState:
         s = self.settings
         ids = vid_pid("vid_pid", s.vid_pid) if s.vid_pid else find_spacemouse_ids(self._backend)
         self.pipe = UsbInPipe(ids[0], ids[1], "master device", interface=s.interface, endpoint=s.endpoint,
@@ -195,12 +189,11 @@ class SpaceMouseMaster(MasterDevice):
         self.decoder = ReportDecoder()
         self._buttons = 0
         self._last_poll = None
-        self._state = ConnectionState.CONNECTED  # a HID device is silent at rest: claimed is connected
+        return ConnectionState.CONNECTED  # a HID device is silent at rest: claimed is connected
 
-    def close(self) -> None:
+    def _disconnect(self) -> None:
         if self.pipe is not None:
             self.pipe.close()
-        self._state = ConnectionState.DISCONNECTED
 
     def poll(self, now_s: float) -> None:
         if self._state == ConnectionState.DISCONNECTED or self.pipe is None:
@@ -215,15 +208,13 @@ class SpaceMouseMaster(MasterDevice):
             if isinstance(item, bytes):
                 self._on_report(item, now_s)
             elif isinstance(item, Lost):
-                self._state = ConnectionState.LOST
-                self.last_error = item.reason
+                self._lost(item.reason)
             elif isinstance(item, Attached) and self._state == ConnectionState.LOST:
                 # a fresh start for the cap and buttons; the position carries on, so X_d does not jump
                 self.decoder = ReportDecoder()
                 self._buttons = 0
                 self._last_report = None
-                self._state = ConnectionState.CONNECTED
-                self.last_error = ""
+                self._heard()
         if self._state != ConnectionState.CONNECTED:
             self._last_poll = None
             return
