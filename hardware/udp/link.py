@@ -39,7 +39,7 @@ from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints,
 from hardware.serial_tactile.config import integer, text
 from hardware.settings import ConfigError, Settings, bounded
 from hardware.udp import protocol as P
-from hardware.udp.intake import Intake
+from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
 
 RTT_HISTORY = 65536  # round trips kept for the health display and benchmarks
@@ -176,15 +176,9 @@ class UdpSlaveLink(Connection, SlaveManipulator):
             raise DeviceError(f"UDP link: the slave at {self._peer[0]} is another computer, but the link binds to "
                               f"{s.bind_host}; set hardware.slave.bind_host to this computer's address on that "
                               f"network (or 0.0.0.0)")
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind((s.bind_host, s.bind_port))
-        except OSError as err:
-            sock.close()
-            raise DeviceError(f"UDP link: cannot bind {s.bind_host}:{s.bind_port} ({err.strerror or err}); "
-                              f"is another console running, or is bind_host not an address of this computer?") from None
-        sock.setblocking(False)
-        self._sock = sock
+        self._sock = bound_socket(s.bind_host, s.bind_port, lambda why: (
+            f"UDP link: cannot bind {s.bind_host}:{s.bind_port} ({why}); is another console running, or is "
+            f"bind_host not an address of this computer?"))
         self._session = secrets.randbits(32)
         self._sent_any = False
         return ConnectionState.CONNECTING

@@ -43,11 +43,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor, Vec3
+from hardware.interfaces import ConnectionState, SlaveManipulator, TactileSensor, Vec3
 from hardware.serial_tactile.config import integer, text
 from hardware.settings import ConfigError, Settings, bounded, read_toml, vec3
 from hardware.udp import protocol as P
-from hardware.udp.intake import Intake
+from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
 
 DEFAULT_PORT = 47600
@@ -183,14 +183,8 @@ class SlaveServer:
 
     def open(self) -> None:
         s = self.settings
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind((s.bind_host, s.port))
-        except OSError as err:
-            sock.close()
-            raise DeviceError(f"slave: cannot listen on {s.bind_host}:{s.port} ({err.strerror or err}); "
-                              f"is another slave running?") from None
-        sock.setblocking(False)
+        sock = bound_socket(s.bind_host, s.port, lambda why: (
+            f"slave: cannot listen on {s.bind_host}:{s.port} ({why}); is another slave running?"))
         opened = []
         try:
             for device in (self.robot, self.sensor):
