@@ -199,12 +199,7 @@ class SpaceMouseMaster(Connection, MasterDevice):
         if self._state == ConnectionState.DISCONNECTED or self.pipe is None:
             return
         self.pipe.start()  # from the loop's thread: the reader shares its priority and CPU
-        queue = self.pipe.queue
-        for _ in range(MAX_REPORTS_PER_POLL):
-            try:
-                item = queue.popleft()
-            except IndexError:
-                break
+        for item in self.pipe.take(MAX_REPORTS_PER_POLL):
             if isinstance(item, bytes):
                 self._on_report(item, now_s)
             elif isinstance(item, Lost):

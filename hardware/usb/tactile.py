@@ -69,13 +69,9 @@ class UsbTactileSensor(StreamedTactileSensor):
         if self._state == ConnectionState.DISCONNECTED:
             return
         self.pipe.start()  # from the loop's thread: the reader shares its priority and CPU
-        queue, stream = self.pipe.queue, self._stream
+        stream = self._stream
         fresh = 0
-        for _ in range(MAX_ITEMS_PER_POLL):
-            try:
-                item = queue.popleft()
-            except IndexError:
-                break
+        for item in self.pipe.take(MAX_ITEMS_PER_POLL):
             if isinstance(item, bytes):
                 fresh += stream.feed(item, now_s)
             elif isinstance(item, Lost):
