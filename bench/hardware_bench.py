@@ -40,7 +40,7 @@ import numpy as np
 
 from app.realtime import claim_realtime
 from app.runtime import make_loop, run_tick
-from bench.loop_bench import WARMUP_S, tick_statistics
+from bench.loop_bench import WARMUP_S, duration_s, tick_statistics
 from control.config import ControlConfig
 from control.messages import ClearFault, FaultRaised, Jog, LevelRecorded, RegionDone, SetSz
 from control.telemetry import TICK_DTYPE
@@ -54,17 +54,6 @@ NAME = "hardware"
 SPIN_S = 2e-4  # the last stretch before a deadline is spun, not slept (sleep overshoots by ~60 µs)
 PINGS = 5000
 SZ_OFF_AT_S = 1.0
-
-
-def duration_s() -> float:
-    raw = os.environ.get("PALPATION_BENCH_SECONDS", "20")
-    try:
-        value = float(raw)
-    except ValueError:
-        raise ValueError(f"PALPATION_BENCH_SECONDS must be a number of seconds, got {raw!r}") from None
-    if value < 2 * WARMUP_S + SZ_OFF_AT_S:
-        raise ValueError(f"PALPATION_BENCH_SECONDS must be at least {2 * WARMUP_S + SZ_OFF_AT_S:g} s, got {value:g}")
-    return value
 
 
 def _pin(cpu: int) -> bool:
@@ -207,7 +196,7 @@ def _ping_round_trips(address: tuple[str, int], count: int) -> tuple[np.ndarray,
 
 
 def run(out_dir: Path) -> dict:
-    seconds = duration_s()
+    seconds = duration_s(20.0, 2 * WARMUP_S + SZ_OFF_AT_S)
     base = ControlConfig()
     config = base.replace(ramp=base.ramp.replace(force_max_N=3.0))
     ctx = mp.get_context("spawn")

@@ -66,14 +66,15 @@ REPORTED = ("late_over_0_5ms_pct", "late_over_1ms_pct", "p99_abs_jitter_us", "lo
             *(f"late_cause_{cause}_pct" for cause in stall_trace.CAUSES), "late_attribution")
 
 
-def duration_s() -> float:
-    raw = os.environ.get("PALPATION_BENCH_SECONDS", "25")
+def duration_s(default_s: float = 25.0, least_s: float = 2 * WARMUP_S) -> float:
+    """How long a benchmark runs: ``PALPATION_BENCH_SECONDS``, else ``default_s``; at least ``least_s``."""
+    raw = os.environ.get("PALPATION_BENCH_SECONDS", f"{default_s:g}")
     try:
         value = float(raw)
     except ValueError:
         raise ValueError(f"PALPATION_BENCH_SECONDS must be a number of seconds, got {raw!r}") from None
-    if value < 2 * WARMUP_S:
-        raise ValueError(f"PALPATION_BENCH_SECONDS must be at least {2 * WARMUP_S:g} s, got {value:g}")
+    if value < least_s:
+        raise ValueError(f"PALPATION_BENCH_SECONDS must be at least {least_s:g} s, got {value:g}")
     return value
 
 

@@ -53,19 +53,23 @@ def positive(key: str, value: Any) -> float:
     return v
 
 
-def bounded(key: str, value: Any, lo: float, hi: float, why: str) -> float:
-    """A number in [lo, hi]; ``why`` says where the bounds come from."""
+def bounded(key: str, value: Any, lo: float = -math.inf, hi: float = math.inf, why: str = "") -> float:
+    """A number in [lo, hi] (one side open where its bound is infinite); ``why`` says where the bounds come
+    from."""
     v = number(key, value)
     if not lo <= v <= hi:
-        raise ConfigError(key, f"must lie between {lo:g} and {hi:g} ({why}), got {v:g}")
+        if lo == -math.inf:
+            rule = f"must be <= {hi:g}"
+        elif hi == math.inf:
+            rule = f"must be >= {lo:g}"
+        else:
+            rule = f"must lie between {lo:g} and {hi:g}"
+        raise ConfigError(key, f"{rule}{f' ({why})' if why else ''}, got {v:g}")
     return v
 
 
 def non_negative(key: str, value: Any) -> float:
-    v = number(key, value)
-    if v < 0:
-        raise ConfigError(key, f"must be >= 0, got {v:g}")
-    return v
+    return bounded(key, value, lo=0.0)
 
 
 def vec3(key: str, value: Any, is_positive: bool = False) -> Vec3:

@@ -130,8 +130,7 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
     modulus) for each face offset; ``inclusion`` = (depth of its top, diameter, modulus ratio), at
     ``tumour_y_m`` across the block (default: the library's, mid-array)."""
     from session.physics import SurfaceBlock
-    from tissue.mechanics.fem import condensed_surface_stiffness
-    from tissue.mechanics.model import MeshSettings, phantom_grid, phantom_material
+    from tissue.mechanics.model import MeshSettings, surface_compliance
     from tissue.phantom import Inclusion
 
     nx = int(round(grid.length_m / grid.grid_m)) + 1
@@ -143,20 +142,17 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
         y = y if tumour_y_m is None else tumour_y_m
         inclusions = (Inclusion(x, y, thickness_m - depth - diameter / 2, diameter, ratio),)
     block = SurfaceBlock(np.full((nx, ny), thickness_m), grid.length_m, grid.width_m, 1.0, NU, inclusions)
-    mesh = phantom_grid(block, MeshSettings(spacing_m=grid.grid_m))
     half = grid.rows * grid.pitch_m / 2
     tx = grid.tumour_xy_m[0]
-    gx, _ = np.meshgrid(mesh.x_m, mesh.y_m, indexing="ij")
     # every face position the offsets need, condensed at once: the other retained nodes carry no load
-    strip = (gx >= tx - half - 1e-9) & (gx <= tx + max(grid.offset_x_m) + half + 1e-9)
-    ij, stiffness = condensed_surface_stiffness(mesh, phantom_material(block), mask=strip)
-    compliance = np.linalg.inv(stiffness)
-    node_x = mesh.x_m[ij[:, 0]]
+    compliance, nodes = surface_compliance(
+        block, MeshSettings(spacing_m=grid.grid_m),
+        keep=lambda x, _: (x >= tx - half - 1e-9) & (x <= tx + max(grid.offset_x_m) + half + 1e-9))
     out = np.empty(grid.face_shape)
     for k, off in enumerate(grid.offset_x_m):
-        under = np.flatnonzero(np.abs(node_x - (tx + off)) <= half + 1e-9)
+        under = np.flatnonzero(np.abs(nodes[:, 0] - (tx + off)) <= half + 1e-9)
         forces = np.linalg.solve(compliance[np.ix_(under, under)], np.ones(len(under)))
-        out[k] = forces.reshape(face_nodes, ny)  # ij is i-major: rows of x, columns of y
+        out[k] = forces.reshape(face_nodes, ny)  # the nodes come x-major: rows of x, columns of y
     return out
 
 

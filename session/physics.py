@@ -584,37 +584,36 @@ class PhantomResponse(HomogeneousTissue):
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
         """The phantom's own surface whatever ``measured_surface`` says: this is the exact answer."""
+        from tissue.mechanics.study import height_for_force
+
         out = np.full(levels["pressure_pa"].shape, np.nan)
         for k, row in enumerate(levels):
-            x, y, z = (float(v) for v in row["tsi_position_m"])
-            out[k] = self._finish(_at_force(self.tissue, x, y, z, float(row["force_measured_N"])))
+            x, y = (float(v) for v in row["tsi_position_m"][:2])
+            # where this tissue carries the measured force (NaN: not even down at the table; no pattern then)
+            z = height_for_force(self.tissue, x, y, float(row["force_measured_N"]))
+            if np.isfinite(z):
+                out[k] = self._finish(self.tissue.element_forces_N(x, y, z))
         return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan), np.zeros((len(out), 0) + out.shape[1:]))
 
 
 def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """(C, node (x, y)): the block's surface compliance (vertical displacement per vertical force between
-    its top nodes, every other node free) and where those nodes are; computed once per block and cached."""
-    from tissue.mechanics import cache as cache_mod
-    from tissue.mechanics.fem import condensed_surface_stiffness
-    from tissue.mechanics.model import MeshSettings, phantom_grid, phantom_material
+    """(C, node (x, y)): the block's surface compliance and where its top nodes are
+    (:func:`tissue.mechanics.model.surface_compliance`), computed once per block and cached."""
+    from tissue.mechanics.cache import default_cache_dir
+    from tissue.mechanics.model import cached, surface_compliance
 
-    folder = cache_dir if cache_dir is not None else cache_mod.default_cache_dir()
-    key = f"block-{block.content_hash()}"
-    path = cache_mod.cache_path(folder, key)
-    arrays = cache_mod.load(path, key)
-    if arrays is not None and {"compliance", "nodes"} <= set(arrays):
-        return arrays["compliance"], arrays["nodes"]
-    grid = phantom_grid(block, MeshSettings())
-    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(block), progress=progress)
-    compliance = np.linalg.inv(stiffness)
-    compliance = 0.5 * (compliance + compliance.T)
-    nodes = np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
-    try:
-        cache_mod.store(path, key, {"compliance": compliance, "nodes": nodes})
-    except OSError:
-        pass  # an unwritable cache only costs the recomputation next time
-    return compliance, nodes
+    def solve():
+        compliance, nodes = surface_compliance(block, progress=progress)
+        return {"compliance": compliance, "nodes": nodes}
+
+    def check(arrays):
+        if np.shape(arrays["compliance"]) != (len(arrays["nodes"]),) * 2:
+            raise ValueError("inconsistent cache entry")
+
+    arrays = cached(cache_dir if cache_dir is not None else default_cache_dir(), f"block-{block.content_hash()}",
+                    solve, check)
+    return arrays["compliance"], arrays["nodes"]
 
 
 def _finite(finite_strain: FiniteStrain | None) -> str:
@@ -643,23 +642,6 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
                           block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio)
     sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
     return homogeneous_stiffening(homogeneous, sensor, cache_dir)
-
-
-def _at_force(tissue, x: float, y: float, z_guess: float, force_N: float) -> np.ndarray:
-    """The element forces with the face where the tissue carries ``force_N`` (bisection in height: the
-    force falls monotonically as the face rises)."""
-    lo, hi = z_guess - 0.01, z_guess + 0.01
-    while tissue.element_forces_N(x, y, lo).sum() < force_N and lo > -0.1:
-        lo -= 0.01
-    while tissue.element_forces_N(x, y, hi).sum() > force_N and hi < 0.5:
-        hi += 0.01
-    for _ in range(40):  # 20 mm / 2^40: far below a micrometre
-        mid = 0.5 * (lo + hi)
-        if tissue.element_forces_N(x, y, mid).sum() >= force_N:
-            lo = mid
-        else:
-            hi = mid
-    return tissue.element_forces_N(x, y, 0.5 * (lo + hi))
 
 
 def _cover_of(session: Session | SessionInfo) -> float:

@@ -66,6 +66,13 @@ def _describe(err: ConfigError, labels: dict[str, str]) -> str:
     return f"{label}: {problem}"
 
 
+def _refuse(summary: QtWidgets.QLabel, apply: QtWidgets.QPushButton, problem: str) -> None:
+    """Edited values the settings refuse: say why, and let nothing be applied."""
+    summary.setText("Refused — " + problem)
+    summary.setStyleSheet(ERROR_STYLE)
+    apply.setEnabled(False)
+
+
 def _show_status(label: QtWidgets.QLabel, setting: Setting) -> None:
     """What the controller answered about ``setting``; nothing until something was asked."""
     if setting.pending is not None:
@@ -148,9 +155,7 @@ class RampEditor(QtWidgets.QWidget):
         try:
             ramp = self.edited()
         except ConfigError as err:
-            self._summary.setText("Refused — " + _describe(err, _RAMP_LABELS))
-            self._summary.setStyleSheet(ERROR_STYLE)
-            self._apply.setEnabled(False)
+            _refuse(self._summary, self._apply, _describe(err, _RAMP_LABELS))
             return None
         forces = [ramp.level_force_N(k) for k in range(ramp.n_levels)]
         shown = ", ".join(f"{f:g}" for f in forces) if len(forces) <= 10 else \
@@ -249,9 +254,7 @@ class GainsEditor(QtWidgets.QWidget):
             if problem is not None:
                 raise ConfigError("gains", problem)
         except ConfigError as err:
-            self._summary.setText("Refused — " + _describe(err, _GAIN_LABELS))
-            self._summary.setStyleSheet(ERROR_STYLE)
-            self._apply.setEnabled(False)
+            _refuse(self._summary, self._apply, _describe(err, _GAIN_LABELS))
             return None
         self._summary.setText("" if self._unlock.isChecked() else "Locked: unlock to edit.")
         self._summary.setStyleSheet(OK_STYLE)

@@ -21,11 +21,11 @@ from typing import Any
 
 import serial
 
-from hardware.interfaces import ConnectionState, DeviceError, TactileFrame, TactileSensor
+from hardware.interfaces import ConnectionState, DeviceError
 from hardware.serial_tactile.calibration import Calibration
 from hardware.serial_tactile.config import integer, text
 from hardware.serial_tactile.driver import frame_size
-from hardware.serial_tactile.stream import TactileSettings, TactileStream
+from hardware.serial_tactile.stream import StreamedTactileSensor, TactileSettings
 from hardware.settings import ConfigError
 
 BITS_PER_BYTE = 10  # 8N1 framing on the wire
@@ -63,41 +63,17 @@ def describe_open_error(port: str, err: BaseException) -> str:
     return f"cannot open {port}: {err}"
 
 
-class SerialTactileSensor(TactileSensor):
+class SerialTactileSensor(StreamedTactileSensor):
     name = "serial-tsi"
 
     def __init__(self, settings: SerialTactileSettings, calibration: Calibration | None = None):
-        self.settings = settings
-        self.constraints = settings.constraints()
-        self.calibration = calibration if calibration is not None else settings.load_calibration()
-        self._stream = TactileStream(self.constraints, self.calibration, settings.tare_on_open)
+        super().__init__(settings, calibration)
         self._port: serial.Serial | None = None
-        self._state = ConnectionState.DISCONNECTED
         self._retry_at = 0.0
         self.disconnects = 0
         self.reconnects = 0
-        self.stale_episodes = 0
-        self.last_error = ""
 
     # ---- Device --------------------------------------------------------------------------------------
-
-    @property
-    def connection(self) -> ConnectionState:
-        return self._state
-
-    def open(self) -> None:
-        if self._state != ConnectionState.DISCONNECTED:
-            return
-        try:
-            self._port = self._open_port()
-        except (serial.SerialException, OSError) as err:
-            raise DeviceError(f"tactile sensor: {describe_open_error(self.settings.port, err)}") from None
-        self._stream.start()
-        self._state = ConnectionState.CONNECTING
-
-    def close(self) -> None:
-        self._close_port()
-        self._state = ConnectionState.DISCONNECTED
 
     def poll(self, now_s: float) -> None:
         if self._state == ConnectionState.DISCONNECTED:
@@ -110,29 +86,11 @@ class SerialTactileSensor(TactileSensor):
         except (serial.SerialException, OSError) as err:
             self._lose(now_s, f"the serial port failed ({err}); unplugged?")
             return
-        fresh = self._stream.feed(data, now_s) if data else 0
-        if fresh:
-            if self._state != ConnectionState.CONNECTED:
-                self._state = ConnectionState.CONNECTED
-                self.last_error = ""
-        elif self._state == ConnectionState.CONNECTED:
-            last = self._stream.last_rx_s
-            if last is not None and now_s - last > self.settings.frame_timeout_s:
-                self._state = ConnectionState.LOST
-                self.stale_episodes += 1
-                self.last_error = self._stale_reason(now_s - last)
+        self._fed(self._stream.feed(data, now_s) if data else 0, now_s)
 
     def fileno(self) -> int | None:
         """The open port's descriptor (to wait for data with select), None while it is not open."""
         return self._port.fileno() if self._port is not None else None
-
-    # ---- TactileSensor -------------------------------------------------------------------------------
-
-    def latest(self) -> TactileFrame | None:
-        return self._stream.latest
-
-    def tare(self) -> None:
-        self._stream.tare()
 
     # ---- health --------------------------------------------------------------------------------------
 
@@ -148,11 +106,19 @@ class SerialTactileSensor(TactileSensor):
 
     # ---- internals -----------------------------------------------------------------------------------
 
+    def _connect(self) -> ConnectionState:
+        try:
+            self._port = self._open_port()
+        except (serial.SerialException, OSError) as err:
+            raise DeviceError(f"tactile sensor: {describe_open_error(self.settings.port, err)}") from None
+        self._stream.start()
+        return ConnectionState.CONNECTING
+
     def _open_port(self) -> serial.Serial:
         # timeout=0: read() returns at once with what is there; exclusive: a second console cannot steal frames
         return serial.Serial(self.settings.port, self.settings.baud, timeout=0, write_timeout=0, exclusive=True)
 
-    def _close_port(self) -> None:
+    def _disconnect(self) -> None:
         port, self._port = self._port, None
         if port is not None:
             try:
@@ -161,10 +127,9 @@ class SerialTactileSensor(TactileSensor):
                 pass  # an unplugged port may fail to close; it is gone either way
 
     def _lose(self, now_s: float, why: str) -> None:
-        self._close_port()
-        self._state = ConnectionState.LOST
+        self._disconnect()
+        self._lost(why)
         self.disconnects += 1
-        self.last_error = why
         self._retry_at = now_s + self.settings.reconnect_interval_s
 
     def _reopen(self, now_s: float) -> bool:
@@ -181,7 +146,7 @@ class SerialTactileSensor(TactileSensor):
 
     def _stale_reason(self, silent_s: float) -> str:
         p = self._stream.parser
-        why = f"no good frame for {silent_s * 1e3:.0f} ms"
+        why = super()._stale_reason(silent_s)
         if p.header_errors:
             why += f" (last unexpected header: {p.last_header_problem})"
         return why

@@ -10,14 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from hardware.settings import ConfigError, number
-
-
-def in_range(key: str, value: Any, lo: float, hi: float, why: str = "") -> float:
-    v = number(key, value)
-    if not lo <= v <= hi:
-        raise ConfigError(key, f"must be within [{lo:g}, {hi:g}]{' (' + why + ')' if why else ''}, got {v:g}")
-    return v
+from hardware.settings import ConfigError
 
 
 def integer(key: str, value: Any, lo: int, hi: int) -> int:

@@ -16,6 +16,9 @@ opening: the frames are then published untared (the baseline reads as a small fo
 side) and ``tare_refused`` says why.
 
 An element whose calibrated reading is at or beyond full scale is flagged saturated in the frame.
+
+:class:`StreamedTactileSensor` is the device around a stream, which the serial and USB adapters are: its
+frames, its tare and the stale-data rule.
 """
 
 from __future__ import annotations
@@ -24,12 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, tare_problem
+from hardware.connection import Connection
+from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, TactileSensor, tare_problem
 from hardware.serial_tactile.calibration import Calibration, CalibrationError, load_equilibration
 from hardware.serial_tactile.clock import DeviceClock
-from hardware.serial_tactile.config import boolean, in_range, optional_path
+from hardware.serial_tactile.config import boolean, optional_path
 from hardware.serial_tactile.driver import U32, FrameParser, RawFrame
-from hardware.settings import ConfigError, Settings
+from hardware.settings import ConfigError, Settings, bounded
 
 CONVERTER_BITS = 12  # an uncalibrated device: full scale over a 12-bit converter
 
@@ -50,10 +54,10 @@ class TactileSettings(Settings):
         self._set("calibration", optional_path("calibration", self.calibration))
         self._set("equilibration", optional_path("equilibration", self.equilibration))
         self._set("tare_on_open", boolean("tare_on_open", self.tare_on_open))
-        self._set("frame_rate_hz", in_range("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
-        self._set("full_scale_pa", in_range("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
-        self._set("frame_timeout_s", in_range("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
-        self._set("reconnect_interval_s", in_range("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
+        self._set("frame_rate_hz", bounded("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
+        self._set("full_scale_pa", bounded("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
+        self._set("frame_timeout_s", bounded("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
+        self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         if self.frame_timeout_s * self.frame_rate_hz < 2:
             raise ConfigError("frame_timeout_s", f"must span at least two frames at {self.frame_rate_hz:g} frames/s")
 
@@ -182,3 +186,33 @@ class TactileStream:
                 "truncated": p.truncated, "header_errors": p.header_errors, "garbage_bytes": p.garbage_bytes,
                 "duplicates": self.duplicates, "device_overruns": self.overruns,
                 "device_restarts": self.device_restarts, "frame_rate_hz": self.frame_rate_hz}
+
+
+class StreamedTactileSensor(Connection, TactileSensor):
+    """A tactile array whose transport hands its bytes to a :class:`TactileStream` (the serial and USB
+    adapters): its frames and tare, and the stale-data rule, LOST once no good frame has come for
+    ``frame_timeout_s`` (``stale_episodes`` counts those)."""
+
+    def __init__(self, settings: TactileSettings, calibration: Calibration | None):
+        super().__init__()
+        self.settings = settings
+        self.constraints = settings.constraints()
+        self.calibration = calibration if calibration is not None else settings.load_calibration()
+        self._stream = TactileStream(self.constraints, self.calibration, settings.tare_on_open)
+        self.stale_episodes = 0
+
+    def latest(self) -> TactileFrame | None:
+        return self._stream.latest
+
+    def tare(self) -> None:
+        self._stream.tare()
+
+    def _fed(self, fresh: int, now_s: float) -> None:
+        """A poll fed the stream ``fresh`` good frames (none while the device is away)."""
+        if fresh:
+            self._heard()
+        elif self._silent(now_s, self._stream.last_rx_s, self.settings.frame_timeout_s, self._stale_reason):
+            self.stale_episodes += 1
+
+    def _stale_reason(self, silent_s: float) -> str:
+        return f"no good frame for {silent_s * 1e3:.0f} ms"

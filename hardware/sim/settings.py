@@ -11,16 +11,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from hardware.settings import ConfigError, Settings, non_negative, positive, vec3
+from hardware.settings import ConfigError, Settings, bounded, non_negative, positive, vec3
 from tissue.face import COVER_SPREAD_M
 from tissue.mechanics.model import RIG_FINITE_STRAIN
 
 Vec3 = tuple[float, float, float]
-
-
-def _at_most(key: str, v: float, limit: float, why: str) -> None:
-    if v > limit:
-        raise ConfigError(key, f"must be <= {limit:g} ({why}), got {v:g}")
 
 
 TISSUE_MODELS = ("continuum", "winkler")
@@ -100,18 +95,20 @@ class SensorSimSettings(Settings):
         object.__setattr__(self, "first_press_recovery_s", positive("first_press_recovery_s",
                                                                     self.first_press_recovery_s))
         for name in ("press_offset_m", "press_offset_element_m", "first_press_m"):
-            _at_most(name, getattr(self, name), 3e-3, "an offset that large is a loose array, not a reading error")
-        _at_most("first_press_recovery_s", self.first_press_recovery_s, 3600.0, "an hour's rest is a long one")
-        _at_most("session_offset_fraction", self.session_offset_fraction, 0.2, "a tare refuses more")
+            bounded(name, getattr(self, name), hi=3e-3, why="an offset that large is a loose array, not a reading error")
+        bounded("first_press_recovery_s", self.first_press_recovery_s, hi=3600.0, why="an hour's rest is a long one")
+        bounded("session_offset_fraction", self.session_offset_fraction, hi=0.2, why="a tare refuses more")
         if self.model not in SENSOR_MODELS:
             raise ConfigError("model", f"must be one of {', '.join(SENSOR_MODELS)}, got {self.model!r}")
-        _at_most("frame_rate_hz", self.frame_rate_hz, 1000.0, "no faster than the 1 kHz loop")
-        _at_most("latency_s", self.latency_s, 0.5, "a slower sensor cannot be used for force control")
-        _at_most("gain_spread", self.gain_spread, 0.3, "beyond that the array is broken, not spread")
-        _at_most("creep_fraction", self.creep_fraction, 0.5, "capacitive arrays creep by a few %")
-        _at_most("hysteresis_fraction", self.hysteresis_fraction, 0.25, "beyond that the reading is not a pressure")
-        _at_most("cover_spread_m", self.cover_spread_m, 2e-3, "a cover thicker than an element blurs beyond it")
-        _at_most("quantisation_pa", self.quantisation_pa, self.full_scale_pa / 16, "at least 4 bits over full scale")
+        bounded("frame_rate_hz", self.frame_rate_hz, hi=1000.0, why="no faster than the 1 kHz loop")
+        bounded("latency_s", self.latency_s, hi=0.5, why="a slower sensor cannot be used for force control")
+        bounded("gain_spread", self.gain_spread, hi=0.3, why="beyond that the array is broken, not spread")
+        bounded("creep_fraction", self.creep_fraction, hi=0.5, why="capacitive arrays creep by a few %")
+        bounded("hysteresis_fraction", self.hysteresis_fraction, hi=0.25,
+                why="beyond that the reading is not a pressure")
+        bounded("cover_spread_m", self.cover_spread_m, hi=2e-3, why="a cover thicker than an element blurs beyond it")
+        bounded("quantisation_pa", self.quantisation_pa, hi=self.full_scale_pa / 16,
+                why="at least 4 bits over full scale")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError("seed", f"must be a non-negative integer, got {self.seed!r}")
 
@@ -137,8 +134,8 @@ class RobotSimSettings(Settings):
     def __post_init__(self):
         for name in ("bandwidth_hz", "damping_ratio", "max_speed_m_s", "max_accel_m_s2", "rate_hz"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
-        _at_most("damping_ratio", self.damping_ratio, 2.0, "an inner loop is not tuned that sluggish")
-        _at_most("rate_hz", self.rate_hz, 10e3, "encoder readings are polled by a 1 kHz loop")
+        bounded("damping_ratio", self.damping_ratio, hi=2.0, why="an inner loop is not tuned that sluggish")
+        bounded("rate_hz", self.rate_hz, hi=10e3, why="encoder readings are polled by a 1 kHz loop")
         lo = vec3("workspace_min_m", self.workspace_min_m)
         hi = vec3("workspace_max_m", self.workspace_max_m)
         home = vec3("home_m", self.home_m)
@@ -173,7 +170,7 @@ class OperatorSimSettings(Settings):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("dwell_above_s", "dwell_after_s"):
             object.__setattr__(self, name, non_negative(name, getattr(self, name)))
-        _at_most("rate_hz", self.rate_hz, 10e3, "positions are polled by a 1 kHz loop")
+        bounded("rate_hz", self.rate_hz, hi=10e3, why="positions are polled by a 1 kHz loop")
 
 
 @dataclass(frozen=True)
@@ -199,7 +196,7 @@ class SimSettings(Settings):
             if not isinstance(getattr(self, name), kind):
                 raise ConfigError(name, f"must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
         substep = positive("substep_s", self.substep_s)
-        _at_most("substep_s", substep, 1e-3, "the world must be integrated at 1 kHz or finer")
+        bounded("substep_s", substep, hi=1e-3, why="the world must be integrated at 1 kHz or finer")
         if self.tissue not in TISSUE_MODELS:
             raise ConfigError("tissue", f"unknown tissue model {self.tissue!r} (known: {', '.join(TISSUE_MODELS)})")
         if not isinstance(self.finite_strain, bool):

@@ -1,14 +1,28 @@
-"""Datagram intake shared by both ends of the link: drain a non-blocking socket, count every fault, and
-hand on only well-formed packets from accepted peers."""
+"""Datagram intake shared by both ends of the link: a non-blocking socket bound to an address, drained with
+every fault counted, handing on only well-formed packets from accepted peers."""
 
 from __future__ import annotations
 
 import socket
 from collections.abc import Callable, Iterator
 
+from hardware.interfaces import DeviceError
 from hardware.udp import protocol as P
 
 Address = tuple
+
+
+def bound_socket(host: str, port: int, refused: Callable[[str], str]) -> socket.socket:
+    """A non-blocking UDP socket bound to (host, port), or DeviceError(``refused`` of the reason) when the
+    address cannot be had."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        raise DeviceError(refused(err.strerror or str(err))) from None
+    sock.setblocking(False)
+    return sock
 
 
 class Intake:

@@ -33,12 +33,13 @@ from typing import Any
 
 import numpy as np
 
+from hardware.connection import Connection
 from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
                                  TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3, tare_problem)
-from hardware.serial_tactile.config import in_range, integer, text
-from hardware.settings import ConfigError, Settings
+from hardware.serial_tactile.config import integer, text
+from hardware.settings import ConfigError, Settings, bounded
 from hardware.udp import protocol as P
-from hardware.udp.intake import Intake
+from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
 
 RTT_HISTORY = 65536  # round trips kept for the health display and benchmarks
@@ -64,17 +65,17 @@ class UdpLinkSettings(Settings):
         self._set("port", integer("port", self.port, 1, 65535))
         self._set("bind_host", text("bind_host", self.bind_host))
         self._set("bind_port", integer("bind_port", self.bind_port, 0, 65535))
-        self._set("timeout_s", in_range("timeout_s", self.timeout_s, 0.002, 5.0))
-        self._set("clock_window_s", in_range("clock_window_s", self.clock_window_s, 0.1, 60.0))
+        self._set("timeout_s", bounded("timeout_s", self.timeout_s, 0.002, 5.0))
+        self._set("clock_window_s", bounded("clock_window_s", self.clock_window_s, 0.1, 60.0))
         self._set("max_packets_per_poll", integer("max_packets_per_poll", self.max_packets_per_poll, 1, 4096))
-        self._set("tactile_timeout_s", in_range("tactile_timeout_s", self.tactile_timeout_s, 0.01, 10.0))
-        self._set("max_speed_m_s", in_range("max_speed_m_s", self.max_speed_m_s, 1e-3, 10.0))
-        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 1.0, 10e3))
+        self._set("tactile_timeout_s", bounded("tactile_timeout_s", self.tactile_timeout_s, 0.01, 10.0))
+        self._set("max_speed_m_s", bounded("max_speed_m_s", self.max_speed_m_s, 1e-3, 10.0))
+        self._set("rate_hz", bounded("rate_hz", self.rate_hz, 1.0, 10e3))
         for name in ("workspace_min_m", "workspace_max_m"):
             value = getattr(self, name)
             if isinstance(value, (str, bytes)) or len(value) != 3:
                 raise ConfigError(name, f"must be three numbers [x, y, z], got {value!r}")
-            self._set(name, tuple(in_range(f"{name}[{i}]", v, -10.0, 10.0) for i, v in enumerate(value)))
+            self._set(name, tuple(bounded(f"{name}[{i}]", v, -10.0, 10.0) for i, v in enumerate(value)))
         for i, axis in enumerate("xyz"):
             if self.workspace_max_m[i] <= self.workspace_min_m[i]:
                 raise ConfigError("workspace_max_m", f"{axis} upper bound must exceed the lower bound")
@@ -131,16 +132,16 @@ def resolve(host: str, port: int, what: str) -> tuple[str, int]:
     return info[0][4][0], port
 
 
-class UdpSlaveLink(SlaveManipulator):
+class UdpSlaveLink(Connection, SlaveManipulator):
     name = "udp-slave"
 
     def __init__(self, settings: UdpLinkSettings | None = None):
+        super().__init__()
         self.settings = settings if settings is not None else UdpLinkSettings()
         self.constraints = self.settings.constraints()
         self.clock = LinkClock(self.settings.clock_window_s)
         self._sock: socket.socket | None = None
         self._peer: tuple[str, int] | None = None
-        self._state = ConnectionState.DISCONNECTED
         self._session = 0
         self._cmd_seq = 0
         self._states = P.SequenceTracker()
@@ -157,7 +158,6 @@ class UdpSlaveLink(SlaveManipulator):
         self.counters = dict.fromkeys(("sent", "send_errors", "received", "rejected_peers", "oversize", "malformed",
                                        "crc_errors", "invalid_values", "unexpected", "tactile_ignored", "unmapped", "link_losses",
                                        "slave_holds", "socket_errors"), 0)
-        self.last_error = ""
         self._intake = Intake(self.counters, self._set_error)
 
     def _set_error(self, message: str) -> None:
@@ -165,41 +165,28 @@ class UdpSlaveLink(SlaveManipulator):
 
     # ---- Device --------------------------------------------------------------------------------------
 
-    @property
-    def connection(self) -> ConnectionState:
-        return self._state
-
     def fileno(self) -> int | None:
         """The socket's descriptor (to wait for packets with select), None while closed."""
         return self._sock.fileno() if self._sock is not None else None
 
-    def open(self) -> None:
-        if self._sock is not None:
-            return
+    def _connect(self) -> ConnectionState:
         s = self.settings
         self._peer = resolve(s.host, s.port, "UDP link to the slave")
         if is_loopback(s.bind_host) and not is_loopback(self._peer[0]):
             raise DeviceError(f"UDP link: the slave at {self._peer[0]} is another computer, but the link binds to "
                               f"{s.bind_host}; set hardware.slave.bind_host to this computer's address on that "
                               f"network (or 0.0.0.0)")
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind((s.bind_host, s.bind_port))
-        except OSError as err:
-            sock.close()
-            raise DeviceError(f"UDP link: cannot bind {s.bind_host}:{s.bind_port} ({err.strerror or err}); "
-                              f"is another console running, or is bind_host not an address of this computer?") from None
-        sock.setblocking(False)
-        self._sock = sock
+        self._sock = bound_socket(s.bind_host, s.bind_port, lambda why: (
+            f"UDP link: cannot bind {s.bind_host}:{s.bind_port} ({why}); is another console running, or is "
+            f"bind_host not an address of this computer?"))
         self._session = secrets.randbits(32)
         self._sent_any = False
-        self._state = ConnectionState.CONNECTING
+        return ConnectionState.CONNECTING
 
-    def close(self) -> None:
+    def _disconnect(self) -> None:
         sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
-        self._state = ConnectionState.DISCONNECTED
 
     def poll(self, now_s: float) -> None:
         sock = self._sock
@@ -220,11 +207,8 @@ class UdpSlaveLink(SlaveManipulator):
                     self.tactile._on_frame(body, now_s)  # type: ignore[arg-type]
             else:
                 c["unexpected"] += 1
-        last = self._last_state_rx
-        if self._state == ConnectionState.CONNECTED and last is not None and now_s - last > self.settings.timeout_s:
-            self._state = ConnectionState.LOST
+        if self._silent(now_s, self._last_state_rx, self.settings.timeout_s, self._silence):
             c["link_losses"] += 1
-            self.last_error = f"no state from the slave at {peer[0]}:{peer[1]} for {(now_s - last) * 1e3:.0f} ms"
 
     # ---- SlaveManipulator ----------------------------------------------------------------------------
 
@@ -280,6 +264,9 @@ class UdpSlaveLink(SlaveManipulator):
         self._sent_any = True
         self.counters["sent"] += 1
 
+    def _silence(self, silent_s: float) -> str:
+        return f"no state from the slave at {self._peer[0]}:{self._peer[1]} for {silent_s * 1e3:.0f} ms"
+
     def _on_state(self, header: P.Header, st: P.State, now_s: float) -> None:
         if not self._states.accept(header.session, header.seq):
             return
@@ -297,16 +284,13 @@ class UdpSlaveLink(SlaveManipulator):
             if not self._holding_on_its_own:
                 self.counters["slave_holds"] += 1
                 self._holding_on_its_own = True
-            self._state = ConnectionState.LOST
-            self.last_error = f"the slave is holding on its own ({P.status_text(st.status)}); its readings are withheld"
+            self._lost(f"the slave is holding on its own ({P.status_text(st.status)}); its readings are withheld")
             return
         self._holding_on_its_own = False
         self._published += 1
         self._latest = SlaveState(seq=self._published, t_s=min(st.t_sample_s - offset, now_s),
                                   position_m=st.position_m, velocity_m_s=st.velocity_m_s)
-        if self._state != ConnectionState.CONNECTED:
-            self._state = ConnectionState.CONNECTED
-            self.last_error = ""
+        self._heard()
 
 
 class UdpTactileSensor(TactileSensor):

@@ -43,11 +43,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hardware.interfaces import ConnectionState, DeviceError, SlaveManipulator, TactileSensor, Vec3
-from hardware.serial_tactile.config import in_range, integer, text
-from hardware.settings import ConfigError, Settings, read_toml, vec3
+from hardware.interfaces import ConnectionState, SlaveManipulator, TactileSensor, Vec3
+from hardware.serial_tactile.config import integer, text
+from hardware.settings import ConfigError, Settings, bounded, read_toml, vec3
 from hardware.udp import protocol as P
-from hardware.udp.intake import Intake
+from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
 
 DEFAULT_PORT = 47600
@@ -94,10 +94,10 @@ class SlaveServerSettings(Settings):
                                            f"list the master's address(es) to allow (e.g. --allow 192.168.1.20)")
             allow = ("127.0.0.1",)
         self._set("allow", allow)
-        self._set("link_timeout_s", in_range("link_timeout_s", self.link_timeout_s, 0.002, 1.0,
+        self._set("link_timeout_s", bounded("link_timeout_s", self.link_timeout_s, 0.002, 1.0,
                                              "the robot must stop soon after the master goes quiet"))
-        self._set("resume_distance_m", in_range("resume_distance_m", self.resume_distance_m, 0.0, 0.05))
-        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 10.0, 10e3))
+        self._set("resume_distance_m", bounded("resume_distance_m", self.resume_distance_m, 0.0, 0.05))
+        self._set("rate_hz", bounded("rate_hz", self.rate_hz, 10.0, 10e3))
         self._set("max_packets_per_step", integer("max_packets_per_step", self.max_packets_per_step, 1, 4096))
         if not isinstance(self.forward_tactile, bool):
             raise ConfigError("forward_tactile", f"must be true or false, got {self.forward_tactile!r}")
@@ -108,9 +108,9 @@ class SlaveServerSettings(Settings):
         if lo is not None and hi is not None and not all(a < b for a, b in zip(lo, hi)):
             raise ConfigError("workspace_max_m", f"must exceed workspace_min_m on every axis, got {lo} and {hi}")
         if self.max_speed_m_s is not None:
-            self._set("max_speed_m_s", in_range("max_speed_m_s", self.max_speed_m_s, 1e-3, 0.5,
+            self._set("max_speed_m_s", bounded("max_speed_m_s", self.max_speed_m_s, 1e-3, 0.5,
                                                 "a palpation robot near tissue"))
-        self._set("force_limit_N", in_range("force_limit_N", self.force_limit_N, 0.1, 30.0,
+        self._set("force_limit_N", bounded("force_limit_N", self.force_limit_N, 0.1, 30.0,
                                             "the TSI's full scale is 23 N"))
 
     def allows(self, host: str) -> bool:
@@ -183,14 +183,8 @@ class SlaveServer:
 
     def open(self) -> None:
         s = self.settings
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind((s.bind_host, s.port))
-        except OSError as err:
-            sock.close()
-            raise DeviceError(f"slave: cannot listen on {s.bind_host}:{s.port} ({err.strerror or err}); "
-                              f"is another slave running?") from None
-        sock.setblocking(False)
+        sock = bound_socket(s.bind_host, s.port, lambda why: (
+            f"slave: cannot listen on {s.bind_host}:{s.port} ({why}); is another slave running?"))
         opened = []
         try:
             for device in (self.robot, self.sensor):

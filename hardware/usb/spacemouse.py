@@ -31,10 +31,11 @@ from typing import Any
 
 import usb.core
 
+from hardware.connection import Connection
 from hardware.interfaces import (ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback,
                                  MasterState, Phase, Vec3)
-from hardware.serial_tactile.config import format_vid_pid, in_range, integer, text, vid_pid
-from hardware.settings import ConfigError, Settings
+from hardware.serial_tactile.config import format_vid_pid, integer, text, vid_pid
+from hardware.settings import ConfigError, Settings, bounded
 from hardware.usb.transport import Attached, Lost, UsbInPipe
 
 KNOWN_SPACEMICE: dict[tuple[int, int], str] = {
@@ -124,17 +125,17 @@ class SpaceMouseSettings(Settings):
         self._set("serial_number", text("serial_number", self.serial_number, allow_empty=True))
         self._set("interface", integer("interface", self.interface, 0, 255))
         self._set("endpoint", integer("endpoint", self.endpoint, 0x81, 0x8F))
-        self._set("speed_m_s", in_range("speed_m_s", self.speed_m_s, 1e-4, 0.1, "the loop's velocity limit"))
-        self._set("full_scale_counts", in_range("full_scale_counts", self.full_scale_counts, 10.0, 32767.0))
-        self._set("deadband_counts", in_range("deadband_counts", self.deadband_counts, 0.0, self.full_scale_counts / 2))
+        self._set("speed_m_s", bounded("speed_m_s", self.speed_m_s, 1e-4, 0.1, "the loop's velocity limit"))
+        self._set("full_scale_counts", bounded("full_scale_counts", self.full_scale_counts, 10.0, 32767.0))
+        self._set("deadband_counts", bounded("deadband_counts", self.deadband_counts, 0.0, self.full_scale_counts / 2))
         signs = self.axis_signs
         if isinstance(signs, (str, bytes)) or len(signs) != 3 or any(s not in (1, -1) for s in signs):
             raise ConfigError("axis_signs", f"must be three of 1 or -1, got {signs!r}")
         self._set("axis_signs", tuple(float(s) for s in signs))
         self._set("sz_button", integer("sz_button", self.sz_button, 0, 31))
-        self._set("report_timeout_s", in_range("report_timeout_s", self.report_timeout_s, 0.02, 5.0))
-        self._set("rate_hz", in_range("rate_hz", self.rate_hz, 10.0, 10e3))
-        self._set("reconnect_interval_s", in_range("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
+        self._set("report_timeout_s", bounded("report_timeout_s", self.report_timeout_s, 0.02, 5.0))
+        self._set("rate_hz", bounded("rate_hz", self.rate_hz, 10.0, 10e3))
+        self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         self._set("read_timeout_ms", integer("read_timeout_ms", self.read_timeout_ms, 1, 1000))
 
     def shaped(self, counts: int) -> float:
@@ -158,16 +159,16 @@ def find_spacemouse_ids(backend=None) -> tuple[int, int]:
     return dev.idVendor, dev.idProduct
 
 
-class SpaceMouseMaster(MasterDevice):
+class SpaceMouseMaster(Connection, MasterDevice):
     name = "spacemouse"
 
     def __init__(self, settings: SpaceMouseSettings | None = None, backend=None):
+        super().__init__()
         self.settings = settings if settings is not None else SpaceMouseSettings()
         self.constraints = MasterConstraints(rate_hz=self.settings.rate_hz, has_sz_switch=True)
         self._backend = backend
         self.pipe: UsbInPipe | None = None
         self.decoder = ReportDecoder()
-        self._state = ConnectionState.DISCONNECTED
         self._position = [0.0, 0.0, 0.0]
         self._sz = True  # position control
         self._buttons = 0
@@ -177,15 +178,8 @@ class SpaceMouseMaster(MasterDevice):
         self._last_report: float | None = None
         self._timed_out = False
         self.counters = dict.fromkeys(("reports", "ignored_reports", "report_timeouts", "sz_presses"), 0)
-        self.last_error = ""
 
-    @property
-    def connection(self) -> ConnectionState:
-        return self._state
-
-    def open(self) -> None:
-        if self._state != ConnectionState.DISCONNECTED:
-            return
+    def _connect(self) -> ConnectionState:
         s = self.settings
         ids = vid_pid("vid_pid", s.vid_pid) if s.vid_pid else find_spacemouse_ids(self._backend)
         self.pipe = UsbInPipe(ids[0], ids[1], "master device", interface=s.interface, endpoint=s.endpoint,
@@ -195,35 +189,27 @@ class SpaceMouseMaster(MasterDevice):
         self.decoder = ReportDecoder()
         self._buttons = 0
         self._last_poll = None
-        self._state = ConnectionState.CONNECTED  # a HID device is silent at rest: claimed is connected
+        return ConnectionState.CONNECTED  # a HID device is silent at rest: claimed is connected
 
-    def close(self) -> None:
+    def _disconnect(self) -> None:
         if self.pipe is not None:
             self.pipe.close()
-        self._state = ConnectionState.DISCONNECTED
 
     def poll(self, now_s: float) -> None:
         if self._state == ConnectionState.DISCONNECTED or self.pipe is None:
             return
         self.pipe.start()  # from the loop's thread: the reader shares its priority and CPU
-        queue = self.pipe.queue
-        for _ in range(MAX_REPORTS_PER_POLL):
-            try:
-                item = queue.popleft()
-            except IndexError:
-                break
+        for item in self.pipe.take(MAX_REPORTS_PER_POLL):
             if isinstance(item, bytes):
                 self._on_report(item, now_s)
             elif isinstance(item, Lost):
-                self._state = ConnectionState.LOST
-                self.last_error = item.reason
+                self._lost(item.reason)
             elif isinstance(item, Attached) and self._state == ConnectionState.LOST:
                 # a fresh start for the cap and buttons; the position carries on, so X_d does not jump
                 self.decoder = ReportDecoder()
                 self._buttons = 0
                 self._last_report = None
-                self._state = ConnectionState.CONNECTED
-                self.last_error = ""
+                self._heard()
         if self._state != ConnectionState.CONNECTED:
             self._last_poll = None
             return

@@ -8,9 +8,9 @@ interrupt endpoint), so the same parser as on a serial line reassembles and chec
 
 The device is found by VID:PID (and serial number, when several identical arrays are connected). Reads
 happen on a thread (:class:`~hardware.usb.transport.UsbInPipe`); :meth:`UsbTactileSensor.poll` drains
-what arrived without blocking. Connection states and the stale-data rule are those of the serial
-adapter: LOST on unplug or when no good frame came for ``frame_timeout_s``; the thread looks for the
-device again and frames publish once good again.
+what arrived without blocking. Connection states and the stale-data rule are the serial adapter's (both
+are a :class:`~hardware.serial_tactile.stream.StreamedTactileSensor`): LOST on unplug or when no good frame
+came for ``frame_timeout_s``; the thread looks for the device again and frames publish once good again.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from hardware.interfaces import ConnectionState, TactileFrame, TactileSensor
+from hardware.interfaces import ConnectionState
 from hardware.serial_tactile.calibration import Calibration
 from hardware.serial_tactile.config import format_vid_pid, integer, text, vid_pid
-from hardware.serial_tactile.stream import TactileSettings, TactileStream
+from hardware.serial_tactile.stream import StreamedTactileSensor, TactileSettings
 from hardware.usb.transport import Attached, Lost, UsbInPipe
 
 # pid.codes' test id: firmware under development uses it; set your array's own id in the config.
@@ -52,79 +52,46 @@ class UsbTactileSettings(TactileSettings):
         return vid_pid("vid_pid", self.vid_pid)
 
 
-class UsbTactileSensor(TactileSensor):
+class UsbTactileSensor(StreamedTactileSensor):
     name = "usb-tsi"
 
     def __init__(self, settings: UsbTactileSettings | None = None, calibration: Calibration | None = None,
                  backend=None):
-        self.settings = settings if settings is not None else UsbTactileSettings()
+        super().__init__(settings if settings is not None else UsbTactileSettings(), calibration)
         s = self.settings
-        self.constraints = s.constraints()
-        self.calibration = calibration if calibration is not None else s.load_calibration()
-        self._stream = TactileStream(self.constraints, self.calibration, s.tare_on_open)
         vid, pid = s.ids
         self.pipe = UsbInPipe(vid, pid, "tactile sensor", interface=s.interface, endpoint=s.endpoint,
                               serial_number=s.serial_number, backend=backend, read_timeout_ms=s.read_timeout_ms,
                               reconnect_interval_s=s.reconnect_interval_s, read_size=s.read_size)
-        self._state = ConnectionState.DISCONNECTED
         self._unplugged = False
-        self.stale_episodes = 0
-        self.last_error = ""
-
-    @property
-    def connection(self) -> ConnectionState:
-        return self._state
-
-    def open(self) -> None:
-        if self._state != ConnectionState.DISCONNECTED:
-            return
-        self._stream.start()
-        self.pipe.open()
-        self._unplugged = False
-        self._state = ConnectionState.CONNECTING
-
-    def close(self) -> None:
-        self.pipe.close()
-        self._state = ConnectionState.DISCONNECTED
 
     def poll(self, now_s: float) -> None:
         if self._state == ConnectionState.DISCONNECTED:
             return
         self.pipe.start()  # from the loop's thread: the reader shares its priority and CPU
-        queue, stream = self.pipe.queue, self._stream
+        stream = self._stream
         fresh = 0
-        for _ in range(MAX_ITEMS_PER_POLL):
-            try:
-                item = queue.popleft()
-            except IndexError:
-                break
+        for item in self.pipe.take(MAX_ITEMS_PER_POLL):
             if isinstance(item, bytes):
                 fresh += stream.feed(item, now_s)
             elif isinstance(item, Lost):
                 self._unplugged = True
-                self._state = ConnectionState.LOST
-                self.last_error = item.reason
+                self._lost(item.reason)
                 fresh = 0
             elif isinstance(item, Attached) and self._unplugged:
                 stream.link_reset()
                 self._unplugged = False
                 self._state = ConnectionState.CONNECTING
-        if fresh and not self._unplugged:
-            if self._state != ConnectionState.CONNECTED:
-                self._state = ConnectionState.CONNECTED
-                self.last_error = ""
-        elif self._state == ConnectionState.CONNECTED:
-            last = stream.last_rx_s
-            if last is not None and now_s - last > self.settings.frame_timeout_s:
-                self._state = ConnectionState.LOST
-                self.stale_episodes += 1
-                self.last_error = f"no good frame for {(now_s - last) * 1e3:.0f} ms"
+        self._fed(0 if self._unplugged else fresh, now_s)
 
-    def latest(self) -> TactileFrame | None:
-        return self._stream.latest
+    def _connect(self) -> ConnectionState:
+        self._stream.start()
+        self.pipe.open()
+        self._unplugged = False
+        return ConnectionState.CONNECTING
 
-    def tare(self) -> None:
-        self._stream.tare()
+    def _disconnect(self) -> None:
+        self.pipe.close()
 
     @property
     def stats(self) -> dict[str, Any]:

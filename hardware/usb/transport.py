@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import threading
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import usb.core
@@ -80,6 +81,16 @@ class UsbInPipe:
         """Block until something is queued (for event-driven callers; the loop never waits)."""
         with self._arrived:
             return self._arrived.wait_for(lambda: bool(self.queue), timeout_s)
+
+    def take(self, most: int) -> Iterator[bytes | Lost | Attached]:
+        """Up to ``most`` of what the reader queued, oldest first, without waiting (an adapter's poll: a
+        backlog is worked off over a few polls)."""
+        queue = self.queue
+        for _ in range(most):
+            try:
+                yield queue.popleft()
+            except IndexError:
+                return
 
     def _put(self, item: bytes | Lost | Attached) -> None:
         with self._arrived:

@@ -22,8 +22,8 @@ def test_the_slave_command_refuses_to_expose_the_robot(capsys):
 
 
 @pytest.mark.parametrize("args, said", [
-    (["--force-limit-n", "100"], "force_limit_N: must be within [0.1, 30]"),
-    (["--max-speed-m-s", "5"], "max_speed_m_s: must be within"),
+    (["--force-limit-n", "100"], "force_limit_N: must lie between 0.1 and 30"),
+    (["--max-speed-m-s", "5"], "max_speed_m_s: must lie between"),
     (["--workspace-min-m", "0", "0", "0.1", "--workspace-max-m", "0.1", "0.1", "0.05"], "must exceed workspace_min_m"),
 ])
 def test_the_slave_command_refuses_limits_of_its_own_that_make_no_sense(capsys, args, said):

@@ -131,6 +131,18 @@ def phantom_material(phantom: Phantom):
     return material
 
 
+def surface_compliance(phantom: Phantom, settings: MeshSettings | None = None,
+                       keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                       progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(C, node (x, y)): the surface compliance of ``phantom``'s block bonded to its table (vertical
+    displacement per vertical force between its top nodes, every other top node free of load) and where
+    those nodes are, x-major as C takes them; ``keep(x, y)`` says which top nodes to keep (default: all)."""
+    grid = phantom_grid(phantom, settings or MeshSettings())
+    mask = None if keep is None else keep(*np.meshgrid(grid.x_m, grid.y_m, indexing="ij"))
+    ij, stiffness = condensed_surface_stiffness(grid, phantom_material(phantom), mask=mask, progress=progress)
+    return _spd_inverse(stiffness), np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
+
+
 def cache_key(phantom: Phantom, settings: MeshSettings, sensor: Face, what: str = "tables") -> str:
     """Key of the contact tables (``what="tables"``, or ``"tables-compressed"`` with the inclusions moved),
     or of the finite-strain stiffening (``"stiffening"``, which depends on the phantom only)."""

@@ -59,17 +59,21 @@ def element_onsets(tissue, x_m: float, y_m: float, step_m: float = 5e-6, depth_m
     return onset
 
 
-def height_for_force(tissue, x_m: float, y_m: float, force_N: float, tol_m: float = 1e-8) -> float:
-    """Face height at which the total force reaches ``force_N`` (monotone in depth, so bisection);
-    NaN if even a face down at the table does not push that hard."""
-    ph = tissue.phantom
-    hi = float(ph.surface_height_m(x_m, y_m)) + 0.02
+def height_for_force(tissue, x_m: float, y_m: float, force_N: float, tol_m: float = 1e-14) -> float:
+    """Face height at which the total force reaches ``force_N``, to ``tol_m`` (bisection: the force falls
+    monotonically as the face rises); NaN if even a face down at the table does not push that hard."""
+    def total(z_m: float) -> float:
+        return float(tissue.element_forces_N(x_m, y_m, z_m).sum())
+
     lo = 0.0
-    if tissue.element_forces_N(x_m, y_m, lo).sum() < force_N:
+    if not total(lo) >= force_N:  # a NaN force too
         return float("nan")
+    hi = float(tissue.phantom.surface_height_m(x_m, y_m)) + 0.02
+    while total(hi) > max(force_N, 0.0):  # the surface under the face's edge may stand higher than at its centre
+        hi += 0.01
     while hi - lo > tol_m:
         mid = 0.5 * (lo + hi)
-        if tissue.element_forces_N(x_m, y_m, mid).sum() >= force_N:
+        if total(mid) >= force_N:
             lo = mid
         else:
             hi = mid
