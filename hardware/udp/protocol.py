@@ -21,7 +21,7 @@ Every datagram is one packet, little-endian, no padding::
 
     STATE    slave -> master, 92-byte body (116-byte packet), at the slave's rate and in reply to PING
       0   1  status flags: 1 HOLDING, 2 LINK_TIMEOUT, 4 JUMP_REFUSED, 8 ROBOT_FAULT, 16 PING_REPLY,
-             32 LIMITED, 64 FORCE_LIMIT (the other bit is reserved, sent as 0)
+             32 LIMITED, 64 FORCE_LIMIT, 128 SENSOR_LOST
       1   3  reserved, 0
       4   4  robot_seq: u32 the robot's reading counter
       8   8  t_sample_s: f64, slave clock, when X_s was measured
@@ -92,11 +92,13 @@ class Status(enum.IntFlag):
     PING_REPLY = 16  # this state answers a PING
     LIMITED = 32  # the slave cut the newest reference to its own workspace or speed limit
     FORCE_LIMIT = 64  # the slave's own force limit latched: it moves only up, away from the tissue
+    SENSOR_LOST = 128  # its own array stopped reading (silent, frozen, or not reading the tissue): only up
 
     @property
     def unrequested_hold(self) -> bool:
         """The slave is not doing what the master asks (it held on its own, or cannot move)."""
-        return bool(self & (Status.LINK_TIMEOUT | Status.JUMP_REFUSED | Status.ROBOT_FAULT | Status.FORCE_LIMIT))
+        return bool(self & (Status.LINK_TIMEOUT | Status.JUMP_REFUSED | Status.ROBOT_FAULT | Status.FORCE_LIMIT
+                            | Status.SENSOR_LOST))
 
 
 def status_text(status: Status) -> str:
@@ -228,7 +230,7 @@ def unpack(data: bytes | bytearray | memoryview) -> tuple[Header, Command | Stat
         (status, robot_seq, t_sample, x0, x1, x2, v0, v1, v2, force, echo_seq, echo_send,
          echo_recv) = STATE_BODY.unpack_from(data, off)
         _finite((t_sample, x0, x1, x2, v0, v1, v2, echo_send, echo_recv), "the slave state")
-        return header, State(Status(status & 0x7F), robot_seq, t_sample, (x0, x1, x2), (v0, v1, v2), force,
+        return header, State(Status(status), robot_seq, t_sample, (x0, x1, x2), (v0, v1, v2), force,
                              echo_seq, echo_send, echo_recv)
     if ptype == PacketType.TACTILE:
         sensor_seq, t_sample, rows, cols = TACTILE_HEAD.unpack_from(data, off)

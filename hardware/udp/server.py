@@ -23,6 +23,10 @@ Safety rules, all on this side so they hold whatever the master does, from the s
   own by default, narrower if configured; LIMITED says it happened).
 * The slave's own force limit (with a slave-side sensor): above ``force_limit_N`` it latches FORCE_LIMIT
   and holds, following only references that lift the probe, until the force is back below 80 % of the limit.
+* The slave's own check that its array still reads (:mod:`hardware.liveness`, the console's own checks):
+  no new frame, or only frames repeating the one before, for ``sensor_timeout_s``, or the robot
+  ``unexplained_travel_m`` deeper than where the force last rose while pressing, latches SENSOR_LOST: the same
+  hold, lifting only, until the array reads again and the probe is off the tissue.
 * Until a master has spoken, the robot holds.
 """
 
@@ -44,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from hardware.interfaces import ConnectionState, SlaveManipulator, TactileSensor, Vec3
+from hardware.liveness import RepeatWatch, TravelWatch
 from hardware.serial_tactile.config import integer, text
 from hardware.settings import ConfigError, Settings, bounded, read_toml, vec3
 from hardware.udp import protocol as P
@@ -52,6 +57,9 @@ from hardware.udp.protocol import is_loopback
 
 DEFAULT_PORT = 47600
 FORCE_RESUME_FRACTION = 0.8  # below this share of the force limit the latch lets go (no chattering at it)
+CONTACT_N = 0.3  # more than this on the slave's array is pressing tissue (its noise is a few mN)
+FORCE_RISE_N = 0.05  # what counts as the force rising, for the travel below the last rise
+SENSOR_GRACE_S = 1.0  # after start-up, before the array's first frame is due
 RETIRED_SESSIONS = 64
 STEP_TOLERANCE_M = 1e-6  # rounding in the master's reference: far below any step that matters  # replaced masters' sessions remembered, so their delayed packets stay refused
 
@@ -79,6 +87,8 @@ class SlaveServerSettings(Settings):
     workspace_max_m: Vec3 | None = None
     max_speed_m_s: float | None = None
     force_limit_N: float = 15.0  # above the console's 12 N ceiling (it acts first), below the TSI's 23 N full scale
+    sensor_timeout_s: float = 0.06  # as the console's: six frames of a 100 frames/s array
+    unexplained_travel_m: float = 1e-3  # a backstop behind the console's 0.6 mm
 
     def __post_init__(self):
         self._set("bind_host", text("bind_host", self.bind_host))
@@ -110,6 +120,10 @@ class SlaveServerSettings(Settings):
         if self.max_speed_m_s is not None:
             self._set("max_speed_m_s", bounded("max_speed_m_s", self.max_speed_m_s, 1e-3, 0.5,
                                                 "a palpation robot near tissue"))
+        self._set("sensor_timeout_s", bounded("sensor_timeout_s", self.sensor_timeout_s, 0.01, 1.0,
+                                              "a second without data is a lost device"))
+        self._set("unexplained_travel_m", bounded("unexplained_travel_m", self.unexplained_travel_m, 0.2e-3, 5e-3,
+                                                  "deeper is driving into the tissue blind"))
         self._set("force_limit_N", bounded("force_limit_N", self.force_limit_N, 0.1, 30.0,
                                             "the TSI's full scale is 23 N"))
 
@@ -136,13 +150,19 @@ class SlaveServer:
         self._last_cmd_rx: float | None = None
         self._echo = (0, 0.0, 0.0)  # seq, t_send (master clock), t_recv (ours) of the newest command
         self._mode = P.Mode.HOLD
-        self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED | FORCE_LIMIT: holding on its own
+        self._latched = P.Status.NONE  # LINK_TIMEOUT | JUMP_REFUSED | FORCE_LIMIT | SENSOR_LOST: its own hold
         self._held_at_start = False
         self._sent_sensor_seq: int | None = None
         self._retired: deque[int] = deque(maxlen=RETIRED_SESSIONS)
         self._applied: tuple[Vec3, float] | None = None  # the last reference sent to the robot, and when
         self._limited = False
-        self._force_hold: Vec3 | None = None  # where the robot was when the force limit latched
+        # where the robot was when the force limit or the lost array latched: no lower, no sideways, from there
+        self._force_hold: Vec3 | None = None
+        self._repeats = RepeatWatch(sensor.constraints.shape) if sensor is not None else None
+        self._travel = TravelWatch(FORCE_RISE_N)
+        self._sensor_seq: int | None = None
+        self._fresh_s: float | None = None  # when the array last said something new (our clock)
+        self._started_s: float | None = None
         c = robot.constraints
         st = self.settings
         self._lo = st.workspace_min_m if st.workspace_min_m is not None else c.workspace_min_m
@@ -151,7 +171,7 @@ class SlaveServer:
         self.counters = dict.fromkeys(("received", "rejected_peers", "oversize", "malformed", "crc_errors",
                                        "invalid_values", "unexpected", "pings", "link_timeouts", "jumps_refused",
                                        "master_changes", "takeovers_refused", "stale_sessions", "limited",
-                                       "force_limits", "sent", "send_errors", "socket_errors"), 0)
+                                       "force_limits", "sensor_lost", "sent", "send_errors", "socket_errors"), 0)
         self.last_error = ""
         self._intake = Intake(self.counters, self._set_error)
 
@@ -223,6 +243,7 @@ class SlaveServer:
         if not self._held_at_start:
             self.robot.hold(now_s)  # nobody has commanded anything yet
             self._held_at_start = True
+        self._supervise_sensor(now_s)
         self._supervise_force(now_s)
         newest = self._drain(sock, now_s)
         if newest is not None:
@@ -336,21 +357,61 @@ class SlaveServer:
         """The slave's own force limit, on its own sensor's reading (none without a slave-side sensor)."""
         force = self._force_N()
         limit = self.settings.force_limit_N
+        if not self._latched & P.Status.FORCE_LIMIT:
+            if force > limit:
+                self._lift_only(P.Status.FORCE_LIMIT, f"force {force:.1f} N above the slave's own {limit:g} N limit",
+                                now_s)
+        elif force < FORCE_RESUME_FRACTION * limit:
+            self._let_go(P.Status.FORCE_LIMIT)
+
+    def _supervise_sensor(self, now_s: float) -> None:
+        """Whether the slave's own array still reads: fresh frames, and force rising as the robot presses deeper."""
+        if self.sensor is None:
+            return
+        if self._started_s is None:
+            self._started_s = now_s
+        frame = self.sensor.latest()
+        here = self.robot.latest()
+        if frame is not None and frame.seq != self._sensor_seq:
+            self._sensor_seq = frame.seq
+            if self._repeats.push(frame.pressure_pa, frame.t_s):
+                self._fresh_s = now_s
+            force = self._force_N()
+            if force > CONTACT_N and here is not None:
+                self._travel.push(force, here.position_m[2])
+        if here is not None and here.position_m[2] > self._travel.peak_z_m:
+            self._travel.reset()  # lifted above where it last pressed: off the tissue
+        heard = self._fresh_s if self._fresh_s is not None else self._started_s + SENSOR_GRACE_S
+        silent = now_s - heard > self.settings.sensor_timeout_s
+        travel = self._travel.travel_m(here.position_m[2]) if here is not None else math.nan
+        if not self._latched & P.Status.SENSOR_LOST:
+            if silent:
+                repeats = self._repeats.repeats
+                self._lift_only(P.Status.SENSOR_LOST, f"the slave's tactile array has said nothing new for "
+                                f"{(now_s - heard) * 1e3:.0f} ms" + (f" ({repeats + 1} identical frames: frozen)"
+                                                                     if repeats else ""), now_s)
+            elif travel > self.settings.unexplained_travel_m:
+                self._lift_only(P.Status.SENSOR_LOST, f"the robot went {travel * 1e3:.1f} mm deeper without the "
+                                f"slave's tactile force rising above {self._travel.peak_N:.2f} N", now_s)
+        elif not silent and not travel > 0.0:  # reading again, and lifted back above where it last pressed
+            self._let_go(P.Status.SENSOR_LOST)
+
+    def _lift_only(self, flag: P.Status, why: str, now_s: float) -> None:
+        """Latch ``flag``: hold, and from here follow only references that lift the probe."""
         if self._force_hold is None:
-            if not force > limit:
-                return
             here = self.robot.latest()
             if here is None:
                 return
             self._force_hold = here.position_m
-            self._latched |= P.Status.FORCE_LIMIT
-            self.counters["force_limits"] += 1
-            self.last_error = (f"force {force:.1f} N above the slave's own {limit:g} N limit: holding, and following "
-                               f"only references that lift the probe")
-            self._hold(now_s)
-        elif force < FORCE_RESUME_FRACTION * limit:
+        self._latched |= flag
+        self.counters["force_limits" if flag == P.Status.FORCE_LIMIT else "sensor_lost"] += 1
+        self.last_error = f"{why}: holding, and following only references that lift the probe"
+        self._hold(now_s)
+
+    def _let_go(self, flag: P.Status) -> None:
+        self._latched &= ~flag
+        if not self._latched & (P.Status.FORCE_LIMIT | P.Status.SENSOR_LOST):
             self._force_hold = None
-            self._latched &= ~P.Status.FORCE_LIMIT
 
     def _force_N(self) -> float:
         if self.sensor is None:

@@ -419,13 +419,17 @@ class Master:
 
 
 class PressingSensor:
-    """A slave-side tactile array over a flat layer at z = 50 mm, 2 N per mm of indentation."""
+    """A slave-side tactile array over a flat layer at z = 50 mm, 2 N per mm of indentation, a new frame at
+    each poll with 20 Pa of noise; ``lie(reading)`` makes it report ``reading(true pressure)`` instead."""
 
     name = "pressing"
     constraints = TactileConstraints()
 
     def __init__(self, robot: Robot):
         self.robot = robot
+        self.reading = lambda pressure: pressure
+        self._frame = None
+        self._noise = np.random.default_rng(0)
 
     def open(self):
         pass
@@ -434,12 +438,14 @@ class PressingSensor:
         pass
 
     def poll(self, now_s):
-        pass
-
-    def latest(self):
         from hardware.interfaces import TactileFrame
         force = 2000.0 * max(0.050 - self.robot.position[2], 0.0)
-        return TactileFrame(0, 0.0, np.full((4, 15), force / 60 / self.constraints.element_area_m2))
+        true = np.full((4, 15), force / 60 / self.constraints.element_area_m2) + self._noise.normal(0, 20, (4, 15))
+        seq = self._frame.seq + 1 if self._frame is not None else 0
+        self._frame = TactileFrame(seq, now_s, self.reading(true))
+
+    def latest(self):
+        return self._frame
 
 
 def test_a_lying_master_cannot_take_the_robot_past_the_slaves_own_limits(robot):
@@ -535,3 +541,47 @@ def test_a_second_master_takes_over_only_after_the_first_falls_silent_and_never_
     finally:
         first.close()
         second.close()
+
+
+@pytest.mark.parametrize("lie, at, said", [
+    # a dead array streaming zeros, from above the tissue
+    (lambda pressure: np.zeros_like(pressure), 300, "identical frames: frozen"),
+    # the same frame again and again, 4 mm in: found deeper before it is stale
+    ("repeat", 700, "without the slave's tactile force rising"),
+    # a dead array that reads its own noise, 4 mm in
+    (lambda pressure: np.random.default_rng().normal(0.0, 20.0, pressure.shape), 700, "deeper without the slave's"),
+])
+def test_the_slave_holds_on_its_own_when_its_array_stops_reading_the_tissue(robot, lie, at, said):
+    """Issue 49: over UDP the slave's own 15 N limit read the same lying array and was as blind as the console.
+    It now runs the console's liveness checks on its own copy: pressed on blind, it holds, lifting only."""
+    sensor = PressingSensor(robot)
+    server = SlaveServer(robot, SlaveServerSettings(port=0), sensor=sensor)
+    server.open()
+    master = Master(server, 0x21)
+    try:
+        z = []
+        for k in range(3000):  # down at 20 mm/s from 10 mm above the layer: 4 mm into it after 0.7 s
+            now = T0 + k * MS
+            if k == at:
+                if lie == "repeat":
+                    frozen = sensor.latest().pressure_pa.copy()
+                    sensor.reading = lambda pressure: frozen
+                else:
+                    sensor.reading = lie
+            master.send(now, (HOME[0], HOME[1], max(robot.position[2] - 0.02 * MS, 0.0)))
+            server.step(now)
+            z.append(robot.position[2])
+        assert server.status & P.Status.SENSOR_LOST and server.stats["sensor_lost"] == 1
+        assert said in server.stats["last_error"]
+        assert 0.050 - min(z) < 0.004 + 1.5e-3  # no more than the travel check allows past where it lied
+        # lifted off the tissue with its array reading again, the slave follows the master once more
+        sensor.reading = lambda pressure: pressure
+        bottom = robot.position[2]
+        for k in range(3000, 4500):
+            now = T0 + k * MS
+            master.send(now, (HOME[0], HOME[1], robot.position[2] + 0.02 * MS))
+            server.step(now)
+        assert robot.position[2] > max(bottom + 1e-3, 0.050) and not server.status & P.Status.SENSOR_LOST
+    finally:
+        master.close()
+        server.close(T0)
