@@ -175,7 +175,9 @@ def test_a_truncated_file_gives_back_what_lies_in_the_part_that_is_there(recorde
         levels, ticks, frames = whole.levels.copy(), whole.tick_rows(0, whole.n_ticks), whole.frames()
     data = source.read_bytes()
     path = tmp_path / "cut.h5"
-    for fraction, least_levels in ((0.9, 0), (0.999, len(levels) - 1)):
+    # (cut at 90 %, this recording lost the ticks' chunk index itself, which HDF5 places as the stream grows:
+    # none of its ticks can be found then, and the reader says so; cut at 95 % they are all there but the last)
+    for fraction, least_levels in ((0.95, 0), (0.999, len(levels) - 1)):
         size = int(len(data) * fraction)
         path.write_bytes(data[:size])
         with open_session(path) as s:
