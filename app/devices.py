@@ -9,9 +9,19 @@ from dataclasses import asdict
 from pathlib import Path
 
 from hardware.discovery import DEFAULT_TACTILE_ID, Found, probe_serial, probe_udp, serial_ports, usb_devices
+from hardware.serial_tactile.config import integer
 from hardware.settings import ConfigError, read_toml
 from hardware.udp.rig import HardwareSettings
 from hardware.udp.server import DEFAULT_PORT
+
+
+def _baud(text: str) -> int:
+    """``--baud``, within what the serial array's settings take (a negative one raised from pyserial)."""
+    try:
+        return integer("--baud", int(text), 1200, 12_000_000)
+    except (ValueError, ConfigError) as err:
+        raise argparse.ArgumentTypeError(err.problem if isinstance(err, ConfigError) else
+                                         f"{text!r} is not a whole number") from None
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -44,7 +54,7 @@ def main(argv: list[str] | None = None, usb_backend=None) -> int:
                                                  "probe a port or a slave for the console's protocols.")
     parser.add_argument("--probe-serial", action="append", default=[], metavar="PORT",
                         help="listen on PORT for TSI frames (repeatable)")
-    parser.add_argument("--baud", type=int, default=460800, help="baud rate for --probe-serial")
+    parser.add_argument("--baud", type=_baud, default=460800, help="baud rate for --probe-serial")
     parser.add_argument("--probe-udp", action="append", default=[], type=_host_port, metavar="HOST[:PORT]",
                         help=f"ping a slave server (default port {DEFAULT_PORT}; repeatable)")
     parser.add_argument("--tactile-vid-pid", action="append", default=[], metavar="VID:PID",

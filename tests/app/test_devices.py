@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from app.devices import main
 from hardware.usb.emulator import EmulatedBackend, UsbTactileDevice
 from tests.hardware.test_discovery import bus  # noqa: F401 - the emulated bus, a fixture
@@ -44,3 +46,11 @@ def test_a_configuration_adds_the_devices_it_names_to_the_probes(tmp_path, capsy
     assert main(["--config", str(config)], usb_backend=EmulatedBackend()) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {config}: hardware.sensor.baud") and len(err.strip().splitlines()) == 1
+
+
+def test_a_baud_rate_no_port_takes_is_refused_in_one_line(capsys):
+    """Issue 49: `devices --baud -1` raised pyserial's ValueError as a traceback."""
+    with pytest.raises(SystemExit) as stop:
+        main(["--probe-serial", "/dev/null", "--baud", "-1"], usb_backend=EmulatedBackend())
+    assert stop.value.code == 2
+    assert "argument --baud: must be within [1200, 12000000], got -1" in capsys.readouterr().err
