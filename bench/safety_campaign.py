@@ -459,8 +459,7 @@ class _PlantRun:
             self.stamped_seq = plant.seq
         elif scenario == "estop-pressing" and not self.at_level:
             commands.append(EStop("campaign: while moving down"))
-        elif scenario in ("in-contact-start", "high-fmax", "panel-gains"):
-            pass  # the trouble is the start, the ramp or the gains themselves
+        # in-contact-start, high-fmax and panel-gains: the trouble is the start, the ramp or the gains themselves
 
     def _evolve(self, k: int, commands: list) -> None:
         """The injected trouble's course after its start."""
@@ -562,9 +561,11 @@ class _PlantRun:
             return False
         if loop.safety.faulted:
             return True
-        if (self.push_from < self.n and k < self.push_until) or (self.r.scenario == "future-stamp" and self.plant.sensor_alive
-                                       and self.r.injected and self.silent_after is not None):
-            return False  # a push goes on to the end; a silence is still to come
+        if self.push_from < self.n and k < self.push_until:
+            return False  # a push is still to come or goes on
+        r = self.r
+        if r.scenario == "future-stamp" and r.injected and self.silent_after is not None and self.plant.sensor_alive:
+            return False  # a silence is still to come
         return self.r.injected or self.fc_tick >= 0  # after its ramp a level's trigger can no longer come
 
     def _watch_stops(self, step) -> None:
@@ -718,7 +719,7 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
              first: int = 0) -> dict:
     """Run the campaign (plant runs ``first`` .. ``first + plant_runs - 1`` of this ``seed``, then the rig
     runs); the summary, whose JSON keys are stable, with the worst runs and their first violations."""
-    started = time.monotonic()
+    started, cpu_started = time.monotonic(), time.process_time()
     base = seed * 1_000_003
     results = [plant_run(base + first + i) for i in range(plant_runs)]
     if rig_runs:
@@ -757,6 +758,7 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
         "worst_runs": violating[:WORST_RUNS],
         "gain_sets_refused": sum(r.gains_refused for r in results),
         "seconds": time.monotonic() - started,
+        "cpu_seconds": time.process_time() - cpu_started,  # on a shared machine, what the runs cost
     }
 
 
@@ -766,7 +768,8 @@ def merge(parts: list[dict]) -> dict:
         return _top(p[key] for p in parts if p["runs"])
 
     out = {key: sum(p[key] for p in parts) for key in ("runs", "plant_runs", "rig_runs", "dynamic_runs", "ticks",
-                                                        "faults_raised", "stops", "violations", "gain_sets_refused")}
+                                                        "faults_raised", "stops", "violations", "gain_sets_refused",
+                                                        "cpu_seconds")}
     worst = sorted((run for p in parts for run in p["worst_runs"]), key=_severity, reverse=True)
     out["violation_examples"] = [run["first_violation"] for run in worst[:10]]
     out["estop_overshoot_max_mm"] = top("estop_overshoot_max_mm") or 0.0
