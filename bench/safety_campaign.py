@@ -150,6 +150,7 @@ class RunResult:
     max_force_over_ceiling_N: float = -math.inf  # TRUE force less the ceiling
     max_indentation_over_ceiling_mm: float = -math.inf  # TRUE indentation less the ceiling
     gains_refused: int = 0
+    drawn: dict = field(default_factory=dict)  # the rest of what the run drew, to read beside a replay
 
 
 def _worse(a: float, b: float) -> float:
@@ -346,6 +347,14 @@ class _PlantRun:
         self.k0 = 0  # the tick the trouble started
         self.fc_started = False
         getattr(self, "_draw_" + scenario.replace("-", "_"))()
+        gains, ramp = config.gains, config.ramp
+        self.r.drawn = {
+            "thickness_mm": self.thickness * 1e3, "modulus_kPa": modulus / 1e3, "start_depth_mm": start_depth * 1e3,
+            "gains_z": {"M": gains.mass_kg[2], "B": gains.damping_N_s_m[2], "K": gains.stiffness_N_m[2]},
+            "force_max_N": ramp.force_max_N, "levels": ramp.n_levels,
+            "robot": None if robot is None else {"bandwidth_hz": robot.omega / (2 * math.pi),
+                                                 "max_accel_m_s2": robot.max_accel_m_s2,
+                                                 "max_speed_m_s": robot.max_speed_m_s}}
 
     # ---- what each scenario draws up front (so a run is its seed) and does on its trigger ------------
 
@@ -697,7 +706,8 @@ def _run_summary(r: RunResult) -> dict:
             "force_ceiling_N": r.force_ceiling_N, "indentation_ceiling_mm": r.indentation_ceiling_mm,
             "max_force_over_ceiling_N": r.max_force_over_ceiling_N,
             "max_indentation_over_ceiling_mm": r.max_indentation_over_ceiling_mm,
-            "trouble_tick": r.trouble_tick, "first_violation": r.violations[0] if r.violations else None}
+            "trouble_tick": r.trouble_tick, "drawn": r.drawn,
+            "first_violation": r.violations[0] if r.violations else None}
 
 
 def _severity(run: dict) -> tuple[float, float]:
