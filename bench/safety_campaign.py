@@ -698,6 +698,20 @@ def _rig_stiffness(force_N: float) -> float:
 
 
 WORST_RUNS = 10
+# The face's stiffness in bands, kN/m, for the summary's counts: where violations come from
+STIFFNESS_BANDS_KN_M = (2, 5, 10, 20, 50, 100)
+
+
+def _band(stiffness_N_m: float) -> str:
+    edges = STIFFNESS_BANDS_KN_M
+    for lo, hi in zip(edges, edges[1:]):
+        if stiffness_N_m < hi * 1e3:
+            return f"{lo}-{hi} kN/m"
+    return f"{edges[-2]}-{edges[-1]} kN/m"
+
+
+def _softest_first(by_band: dict) -> dict:
+    return dict(sorted(by_band.items(), key=lambda item: float(item[0].split("-")[0])))
 
 
 def _run_summary(r: RunResult) -> dict:
@@ -749,6 +763,12 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
         # before its trouble a run is on the happy path: a violation there is the plain ramp's or push's
         counts["violations_after_trouble"] += r.injected and r.first_violation_tick >= r.trouble_tick >= 0
         counts["violations_dynamic"] += bool(r.violations) and r.dynamic
+    by_stiffness = {}
+    for r in results:
+        if r.kind == "plant":
+            counts = by_stiffness.setdefault(_band(r.stiffness_N_m), {"runs": 0, "violations": 0})
+            counts["runs"] += 1
+            counts["violations"] += bool(r.violations)
     return {
         "runs": len(results),
         "plant_runs": plant_runs,
@@ -765,6 +785,7 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
         "max_force_over_ceiling_N": _top(r.max_force_over_ceiling_N for r in results),
         "max_indentation_over_ceiling_mm": _top(r.max_indentation_over_ceiling_mm for r in results),
         "by_scenario": by_scenario,
+        "by_stiffness": _softest_first(by_stiffness),
         "worst_runs": violating[:WORST_RUNS],
         "gain_sets_refused": sum(r.gains_refused for r in results),
         "seconds": time.monotonic() - started,
@@ -786,13 +807,14 @@ def merge(parts: list[dict]) -> dict:
     for key in ("stop_beyond_braking_plan_max_mm", "force_over_ceiling_max_N", "max_force_over_ceiling_N",
                 "max_indentation_over_ceiling_mm"):
         out[key] = top(key)
-    by_scenario = {}
-    for p in parts:
-        for name, counts in p["by_scenario"].items():
-            mine = by_scenario.setdefault(name, dict.fromkeys(counts, 0))
-            for key, n in counts.items():
-                mine[key] += n
-    out["by_scenario"] = by_scenario
+    for table in ("by_scenario", "by_stiffness"):
+        out[table] = {}
+        for p in parts:
+            for name, counts in p[table].items():
+                mine = out[table].setdefault(name, dict.fromkeys(counts, 0))
+                for key, n in counts.items():
+                    mine[key] += n
+    out["by_stiffness"] = _softest_first(out["by_stiffness"])
     out["worst_runs"] = worst[:WORST_RUNS]
     return out
 
