@@ -23,7 +23,8 @@ KINDS = len(campaign.SCENARIOS)
 SUMMARY_KEYS = {  # today's keys of build/bench/safety.json, and issue 49's
     "runs", "plant_runs", "rig_runs", "ticks", "faults_raised", "stops", "violations", "violation_examples",
     "estop_overshoot_max_mm", "stop_beyond_braking_plan_max_mm", "force_over_ceiling_max_N", "gain_sets_refused",
-    "dynamic_runs", "max_force_over_ceiling_N", "max_indentation_over_ceiling_mm"}
+    "dynamic_runs", "max_force_over_ceiling_N", "max_indentation_over_ceiling_mm", "by_scenario", "by_stiffness",
+    "worst_runs", "cpu_seconds"}
 
 
 def test_a_short_campaign_draws_every_kind_of_trouble_and_reports_it():
@@ -36,6 +37,7 @@ def test_a_short_campaign_draws_every_kind_of_trouble_and_reports_it():
     # a trouble waiting for a level the ramp never reaches does not come to pass: most do
     assert sum(drawn["injected"] for drawn in short["by_scenario"].values()) >= 0.75 * short["runs"]
     assert short["by_scenario"]["rig"]["runs"] == 1
+    assert sum(band["runs"] for band in short["by_stiffness"].values()) == 2 * KINDS
     assert short["faults_raised"] > KINDS  # the trouble was real: the loop had to act on it
     for key in ("max_force_over_ceiling_N", "max_indentation_over_ceiling_mm"):
         assert isinstance(short[key], float) and not math.isnan(short[key])
