@@ -6,8 +6,9 @@ tissue, and a fuzz of every reader of outside input, a recorded session included
 ``dynamic_runs``, ``ticks``, ``violations``, ``max_force_over_ceiling_N`` and
 ``max_indentation_over_ceiling_mm`` (the true excesses, NaN if any was unknown), ``estop_overshoot_max_mm``,
 ``fuzz_inputs``, ``fuzz_crashes``, and the detail beside them: ``by_scenario`` (runs, the trouble come to
-pass, violations) and ``worst_runs`` (seed, kind and first violation, to replay with
-``python -m bench.safety_campaign --replay SEED --kind KIND``). ``plant_seconds`` is the plant runs' time
+pass, violations) and ``by_stiffness``, the runs the two maxima come from (``max_force_run``,
+``max_indentation_run``), and ``worst_runs`` and ``worst_by_scenario`` (seed, kind, what it drew and its first
+violation, to replay with ``python -m bench.safety_campaign --replay SEED --kind KIND``). ``plant_seconds`` is the plant runs' time
 on the clock, ``cpu_seconds`` what all the runs cost (on a machine shared with other work the two differ).
 """
 

@@ -724,11 +724,18 @@ def _run_summary(r: RunResult) -> dict:
             "first_violation": r.violations[0] if r.violations else None}
 
 
+def _unknown_first(v: float | None) -> float:
+    """A sort key under which an unknown excess (NaN) is the largest."""
+    return math.inf if v is None or math.isnan(v) else v
+
+
 def _severity(run: dict) -> tuple[float, float]:
     """Worst first: NaN above everything."""
-    def key(v):
-        return math.inf if v is None or math.isnan(v) else v
-    return key(run["max_force_over_ceiling_N"]), key(run["max_indentation_over_ceiling_mm"])
+    return _unknown_first(run["max_force_over_ceiling_N"]), _unknown_first(run["max_indentation_over_ceiling_mm"])
+
+
+def _run_of_max(results: list[RunResult], field_name: str) -> dict | None:
+    return _run_summary(max(results, key=lambda r: _unknown_first(getattr(r, field_name)))) if results else None
 
 
 def _top(values) -> float | None:
@@ -751,6 +758,9 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
         tissue = build_sim_rig(phantom, settings=dict(sim)).slave.world.tissue  # built or cached once for all
         results += [rig_run(base + 500_000 + i, phantom, sim, tissue) for i in range(rig_runs)]
     violating = sorted((_run_summary(r) for r in results if r.violations), key=_severity, reverse=True)
+    worst_by_scenario = {}
+    for run in violating:  # worst first: each kind's first is its worst
+        worst_by_scenario.setdefault(run["scenario"], run)
     stopped = [r for r in results if r.stops]
     by_scenario = {}
     for r in results:
@@ -784,7 +794,11 @@ def campaign(plant_runs: int, rig_runs: int, seed: int = 0, phantom: str = "flat
         "force_over_ceiling_max_N": _top(r.max_force_over_ceiling_N for r in results),
         "max_force_over_ceiling_N": _top(r.max_force_over_ceiling_N for r in results),
         "max_indentation_over_ceiling_mm": _top(r.max_indentation_over_ceiling_mm for r in results),
+        # the runs those maxima come from, whether or not they broke a limit (a stop's braking may allow it)
+        "max_force_run": _run_of_max(results, "max_force_over_ceiling_N"),
+        "max_indentation_run": _run_of_max(results, "max_indentation_over_ceiling_mm"),
         "by_scenario": by_scenario,
+        "worst_by_scenario": worst_by_scenario,
         "by_stiffness": _softest_first(by_stiffness),
         "worst_runs": violating[:WORST_RUNS],
         "gain_sets_refused": sum(r.gains_refused for r in results),
@@ -816,6 +830,13 @@ def merge(parts: list[dict]) -> dict:
                     mine[key] += n
     out["by_stiffness"] = _softest_first(out["by_stiffness"])
     out["worst_runs"] = worst[:WORST_RUNS]
+    out["worst_by_scenario"] = {}
+    for run in sorted((run for p in parts for run in p["worst_by_scenario"].values()), key=_severity, reverse=True):
+        out["worst_by_scenario"].setdefault(run["scenario"], run)
+    for key, value in (("max_force_run", "max_force_over_ceiling_N"),
+                       ("max_indentation_run", "max_indentation_over_ceiling_mm")):
+        runs = [p[key] for p in parts if p[key] is not None]
+        out[key] = max(runs, key=lambda run: _unknown_first(run[value])) if runs else None
     return out
 
 
