@@ -310,15 +310,16 @@ class _PlantRun:
             config = config.replace(gains=ControlConfig().gains)
         lim = config.safety
         deepest = min(0.8 * lim.force_ceiling_N / self.stiffness, 0.8 * self.thickness)  # not over a ceiling yet
+        self.press_depth = 0.0  # in-contact-start: how far the operator presses the probe in before force control
         if scenario == "in-contact-start":
             # as deep as the operator can hold it through position control's compliance (the master no
             # lower than the table: see _draw_in_contact_start)
             k_d = config.gains.stiffness_N_m[2]
             deepest = min(deepest, (self.thickness - HOLD_IN_CLEARANCE_M) * k_d / (self.stiffness + k_d))
-            start_depth = float(rng.uniform(0.0, min(0.010, max(deepest, 0.0))))
-            if lim.indentation_ceiling_m < start_depth + 1e-3:  # the ceiling lies beyond where it starts
-                config = config.replace(safety=lim.replace(indentation_ceiling_m=start_depth + 1e-3))
-        elif scenario == "classic":
+            self.press_depth = float(rng.uniform(0.0, min(0.010, max(deepest, 0.0))))
+            if lim.indentation_ceiling_m < self.press_depth + 1e-3:  # the ceiling lies beyond the press
+                config = config.replace(safety=lim.replace(indentation_ceiling_m=self.press_depth + 1e-3))
+        if scenario == "classic":
             start_depth = min(float(rng.uniform(-0.008, 0.003)), deepest)  # < 0: above the surface
         else:  # the operator has brought the probe down over the tissue
             start_depth = float(rng.uniform(-0.003, -0.0005))
@@ -350,6 +351,7 @@ class _PlantRun:
         gains, ramp = config.gains, config.ramp
         self.r.drawn = {
             "thickness_mm": self.thickness * 1e3, "modulus_kPa": modulus / 1e3, "start_depth_mm": start_depth * 1e3,
+            "press_depth_mm": self.press_depth * 1e3,
             "gains_z": {"M": gains.mass_kg[2], "B": gains.damping_N_s_m[2], "K": gains.stiffness_N_m[2]},
             "force_max_N": ramp.force_max_N, "levels": ramp.n_levels,
             "robot": None if robot is None else {"bandwidth_hz": robot.omega / (2 * math.pi),
@@ -428,13 +430,14 @@ class _PlantRun:
 
     def _draw_in_contact_start(self) -> None:
         self._draw_force_control(level_trigger=False)
-        # Position control is compliant (Eq. 2 with S = 1 settles where K_d (X_r - X_d) balances the force),
-        # so the operator holds the probe in by lowering the master by force / K_d, slowly, before asking
-        # for force control
-        hold_in = self.stiffness * self.start_depth / self.config.gains.stiffness_N_m[2]
+        # The operator lowers the probe into the tissue under position control, slowly, then asks for force
+        # control. Position control is compliant (Eq. 2 with S = 1 settles where K_d (X_r - X_d) balances
+        # the force), so holding the probe at the press depth takes the master force / K_d lower still.
+        travel = -self.start_depth + self.press_depth
+        travel += self.stiffness * self.press_depth / self.config.gains.stiffness_N_m[2]
         self.push_from = 20
         self.push_m_s = HOLD_IN_SPEED_M_S
-        self.push_until = self.push_from + max(1, int(hold_in / self.push_m_s / self.period))
+        self.push_until = self.push_from + max(1, int(travel / self.push_m_s / self.period))
         self.fc_tick = max(self.fc_tick, self.push_until + 100)
 
     def _draw_high_fmax(self) -> None:
@@ -592,7 +595,9 @@ class _PlantRun:
                     self.check.allow_stop(self.thickness - plant.x[2], self.stop_plan, self.stiffness)
         if self.stop_from is not None:
             if self.loop.safety.faulted and not self.loop.safety.retract:
-                self.check.stop(math.dist(self.stop_from, plant.x), self.stop_plan)
+                # a lift off the tissue while stopped is the safe way out, not part of the stop
+                dx, dy, dz = (plant.x[i] - self.stop_from[i] for i in range(3))
+                self.check.stop(math.sqrt(dx * dx + dy * dy + min(dz, 0.0) ** 2), self.stop_plan)
             else:
                 self.stop_from = None
 
