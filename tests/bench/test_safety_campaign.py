@@ -124,43 +124,41 @@ def test_fuzzed_inputs_get_the_readers_own_errors_never_a_crash(tmp_path):
 # ---- each kind of trouble against the invariants -------------------------------------------------------------
 
 # Per kind: its first two runs with the exact robot and first two with the dynamic one in which the trouble came
-# to pass (of seeds 0-239), and the run it did worst in there, if not among them.
+# to pass, and the run it did worst in, if not among them: chosen on the loop of 04d5527 (seeds 0-239), and
+# again from seeds 0-479 for the kinds whose trouble no longer came to pass in them on the loop of 823a390 (a
+# configuration refused more often shifts what a run draws after it).
 SEEDS = {
     "classic": [0, 12, 24, 36, 192],
     "dead-array": [25, 37, 49, 73, 229],
-    "frozen-array": [2, 26, 38, 62, 158],
-    "drifting-array": [3, 15, 39, 87, 183],
+    "frozen-array": [2, 26, 62, 74, 158],
+    "drifting-array": [3, 27, 51, 291],
     "stuck-position": [4, 28, 52, 112, 196],
     "lying-position": [5, 29, 53, 77, 137],
-    "future-stamp": [78, 102, 114, 174],
+    "future-stamp": [6, 30, 42, 54, 102],
     "panel-gains": [7, 19, 31, 43, 55],
     "operator-push": [8, 20, 32, 44, 104],
     "estop-pressing": [21, 45, 57, 117],
-    "in-contact-start": [22, 34, 46, 190],
+    "in-contact-start": [34, 46, 82, 94, 214],
     "high-fmax": [11, 23, 35, 47, 179],
 }
-# What today's loop does in them (true force over the ceiling at worst, on the layer's stiffness)
+# What the loop still does in them (true force over the ceiling at worst; the face's stiffness)
 FAILING_TODAY = {
     "classic": "a master pushed down under position control drives the probe into stiff tissue faster than "
-               "the frames show it (seed 192, 26 kN/m: 44 N over)",
-    "dead-array": "an array streaming zeros leaves the seek descending until the table or the workspace "
-                  "floor stops it (seeds 37, 49, 229: 72, 27, 107 N over)",
-    "frozen-array": "a repeated frame below F_d leaves the loop pressing on (seeds 26, 38, 158: 15, 3, 108 N over)",
-    "drifting-array": "a -15 to -19 kPa drift hides 3.6-4.6 N of force, and the loop presses that much more "
-                      "(seeds 15, 87, 183: 4.4, 1.4, 41 N over)",
-    "stuck-position": "with the position reading frozen a push or seek runs on into stiff tissue, and the "
-                      "retract starts from the frozen position (seeds 4, 52, 112, 196: 83, 9, 6, 98 N over)",
-    "lying-position": "an offset position reading (seeds 53, 77, 137: 7, 55, 57 N over; 53 also 0.7 mm past "
-                      "the indentation ceiling)",
-    "future-stamp": "a silent array after a frame stamped ahead: the seek goes on blind for three frame "
-                    "periods (seeds 102, 114: 16, 8 N over)",
-    "panel-gains": "gains typed into the panel, unchecked against the stability bound the configuration "
-                   "applies, seek fast or go unstable on stiff tissue (seeds 19, 43, 55: 4, 22, 378 N over)",
+               "the frames show it (seed 192, 26 kN/m: 7.08 N against a 6.45 N ceiling at tick 198, 8.3 N over "
+               "at worst)",
+    "dead-array": "an array streaming zeros from the start of force control is taken for one in air a while "
+                  "(seed 37, 31 kN/m: 1.9 N over)",
+    "stuck-position": "with the position reading frozen while the robot moves the probe goes on into stiff tissue "
+                      "(seeds 4, 196: 80 and 63 kN/m, 19 and 12 N over)",
+    "lying-position": "a position reading offset by up to 10 mm while the robot moves (seeds 5, 29, 53: 7.4, 0.9, "
+                      "5.6 N over)",
     "operator-push": "the operator pushing at up to the velocity limit under position control overshoots the "
-                     "ceiling by the frames' lag (seeds 8, 20, 104: 7, 0.9, 133 N over)",
-    "estop-pressing": "the fast push into the tissue before the e-stop overshoots the ceiling (seeds 21, 57, "
-                      "117: 17, 168, 3 N over); the stops themselves keep to their braking plans",
-    "high-fmax": "a seek at F_min / B_d with drawn gains reaches 0.1 m/s into 73 kN/m (seed 179: 349 N over)",
+                     "ceiling by the frames' lag (seed 104, 53 kN/m at 0.23 m/s: 12 N over)",
+    "estop-pressing": "the fast push into the tissue before the e-stop overshoots the ceiling (seeds 45, 57: 2.7 "
+                      "and 8.5 N over); the stops themselves keep to their braking plans",
+}
+RIG_FAILING_TODAY = {
+    500_000: "on the rig the probe ends 7.28 mm deep against a 6.78 mm indentation ceiling (tick 1943)",
 }
 
 
@@ -183,7 +181,13 @@ def test_each_kind_of_trouble_keeps_the_invariants(kind):
     assert [v for r in results for v in r.violations] == []
 
 
-@pytest.mark.parametrize("seed", [500_000, 500_001])
+def _rig(seed: int):
+    if seed in RIG_FAILING_TODAY:
+        return pytest.param(seed, marks=pytest.mark.xfail(reason=f"issue 49: {RIG_FAILING_TODAY[seed]}", strict=True))
+    return seed
+
+
+@pytest.mark.parametrize("seed", [_rig(seed) for seed in (500_000, 500_001)])
 def test_the_rig_keeps_the_invariants(seed):
     result = campaign.replay(seed, "rig", sim={"tissue": "winkler"})
     assert result.violations == []
