@@ -1,9 +1,15 @@
 """The fault campaign at scale (bench/safety_campaign.py): ``safety.json``.
 
-``PALPATION_SAFETY_RUNS`` plant runs (default 10,000) in as many processes as there are CPUs, 100 runs of
-the fast-forward simulated rig on the flat phantom's finite-element tissue, and a fuzz of every reader of
-outside input, a recorded session included. Keys: ``runs``, ``ticks``, ``violations``,
-``estop_overshoot_max_mm``, ``fuzz_inputs``, ``fuzz_crashes`` and the detail beside them.
+``PALPATION_SAFETY_RUNS`` plant runs (default 10,000, two in three with the second-order robot) in as many
+processes as there are CPUs, 100 runs of the fast-forward simulated rig on the flat phantom's finite-element
+tissue, and a fuzz of every reader of outside input, a recorded session included. Keys: ``runs``,
+``dynamic_runs``, ``ticks``, ``violations``, ``max_force_over_ceiling_N`` and
+``max_indentation_over_ceiling_mm`` (the true excesses, NaN if any was unknown), ``estop_overshoot_max_mm``,
+``fuzz_inputs``, ``fuzz_crashes``, and the detail beside them: ``by_scenario`` (runs, the trouble come to
+pass, violations) and ``by_stiffness``, the runs the two maxima come from (``max_force_run``,
+``max_indentation_run``), and ``worst_runs`` and ``worst_by_scenario`` (seed, kind, what it drew and its first
+violation, to replay with ``python -m bench.safety_campaign --replay SEED --kind KIND``). ``plant_seconds`` is the plant runs' time
+on the clock, ``cpu_seconds`` what all the runs cost (on a machine shared with other work the two differ).
 """
 
 from __future__ import annotations
@@ -57,6 +63,7 @@ def run(out_dir: Path) -> dict:
     chunks = [range(i, min(i + step, runs)) for i in range(0, runs, step)]
     with ProcessPoolExecutor(workers) as pool:
         parts = list(pool.map(_plant_chunk, chunks))
+    plant_seconds = time.monotonic() - started
     rig = campaign.campaign(0, RIG_RUNS, seed=1)
     parts.append(rig)
     with tempfile.TemporaryDirectory() as tmp:
@@ -70,6 +77,7 @@ def run(out_dir: Path) -> dict:
     result = campaign.merge(parts)
     result.update(fuzzed)
     result["fuzzed_session"] = session is not None
+    result["plant_seconds"] = plant_seconds
     result["seconds"] = time.monotonic() - started
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "safety.json").write_text(json.dumps(result, indent=2) + "\n")

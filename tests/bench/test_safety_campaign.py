@@ -1,20 +1,107 @@
-"""The fault campaign (bench/safety_campaign.py), short: the invariants hold off the happy path, and the
-campaign would see it if they did not."""
+"""The fault campaign (bench/safety_campaign.py): its machinery in a short campaign, and each kind of trouble
+on a few seeds against the invariants.
+
+The kinds the loop does not yet survive are marked xfail, strict (issue 49): a fix makes its test pass,
+and the mark must then go."""
+
+import io
+import json
+import math
+from contextlib import redirect_stdout
+from dataclasses import asdict
+
+import numpy as np
+import pytest
 
 from bench import safety_campaign as campaign
 from control import safety
+from control.config import ControlConfig, stable_for_environment
 from control.loop import ControlLoop
+from widgets.settings_panel import GAIN_FIELDS
+
+KINDS = len(campaign.SCENARIOS)
+SUMMARY_KEYS = {  # today's keys of build/bench/safety.json, and issue 49's
+    "runs", "plant_runs", "rig_runs", "ticks", "faults_raised", "stops", "violations", "violation_examples",
+    "estop_overshoot_max_mm", "stop_beyond_braking_plan_max_mm", "force_over_ceiling_max_N", "gain_sets_refused",
+    "dynamic_runs", "max_force_over_ceiling_N", "max_indentation_over_ceiling_mm", "by_scenario", "by_stiffness",
+    "worst_runs", "cpu_seconds"}
 
 
-def test_a_short_campaign_finds_no_violation_on_the_plants_and_the_rig():
-    summary = campaign.campaign(plant_runs=60, rig_runs=2, seed=3, sim={"tissue": "winkler"})
-    assert summary["runs"] == 62 and summary["ticks"] == 60 * 2000 + 2 * 3000
-    assert summary["violations"] == 0, summary["violation_examples"]
-    assert summary["faults_raised"] > 30  # the trouble was real: the loop had to act on it
-    assert summary["stop_beyond_braking_plan_max_mm"] is None or summary["stop_beyond_braking_plan_max_mm"] <= 0.1
+def test_a_short_campaign_draws_every_kind_of_trouble_and_reports_it():
+    # seeds 24-47: two runs of every kind, one with the dynamic robot and one with the exact one
+    short = campaign.campaign(plant_runs=2 * KINDS, rig_runs=1, seed=0, first=2 * KINDS, sim={"tissue": "winkler"})
+    assert SUMMARY_KEYS <= short.keys()
+    assert short["runs"] == 2 * KINDS + 1 and short["dynamic_runs"] == KINDS
+    for kind in campaign.SCENARIOS:
+        assert short["by_scenario"][kind]["runs"] == 2 and short["by_scenario"][kind]["dynamic"] == 1
+    # a trouble waiting for a level the ramp never reaches does not come to pass: most do
+    assert sum(drawn["injected"] for drawn in short["by_scenario"].values()) >= 0.75 * short["runs"]
+    assert short["by_scenario"]["rig"]["runs"] == 1
+    assert sum(band["runs"] for band in short["by_stiffness"].values()) == 2 * KINDS
+    assert short["faults_raised"] > KINDS  # the trouble was real: the loop had to act on it
+    for key in ("max_force_over_ceiling_N", "max_indentation_over_ceiling_mm"):
+        assert isinstance(short[key], float) and not math.isnan(short[key])
+    for run in short["worst_runs"]:
+        assert f"seed {run['seed']} ({run['scenario']}" in run["first_violation"]
+    json.dumps(short)  # what the bench writes
+
+
+def test_the_stiffness_spans_soft_tissue_to_the_loops_stability_limit():
+    rng = np.random.default_rng(4)
+    for stiffness in (2e3, 1e4, 1e5):
+        for _ in range(20):
+            thickness, modulus = campaign._layer(rng, stiffness)
+            assert modulus * campaign.ELEMENT_AREA_M2 * 60 / thickness == pytest.approx(stiffness)
+            assert campaign.THICKNESS_RANGE_M[0] <= thickness <= campaign.THICKNESS_RANGE_M[1]
+            assert campaign.MODULUS_RANGE_PA[0] * (1 - 1e-9) <= modulus <= campaign.MODULUS_RANGE_PA[1] * (1 + 1e-9)
+    drawn = [campaign._PlantRun(seed).stiffness for seed in range(40)]
+    assert 2e3 <= min(drawn) < 5e3 and 4e4 < max(drawn) <= 1e5
+
+
+def test_panel_gains_are_what_the_panel_takes_the_config_refusing_some():
+    rng = np.random.default_rng(6)
+    drawn = [campaign.panel_gains(rng) for _ in range(300)]
+    for gains in drawn:
+        for name, _, _, decimals, maximum in GAIN_FIELDS:
+            for v in getattr(gains, name):
+                assert 10.0 ** -decimals <= v <= maximum and v == round(v, decimals)
+    stable = [stable_for_environment(g, ControlConfig().max_step_s, 1e5) for g in drawn]
+    assert 0 < sum(stable) < len(stable)
+
+
+def test_a_run_is_its_seed_and_replays_as_the_campaign_ran_it():
+    seed = 57  # an e-stop while pressing, on the dynamic robot: today's loop violates in it
+    first = campaign.plant_run(seed)
+    assert json.dumps(asdict(campaign.plant_run(seed))) == json.dumps(asdict(first))
+    out = io.StringIO()
+    with redirect_stdout(out):
+        code = campaign.main(["--replay", str(seed), "--kind", "plant"])
+    assert json.loads(out.getvalue()) == json.loads(json.dumps(asdict(first)))
+    assert code == (1 if first.violations else 0)
+    if first.violations:
+        assert first.violations[0].startswith(f"plant seed {seed} (estop-pressing, dynamic), "
+                                              f"tick {first.first_violation_tick}: true ")
+
+
+def test_a_nan_is_never_a_pass():
+    result = campaign.RunResult("plant", 1)
+    check = campaign._Checker(result, ControlConfig(), 0.0)
+    check.truth(math.nan, math.nan)
+    assert "true force nan" in result.violations[0] and "true indentation nan" in result.violations[1]
+    assert math.isnan(result.max_force_over_ceiling_N) and math.isnan(result.max_indentation_over_ceiling_mm)
+    check.truth(1.0, 0.001)  # a later finite value does not hide it
+    assert math.isnan(result.max_force_over_ceiling_N)
+    part = campaign.campaign(plant_runs=1, rig_runs=0)
+    unknown = dict(part, max_force_over_ceiling_N=math.nan, max_indentation_over_ceiling_mm=math.nan)
+    merged = campaign.merge([part, unknown, part])
+    assert math.isnan(merged["max_force_over_ceiling_N"]) and math.isnan(merged["max_indentation_over_ceiling_mm"])
+
+
+CLEAN_TODAY = [32, 116]  # an operator pushing down: today's loop keeps these within every limit
 
 
 def test_the_campaign_catches_a_loop_that_ignores_its_ceilings(monkeypatch):
+    assert not any(campaign.plant_run(seed).violations for seed in CLEAN_TODAY)
     check = safety.SafetySupervisor.check
 
     def blind(self, **readings):
@@ -24,12 +111,83 @@ def test_the_campaign_catches_a_loop_that_ignores_its_ceilings(monkeypatch):
     monkeypatch.setattr(safety.SafetySupervisor, "check", blind)
     # and descends as fast as it is told, wherever the tissue and the ceiling are
     monkeypatch.setattr(ControlLoop, "_descent_limit_m", lambda self, z, dt: -float("inf"))
-    summary = campaign.campaign(plant_runs=60, rig_runs=0, seed=3)
-    assert summary["violations"] > 0
-    assert any("true force" in v or "true indentation" in v for v in summary["violation_examples"])
+    found = [v for seed in CLEAN_TODAY for v in campaign.plant_run(seed).violations]
+    assert any("true force" in v or "true indentation" in v for v in found)
 
 
 def test_fuzzed_inputs_get_the_readers_own_errors_never_a_crash(tmp_path):
     found = campaign.fuzz(150, seed=5, folder=tmp_path)
     assert found["fuzz_inputs"] == 600
     assert found["fuzz_crashes"] == 0, found["fuzz_crash_examples"]
+
+
+# ---- each kind of trouble against the invariants -------------------------------------------------------------
+
+# Per kind: its first two runs with the exact robot and first two with the dynamic one in which the trouble came
+# to pass, and the run it did worst in, if not among them: chosen on the loop of 04d5527 (seeds 0-239), and
+# again from seeds 0-479 for the kinds whose trouble no longer came to pass in them on the loop of 823a390 (a
+# configuration refused more often shifts what a run draws after it).
+SEEDS = {
+    "classic": [0, 12, 24, 36, 192],
+    "dead-array": [25, 37, 49, 73, 229],
+    "frozen-array": [2, 26, 62, 74, 158],
+    "drifting-array": [3, 27, 51, 291],
+    "stuck-position": [4, 28, 52, 112, 196],
+    "lying-position": [5, 29, 53, 77, 137],
+    "future-stamp": [6, 30, 42, 54, 102],
+    "panel-gains": [7, 19, 31, 43, 55],
+    "operator-push": [8, 20, 32, 44, 104],
+    "estop-pressing": [21, 45, 57, 117],
+    "in-contact-start": [34, 46, 82, 94, 214],
+    "high-fmax": [11, 23, 35, 47, 179],
+}
+# What the loop still does in them (true force over the ceiling at worst; the face's stiffness)
+FAILING_TODAY = {
+    "classic": "a master pushed down under position control drives the probe into stiff tissue faster than "
+               "the frames show it (seed 192, 26 kN/m: 7.08 N against a 6.45 N ceiling at tick 198, 8.3 N over "
+               "at worst)",
+    "dead-array": "an array streaming zeros from the start of force control is taken for one in air a while "
+                  "(seed 37, 31 kN/m: 1.9 N over)",
+    "stuck-position": "with the position reading frozen while the robot moves the probe goes on into stiff tissue "
+                      "(seeds 4, 196: 80 and 63 kN/m, 19 and 12 N over)",
+    "lying-position": "a position reading offset by up to 10 mm while the robot moves (seeds 5, 29, 53: 7.4, 0.9, "
+                      "5.6 N over)",
+    "operator-push": "the operator pushing at up to the velocity limit under position control overshoots the "
+                     "ceiling by the frames' lag (seed 104, 53 kN/m at 0.23 m/s: 12 N over)",
+    "estop-pressing": "the fast push into the tissue before the e-stop overshoots the ceiling (seeds 45, 57: 2.7 "
+                      "and 8.5 N over); the stops themselves keep to their braking plans",
+}
+RIG_FAILING_TODAY = {
+    500_000: "on the rig the probe ends 7.28 mm deep against a 6.78 mm indentation ceiling (tick 1943)",
+}
+
+
+def _kind(name: str):
+    if name in FAILING_TODAY:
+        return pytest.param(name, marks=pytest.mark.xfail(reason=f"issue 49: {FAILING_TODAY[name]}", strict=True))
+    return name
+
+
+def test_the_seeds_are_of_their_kind():
+    assert SEEDS.keys() == set(campaign.SCENARIOS)
+    assert all(campaign.scenario_of(seed) == kind for kind, seeds in SEEDS.items() for seed in seeds)
+    assert all({campaign.dynamic_of(seed) for seed in seeds} == {False, True} for seeds in SEEDS.values())
+
+
+@pytest.mark.parametrize("kind", [_kind(name) for name in campaign.SCENARIOS])
+def test_each_kind_of_trouble_keeps_the_invariants(kind):
+    results = [campaign.plant_run(seed) for seed in SEEDS[kind]]
+    assert all(r.injected for r in results), [r.seed for r in results if not r.injected]
+    assert [v for r in results for v in r.violations] == []
+
+
+def _rig(seed: int):
+    if seed in RIG_FAILING_TODAY:
+        return pytest.param(seed, marks=pytest.mark.xfail(reason=f"issue 49: {RIG_FAILING_TODAY[seed]}", strict=True))
+    return seed
+
+
+@pytest.mark.parametrize("seed", [_rig(seed) for seed in (500_000, 500_001)])
+def test_the_rig_keeps_the_invariants(seed):
+    result = campaign.replay(seed, "rig", sim={"tissue": "winkler"})
+    assert result.violations == []
