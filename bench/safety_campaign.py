@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from app.fastforward import FastForward
-from control.config import ENVIRONMENT_STIFFNESS_MAX_N_M, ControlConfig, ImpedanceGains, RampSettings
+from control.config import ControlConfig, ImpedanceGains, RampSettings
 from control.loop import ControlLoop
 from control.messages import ClearFault, EStop, FaultRaised, Jog, Notice, SetGains, SetRamp, SetSz, Tare
 from control.safety import RETRACT_FAULTS
@@ -72,10 +72,13 @@ STOP_MARGIN_M = 0.1e-3
 FORCE_MARGIN_N = 0.5
 INDENTATION_MARGIN_M = 0.5e-3
 STEP_TOLERANCE_M = 1e-6
-# The face's stiffness on the layer, drawn log-uniformly from soft tissue to the stiffest environment the
-# loop is configured to be stable against; the layer's modulus (soft tissue to a stiff silicone) and
-# thickness are drawn so that it is met (LayerPlant: stiffness = E * A * 60 / thickness).
-STIFFNESS_RANGE_N_M = (2e3, ENVIRONMENT_STIFFNESS_MAX_N_M)
+# The face's stiffness on the layer, drawn log-uniformly from 2 kN/m to the stiffest tissue the run's
+# configuration is made stable for (safety.tissue_stiffness_max_N_m, itself drawn up to 20 kN/m, with gains the
+# stability rule accepts for it); the layer's modulus (soft tissue to a stiff silicone) and thickness are drawn
+# so that it is met (LayerPlant: stiffness = E * A * 60 / thickness). Stiffer tissue is the loop's to refuse
+# (TISSUE_TOO_STIFF), not to palpate within the margins.
+STIFFNESS_LEAST_N_M = 2e3
+STIFFEST_CONFIGURED_N_M = (2e3, 20e3)
 MODULUS_RANGE_PA = (5e3, 500e3)
 THICKNESS_RANGE_M = (1e-3, 50e-3)
 VELOCITY_LIMIT_MAX_M_S = 0.5  # the highest velocity limit the configuration accepts (control/config.py)
@@ -250,7 +253,8 @@ def random_config(rng: np.random.Generator, result: RunResult, high_force: bool 
                           "min_settle_s": 0.2, "settle_window_s": 0.1, "level_timeout_s": 1.0},
                  "safety": {"force_ceiling_N": ceiling,
                             "indentation_ceiling_m": float(rng.uniform(0.004, 0.02)),
-                            "velocity_limit_m_s": float(_log_uniform(rng, 0.03, VELOCITY_LIMIT_MAX_M_S))},
+                            "velocity_limit_m_s": float(_log_uniform(rng, 0.03, VELOCITY_LIMIT_MAX_M_S)),
+                            "tissue_stiffness_max_N_m": float(_log_uniform(rng, *STIFFEST_CONFIGURED_N_M))},
                  "contact": {"retract_speed_m_s": 0.02}}
         try:
             return ControlConfig.from_mapping(table)
@@ -301,13 +305,17 @@ class _PlantRun:
         rng = self.rng = np.random.default_rng(seed)
         scenario = scenario_of(seed)
         self.r = RunResult("plant", seed, scenario, dynamic_of(seed))
-        self.stiffness = self.r.stiffness_N_m = float(_log_uniform(rng, *STIFFNESS_RANGE_N_M))
-        self.thickness, modulus = _layer(rng, self.stiffness)
         config = random_config(rng, self.r, high_force=scenario == "high-fmax")
         if scenario != "classic" and rng.integers(2):
             # half the scripted runs keep the default gains, with which the ramp goes on briskly to the
-            # trouble's trigger (drawn gains may seek or settle too slowly to reach it in a run)
-            config = config.replace(gains=ControlConfig().gains)
+            # trouble's trigger (drawn gains may seek or settle too slowly to reach it in a run), and the
+            # stiffest tissue they are made for
+            default = ControlConfig()
+            config = config.replace(gains=default.gains, safety=config.safety.replace(
+                tissue_stiffness_max_N_m=default.safety.tissue_stiffness_max_N_m))
+        self.stiffness = self.r.stiffness_N_m = float(_log_uniform(
+            rng, STIFFNESS_LEAST_N_M, config.safety.tissue_stiffness_max_N_m))
+        self.thickness, modulus = _layer(rng, self.stiffness)
         lim = config.safety
         deepest = min(0.8 * lim.force_ceiling_N / self.stiffness, 0.8 * self.thickness)  # not over a ceiling yet
         self.press_depth = 0.0  # in-contact-start: how far the operator presses the probe in before force control

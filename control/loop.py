@@ -54,6 +54,11 @@ FORCE_RISE_N = 5e-3
 # An array that reads no contact at all while the probe is this far below where it confirmed contact is not
 # reading the tissue
 DEAD_DEPTH_M = 0.5e-3
+# A robot's position reading may stray this far from where its last reading's position and velocity put it,
+# plus what the robot can accelerate away in between: an encoder steps micrometres at 1 kHz, and a real
+# robot arm accelerates at a few m/s^2
+POSITION_JUMP_M = 0.5e-3
+ROBOT_ACCEL_MAX_M_S2 = 20.0
 # Tissue measured this much stiffer than SafetyLimits.tissue_stiffness_max_N_m stops the probe: beyond the
 # force loop's margin (PHASE_MARGIN_DEG leaves it stable to about twice that) and the force floor's prediction
 STIFFER_FACTOR = 1.25
@@ -145,6 +150,8 @@ class ControlLoop:
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
         self._ages: tuple[float, float, float] = (math.inf, math.inf, math.inf)
         self._seen = [-math.inf, -math.inf, -math.inf]  # newest reading time of sensor, master, slave
+        self._slave_t = -math.inf  # the newest robot reading's time
+        self._position_problem: str | None = None  # why the robot's position reading cannot be trusted
         self._xd: Vec3 = ZERO3  # this tick's X_d
 
     # ---- helpers -------------------------------------------------------------------------------------
@@ -360,6 +367,8 @@ class ControlLoop:
 
     def _clear_fault(self, now_s: float, cmd: ClearFault, events: list) -> None:
         kind = self.safety.fault
+        if kind == FaultKind.SLAVE_IMPLAUSIBLE:
+            self._position_problem = None  # the operator has checked the robot: its reading is taken again
         reason = self.safety.clear(self._violation(now_s))
         if reason is not None:
             self._refuse(now_s, cmd, reason, events)
@@ -387,6 +396,7 @@ class ControlLoop:
             sensor_age_s=self._ages[0],
             sensor_repeats=self._repeats.repeats,
             contradiction=self._contradiction,
+            position_problem=self._position_problem,
             too_stiff=self._too_stiff,
             master_age_s=self._ages[1] if self.has_master else None,
             slave_age_s=self._ages[2],
@@ -511,6 +521,24 @@ class ControlLoop:
             fr["dL_m"] = np.nan
             fr["stiffness_pa"] = np.nan
 
+    def _check_position(self, slave: SlaveState) -> None:
+        """Whether the robot's new reading follows from its last one: where the last reading's position and
+        velocity put it, within how far the robot can accelerate away in between. A reading that jumps
+        (an encoder or a link that lies) would make every later reference jump with it: the stop-where-it-is
+        and the lift start from the reading, and a robot whose reading lied 1-10 mm low was sent that far
+        into the tissue (the fault campaign: up to 20 N over the ceiling)."""
+        dt = slave.t_s - self._slave_t
+        if not self._started or self._slave_seq < 0 or not 0.0 < dt <= 1.0 or self._position_problem:
+            return
+        predicted = (self._x_s[i] + self._v_s[i] * dt for i in range(3))
+        off = math.dist(slave.position_m, tuple(predicted))
+        allowed = POSITION_JUMP_M + 0.5 * ROBOT_ACCEL_MAX_M_S2 * dt * dt
+        if not off <= allowed:  # NaN included
+            self._position_problem = (
+                f"Implausible robot position: its reading jumped {off * 1e3:.2f} mm from where its last one, "
+                f"{dt * 1e3:.0f} ms before, put it (at most {allowed * 1e3:.2f} mm); no reference can be made "
+                f"from it. The robot was told to hold.")
+
     def _check_contact(self, pressure_pa: np.ndarray, z_m: float) -> None:
         """Whether the array reads the contact the probe's motion says it has, under force control once contact
         is confirmed (``_contradiction`` says why not): no element reading contact while the probe is below
@@ -573,10 +601,12 @@ class ControlLoop:
         events: list[Event] = []
         result = StepResult(ZERO3, ZERO3, hold=True, new_frame=False, events=events)
         if slave is not None:
-            self._x_s, self._v_s = slave.position_m, slave.velocity_m_s
             if slave.seq != self._slave_seq:
+                self._check_position(slave)
                 self._slave_seq = slave.seq
                 self.history.push(slave.t_s, slave.position_m)
+            self._x_s, self._v_s = slave.position_m, slave.velocity_m_s
+            self._slave_t = slave.t_s
         if not self._started:
             if slave is None:
                 self._fill_tick(now_s)  # nothing to anchor the reference on yet: hold
@@ -634,7 +664,9 @@ class ControlLoop:
         z_before = law.x_r[Z]
         if sm.phase == Phase.HOLD and not (self.safety.retract or self._lifting):
             too_hard = self.safety.pressing_too_hard(self._force_N, self._max_pressure_pa, self._indentation_now())
-            if too_hard is None or not self._ages[2] <= self.safety.limits.slave_timeout_s:
+            readable = (self._ages[2] <= self.safety.limits.slave_timeout_s
+                        and self.safety.fault != FaultKind.SLAVE_IMPLAUSIBLE)  # a lift starts from the reading
+            if too_hard is None or not readable:
                 # stopped: keep the reference on the robot so clearing the fault restarts without a jump
                 law.reset(self._x_s, ZERO3)
                 result.position_ref_m = self._x_s

@@ -34,6 +34,7 @@ class FaultKind(enum.IntEnum):
     CONTROLLER = 10  # the controller process itself (crash, stall) as seen from outside
     SENSOR_IMPLAUSIBLE = 11  # the tactile array reads what no contact can give (far below zero)
     TISSUE_TOO_STIFF = 12  # stiffer than force control is stable for (SafetyLimits.tissue_stiffness_max_N_m)
+    SLAVE_IMPLAUSIBLE = 13  # the robot's position reading jumps where no robot can go
 
 
 class Source(enum.IntEnum):

@@ -74,6 +74,7 @@ class SafetySupervisor:
         sensor_repeats: int,
         contradiction: str | None,
         too_stiff: str | None,
+        position_problem: str | None,
         master_age_s: float | None,
         slave_age_s: float,
     ) -> tuple[FaultKind, str] | None:
@@ -83,6 +84,8 @@ class SafetySupervisor:
         if not (slave_age_s <= lim.slave_timeout_s) and not (grace and math.isinf(slave_age_s)):
             return FaultKind.SLAVE_STALE, _stale("robot", slave_age_s, lim.slave_timeout_s,
                                                  "The robot was told to hold; check its controller and cable.")
+        if position_problem is not None:
+            return FaultKind.SLAVE_IMPLAUSIBLE, position_problem
         if not (sensor_age_s <= lim.sensor_timeout_s) and not (grace and math.isinf(sensor_age_s)):
             action = "The probe was lifted off the tissue because the force is unknown."
             if sensor_repeats and not math.isinf(sensor_age_s):
