@@ -118,3 +118,17 @@ def test_a_frame_stamped_in_the_future_does_not_keep_the_watchdog_quiet():
     (fault,) = h.of(FaultRaised)
     assert fault.kind == FaultKind.SENSOR_STALE
     assert h.now - silent_from <= h.config.safety.sensor_timeout_s + 0.011  # the newest real frame's age
+
+
+def test_a_robot_position_reading_that_jumps_is_held_on_not_followed():
+    """The fault campaign: a position reading that lies 1-10 mm low, taken as the robot's place, sent the probe
+    that far into the tissue at the next fault (up to 20 N over the ceiling)."""
+    h = Harness()
+    start_region(h)
+    h.run(20, until=lambda h: h.loop.sm.level == 2)
+    z, force = h.plant.x[2], h.plant.true_force_N()
+    h.plant.position_offset_m = (0.0, 0.0, -0.005)  # the reading now says 5 mm deeper than the robot is
+    h.run(1.0)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SLAVE_IMPLAUSIBLE and "jumped 5.00 mm" in fault.message
+    assert h.last.hold and h.plant.x[2] == pytest.approx(z, abs=1e-4) and h.plant.true_force_N() <= force + 0.1
