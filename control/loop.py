@@ -125,11 +125,9 @@ class ControlLoop:
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan
         self._noise = AirNoise(sensor.shape)
-        # liveness: a frame that repeats the one before says nothing new, and the array ages as if silent
-
         # until the array's own noise is measured, what a noisy element may read below zero is not known either
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
-        self._repeats = RepeatWatch(sensor.shape)
+        self._repeats = RepeatWatch(sensor.shape)  # a frame that repeats the one before says nothing new
         self._travel = TravelWatch(FORCE_RISE_N)  # the rise is set again from the array's noise at each area
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
         self._stiffness = StiffnessWindow()
