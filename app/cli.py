@@ -7,10 +7,12 @@ import os
 import sys
 from pathlib import Path
 
+from app import process
 from hardware.settings import ConfigError
 
-# Imports stop at the standard library and the settings vocabulary here, so ``--help`` and a mistyped
-# flag answer at once; each command imports what it needs (Qt, numpy, the tissue model) when it runs.
+# Imports stop at the standard library and the settings vocabulary here (app.process's are the standard
+# library's too), so ``--help`` and a mistyped flag answer at once; each command imports what it needs (Qt,
+# numpy, the tissue model) when it runs.
 BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
@@ -195,6 +197,9 @@ def _delegated(argv: list[str]) -> tuple[str, list[str]] | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # before anything imports numpy: for this process and every process it starts
+    process.keep_numpy_off_huge_pages()
+    process.limit_blas_threads()
     argv = list(sys.argv[1:] if argv is None else argv)
     delegated = _delegated(argv)
     if delegated is not None:  # these subcommands own their argparse
