@@ -13,6 +13,8 @@ from hardware.settings import ConfigError
 # Imports stop at the standard library and the settings vocabulary here (app.process's are the standard
 # library's too), so ``--help`` and a mistyped flag answer at once; each command imports what it needs (Qt,
 # numpy, the tissue model) when it runs.
+DISTRIBUTION = "palpation-console"
+
 BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
@@ -67,6 +69,35 @@ def _config(args):
     from app.config import load_config
 
     return load_config(args.config, config_overrides(args))
+
+
+def version() -> str:
+    """The installed distribution's version, or in a source checkout run without installing it, its
+    pyproject.toml's."""
+    from importlib import metadata
+
+    try:
+        return metadata.version(DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        pass
+    import tomllib
+
+    try:
+        with open(Path(__file__).parents[1] / "pyproject.toml", "rb") as file:
+            project = tomllib.load(file).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        project = {}
+    if project.get("name") != DISTRIBUTION or "version" not in project:
+        return "unknown (not installed)"
+    return f"{project['version']} (not installed)"
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked for (importlib.metadata would slow every ``--help``)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{DISTRIBUTION} {version()}")
+        parser.exit()
 
 
 def display_problem(environ=os.environ) -> str:
@@ -144,6 +175,7 @@ DELEGATED = {
 def build_parser() -> argparse.ArgumentParser:
     config_help = "a TOML file overriding the shipped defaults (palpation-console's app/default.toml)"
     parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
+    parser.add_argument("--version", action=_Version, nargs=0, help="print the version and exit")
     parser.add_argument("--config", type=Path, help=config_help)
     # the same option after the subcommand (``simulate --config FILE``); SUPPRESS keeps a value given before it
     config_after = argparse.ArgumentParser(add_help=False)
