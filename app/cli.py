@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import sys
 from pathlib import Path
 
 from app import process
-from hardware.settings import ConfigError
 
-# Imports stop at the standard library and the settings vocabulary here (app.process's are the standard
-# library's too), so ``--help`` and a mistyped flag answer at once; each command imports what it needs (Qt,
-# numpy, the tissue model) when it runs.
+# Imports stop at the standard library here (app.process's too), so ``--help`` and a mistyped flag answer at
+# once, and another project's package found in place of one of ours is told before anything is imported from
+# it (stray_packages); each command imports what it needs (Qt, numpy, the tissue model) when it runs.
 DISTRIBUTION = "palpation-console"
+# The top-level packages the distribution installs, the floors of docs/architecture.md.
+PACKAGES = ("app", "widgets", "session", "control", "hardware", "tissue")
 
 BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
@@ -46,6 +48,8 @@ def sensor_choice(text: str) -> dict:
 
 def config_overrides(args) -> dict:
     """The command line's flags as overrides of the configuration files' keys."""
+    from hardware.settings import ConfigError
+
     overrides: dict = {}
     if getattr(args, "phantom", None):
         overrides.setdefault("rig", {})["phantom"] = args.phantom
@@ -69,6 +73,32 @@ def _config(args):
     from app.config import load_config
 
     return load_config(args.config, config_overrides(args))
+
+
+def stray_packages(find_spec=importlib.util.find_spec) -> str:
+    """'' when the six top-level packages come from the folder this one is in, else which comes from where.
+
+    Their names are generic: another project's ``session`` or ``tissue`` earlier on the path (PYTHONPATH, a
+    package installed in another site folder) would be imported in place of ours. ``find_spec`` locates a
+    package without importing it. A stray ``app`` cannot be told here: this code would not be what runs."""
+    home = os.path.realpath(Path(__file__).parents[1])
+    strays = []
+    for name in PACKAGES:
+        spec = find_spec(name)
+        if spec is None:
+            strays.append(f"{name} is missing")
+            continue
+        if spec.submodule_search_locations is not None:  # a package; a namespace package may have several
+            folders = {os.path.dirname(os.path.realpath(folder)) for folder in spec.submodule_search_locations}
+        else:  # a plain module, session.py
+            folders = {os.path.dirname(os.path.realpath(spec.origin or ""))}
+        if folders != {home}:
+            strays.append(f"{name} comes from {' and '.join(sorted(folders))}")
+    if not strays:
+        return ""
+    return (f"{'; '.join(strays)} (the rest of {DISTRIBUTION} from {home}): it shares these names with another "
+            f"project's packages; install {DISTRIBUTION} in a virtual environment of its own "
+            f"(e.g. pipx install {DISTRIBUTION})")
 
 
 def version() -> str:
@@ -229,6 +259,10 @@ def _delegated(argv: list[str]) -> tuple[str, list[str]] | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    stray = stray_packages()
+    if stray:
+        print(f"error: {stray}", file=sys.stderr)
+        return 2
     # before anything imports numpy: for this process and every process it starts
     process.keep_numpy_off_huge_pages()
     process.limit_blas_threads()
@@ -247,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         args = parser.parse_args([*argv, "run"])
     from hardware.interfaces import DeviceError
+    from hardware.settings import ConfigError
     from tissue.phantom import PhantomError
 
     try:

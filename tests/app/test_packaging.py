@@ -1,7 +1,10 @@
-"""What the distribution says about itself."""
+"""What the distribution says about itself: its version, where its six packages come from."""
 
+import os
+import subprocess
+import sys
 import tomllib
-from importlib import metadata
+from importlib import machinery, metadata
 from pathlib import Path
 
 import pytest
@@ -25,3 +28,53 @@ def test_a_checkout_that_is_not_installed_tells_its_pyprojects_version(monkeypat
     monkeypatch.setattr(metadata, "version", not_installed)
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert cli.version() == f"{project['version']} (not installed)"
+
+
+def _specs(home: str, **elsewhere):
+    """A find_spec for the six packages, each a regular package in ``home`` unless named in ``elsewhere``:
+    None (not found), ("module", folder) or ("package", folder)."""
+
+    def find_spec(name):
+        kind, folder = elsewhere.get(name, ("package", home))
+        if kind is None:
+            return None
+        if kind == "module":
+            return machinery.ModuleSpec(name, None, origin=os.path.join(folder, f"{name}.py"))
+        spec = machinery.ModuleSpec(name, None, origin=os.path.join(folder, name, "__init__.py"), is_package=True)
+        spec.submodule_search_locations = [os.path.join(folder, name)]
+        return spec
+
+    return find_spec
+
+
+def test_the_six_packages_from_one_folder_pass():
+    home = os.path.realpath(Path(cli.__file__).parents[1])
+    assert cli.stray_packages(_specs(home)) == ""
+
+
+def test_another_projects_package_or_module_of_one_of_our_names_is_told_with_where_it_comes_from(tmp_path):
+    home = os.path.realpath(Path(cli.__file__).parents[1])
+    other = str(tmp_path)
+    stray = cli.stray_packages(_specs(home, session=("package", other), tissue=("module", other),
+                                      widgets=(None, None)))
+    assert stray.startswith(f"widgets is missing; session comes from {other}; tissue comes from {other} "
+                            f"(the rest of palpation-console from {home}): ")
+    assert stray.endswith("install palpation-console in a virtual environment of its own "
+                          "(e.g. pipx install palpation-console)")
+    assert "\n" not in stray
+
+
+def test_the_command_line_stops_before_importing_a_stray_package(tmp_path):
+    """Another project's ``session`` ahead of ours on the path: one line, exit 2, and it is never imported."""
+    other = tmp_path / "other"
+    (other / "session").mkdir(parents=True)
+    (other / "session" / "__init__.py").write_text("raise SystemExit('the stray session was imported')\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}
+    env["PYTHONPATH"] = os.pathsep.join([str(other), str(ROOT)])  # ours found after it, installed or not
+    done = subprocess.run([sys.executable, "-m", "app", "simulate"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == ""
+    assert done.stderr.startswith(f"error: session comes from {os.path.realpath(other)} (the rest of ")
+    assert done.stderr.count("\n") == 1
+
