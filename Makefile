@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: bootstrap run test bench study depth-library simulate lint clean screenshot
+.PHONY: bootstrap run test bench study depth-library simulate lint constraints clean screenshot
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -31,6 +31,18 @@ study: bootstrap
 # rebuild it after a change to the continuum mechanics (about 15 minutes on two cores).
 depth-library: bootstrap
 	$(PY) -m session.depth --out session/depth_library.npz
+
+# constraints.txt pinned afresh: the dependencies of pyproject.toml (every extra) resolved today in a throwaway
+# environment; the file's opening comment is kept.
+constraints:
+	rm -rf build/constraints-venv
+	$(or $(PYTHON),python3) -m venv build/constraints-venv
+	build/constraints-venv/bin/python -m pip install -q --upgrade pip
+	build/constraints-venv/bin/python -m pip install -q -e ".[test,study]"
+	{ sed '/^[^#]/,$$d' constraints.txt; build/constraints-venv/bin/python -m pip freeze --exclude-editable; } \
+		> build/constraints.txt
+	mv build/constraints.txt constraints.txt
+	rm -rf build/constraints-venv
 
 clean:
 	rm -rf $(VENV) build .pytest_cache

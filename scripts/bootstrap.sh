@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Make a fresh machine ready: the system libraries Qt needs, Xvfb and the HDF5 tools (when missing), and
-# .venv with everything.
+# .venv with everything, at the versions of constraints.txt.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -33,10 +33,13 @@ if [ ${#need[@]} -gt 0 ]; then
   fi
 fi
 
-stamp=.venv/.installed
-if [ ! -x .venv/bin/python ] || [ pyproject.toml -nt "$stamp" ]; then
-  [ -x .venv/bin/python ] || "$PY" -m venv .venv
-  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q -e ".[test]"
-  touch "$stamp"
+# The stamp holds what .venv was installed from.
+inputs=$(sha256sum pyproject.toml constraints.txt)
+if [ -x .venv/bin/python ] && [ -f .venv/.installed ] && [ "$(<.venv/.installed)" = "$inputs" ]; then
+  exit 0
 fi
+# new, or installed from other pins: made afresh, so that no package the pins no longer name stays behind
+"$PY" -m venv --clear .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -c constraints.txt -e ".[test]"
+printf '%s\n' "$inputs" >.venv/.installed

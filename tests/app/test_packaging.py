@@ -1,4 +1,4 @@
-"""What the distribution says about itself: its version, where its six packages come from."""
+"""What the distribution says about itself: its version, where its six packages come from, its pins."""
 
 import os
 import subprocess
@@ -8,6 +8,8 @@ from importlib import machinery, metadata
 from pathlib import Path
 
 import pytest
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
 
 from app import cli
 
@@ -78,3 +80,16 @@ def test_the_command_line_stops_before_importing_a_stray_package(tmp_path):
     assert done.stderr.startswith(f"error: session comes from {os.path.realpath(other)} (the rest of ")
     assert done.stderr.count("\n") == 1
 
+
+def test_every_dependency_is_pinned_within_its_range():
+    """constraints.txt, which make and CI install with, names every dependency of pyproject.toml (each extra's
+    too) at a version the dependency allows: pip would otherwise refuse the pins, or resolve the name afresh."""
+    lines = (ROOT / "constraints.txt").read_text().splitlines()
+    pins = dict(line.split("==") for line in lines if line and not line.startswith("#"))
+    pins = {canonicalize_name(name): version for name, version in pins.items()}
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"].values()
+    for requirement in map(Requirement, [*project["dependencies"], *(r for extra in extras for r in extra)]):
+        pinned = pins.get(canonicalize_name(requirement.name))
+        assert pinned is not None, f"{requirement.name} is not pinned in constraints.txt (make constraints)"
+        assert requirement.specifier.contains(pinned), f"constraints.txt pins {requirement.name} {pinned}"
