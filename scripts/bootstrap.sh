@@ -1,9 +1,17 @@
 #!/usr/bin/env bash
 # Make a fresh machine ready: the system libraries Qt needs, Xvfb and the HDF5 tools (when missing), and
-# .venv with everything, at the versions of constraints.txt.
+# .venv with the console installed in editable mode at the versions of constraints.txt.
+#   scripts/bootstrap.sh run    what running needs (make run, simulate, bench, study, depth-library)
+#   scripts/bootstrap.sh test   that and the test stack (make test, make bootstrap)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
+
+case "${1:-}" in
+  run) extras="" ;;
+  test) extras="[test]" ;;
+  *) echo "usage: scripts/bootstrap.sh run|test" >&2; exit 2 ;;
+esac
 
 # Qt's offscreen and xcb platforms load these at run time; pip cannot provide them.
 need=()
@@ -33,13 +41,16 @@ if [ ${#need[@]} -gt 0 ]; then
   fi
 fi
 
-# The stamp holds what .venv was installed from.
+# The stamps hold what .venv was installed from; .installed-test covers make run's needs too.
 inputs=$(sha256sum pyproject.toml constraints.txt)
-if [ -x .venv/bin/python ] && [ -f .venv/.installed ] && [ "$(<.venv/.installed)" = "$inputs" ]; then
+installed_from_these() { [ -x .venv/bin/python ] && [ -f "$1" ] && [ "$(<"$1")" = "$inputs" ]; }
+if installed_from_these .venv/.installed-test || { [ "$1" = run ] && installed_from_these .venv/.installed-run; }; then
   exit 0
 fi
-# new, or installed from other pins: made afresh, so that no package the pins no longer name stays behind
-"$PY" -m venv --clear .venv
+if ! installed_from_these .venv/.installed-run; then
+  # new, or installed from other pins: made afresh, so that no package the pins no longer name stays behind
+  "$PY" -m venv --clear .venv
+fi
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -c constraints.txt -e ".[test]"
-printf '%s\n' "$inputs" >.venv/.installed
+.venv/bin/python -m pip install -q -c constraints.txt -e ".$extras"
+printf '%s\n' "$inputs" >".venv/.installed-$1"
