@@ -1,36 +1,58 @@
-# make run | make test | make bench | make study — each bootstraps .venv (and Qt's system libraries) when missing.
+# make run | make test | make bench | make study — each readies .venv (and the system packages) first:
+# make test with the test stack, the others with what running needs only (scripts/bootstrap.sh).
 VENV := .venv
 PY := $(VENV)/bin/python
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: bootstrap run test bench study depth-library simulate lint clean screenshot
+.PHONY: bootstrap bootstrap-run run test lint bench study depth-library simulate constraints clean
 
+# everything, the test stack included: what a developer and CI need
 bootstrap:
-	@bash scripts/bootstrap.sh
+	@bash scripts/bootstrap.sh test
 
-run: bootstrap
+bootstrap-run:
+	@bash scripts/bootstrap.sh run
+
+run: bootstrap-run
 	$(PY) -m app run
 
-simulate: bootstrap
+simulate: bootstrap-run
 	$(PY) -m app simulate
 
+# CI's command (.ci/run)
 test: bootstrap
 	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -n auto
+	@$(MAKE) --no-print-directory lint
+
+# the static checks make test ends with
+lint: bootstrap
 	$(VENV)/bin/lint-imports
 
-bench: bootstrap
+bench: bootstrap-run
 	QT_QPA_PLATFORM=offscreen $(PY) -m bench
 
 # The validation study as a benchmark (app/study.py): 12 seeded phantoms and the paper's two, figures in
 # build/bench/accuracy.json, the plot beside it, every case's phantom and session in build/study.
-study: bootstrap
+study: bootstrap-run
 	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --out build/study \
 		--json build/bench/accuracy.json --plot build/bench/accuracy.png
 
 # The model-based depth's library of finite-element solves (session/depth.py), shipped beside it:
 # rebuild it after a change to the continuum mechanics (about 15 minutes on two cores).
-depth-library: bootstrap
+depth-library: bootstrap-run
 	$(PY) -m session.depth --out session/depth_library.npz
+
+# constraints.txt pinned afresh: the dependencies of pyproject.toml (every extra) resolved today in a throwaway
+# environment; the file's opening comment is kept.
+constraints:
+	rm -rf build/constraints-venv
+	$(or $(PYTHON),python3) -m venv build/constraints-venv
+	build/constraints-venv/bin/python -m pip install -q --upgrade pip
+	build/constraints-venv/bin/python -m pip install -q -e ".[test,study]"
+	{ sed '/^[^#]/,$$d' constraints.txt; build/constraints-venv/bin/python -m pip freeze --exclude-editable; } \
+		> build/constraints.txt
+	mv build/constraints.txt constraints.txt
+	rm -rf build/constraints-venv
 
 clean:
 	rm -rf $(VENV) build .pytest_cache

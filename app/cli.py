@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import sys
 from pathlib import Path
 
-from hardware.settings import ConfigError
+from app import process
 
-# Imports stop at the standard library and the settings vocabulary here, so ``--help`` and a mistyped
-# flag answer at once; each command imports what it needs (Qt, numpy, the tissue model) when it runs.
+# Imports stop at the standard library here (app.process's too), so ``--help`` and a mistyped flag answer at
+# once, and another project's package found in place of one of ours is told before anything is imported from
+# it (stray_packages); each command imports what it needs (Qt, numpy, the tissue model) when it runs.
+DISTRIBUTION = "palpation-console"
+# The top-level packages the distribution installs, the floors of docs/architecture.md.
+PACKAGES = ("app", "widgets", "session", "control", "hardware", "tissue")
+
 BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
@@ -42,6 +48,8 @@ def sensor_choice(text: str) -> dict:
 
 def config_overrides(args) -> dict:
     """The command line's flags as overrides of the configuration files' keys."""
+    from hardware.settings import ConfigError
+
     overrides: dict = {}
     if getattr(args, "phantom", None):
         overrides.setdefault("rig", {})["phantom"] = args.phantom
@@ -65,6 +73,61 @@ def _config(args):
     from app.config import load_config
 
     return load_config(args.config, config_overrides(args))
+
+
+def stray_packages(find_spec=importlib.util.find_spec) -> str:
+    """'' when the six top-level packages come from the folder this one is in, else which comes from where.
+
+    Their names are generic: another project's ``session`` or ``tissue`` earlier on the path (PYTHONPATH, a
+    package installed in another site folder) would be imported in place of ours. ``find_spec`` locates a
+    package without importing it. A stray ``app`` cannot be told here: this code would not be what runs."""
+    home = os.path.realpath(Path(__file__).parents[1])
+    strays = []
+    for name in PACKAGES:
+        spec = find_spec(name)
+        if spec is None:
+            strays.append(f"{name} is missing")
+            continue
+        if spec.submodule_search_locations is not None:  # a package; a namespace package may have several
+            folders = {os.path.dirname(os.path.realpath(folder)) for folder in spec.submodule_search_locations}
+        else:  # a plain module, session.py
+            folders = {os.path.dirname(os.path.realpath(spec.origin or ""))}
+        if folders != {home}:
+            strays.append(f"{name} comes from {' and '.join(sorted(folders))}")
+    if not strays:
+        return ""
+    return (f"{'; '.join(strays)} (the rest of {DISTRIBUTION} from {home}): it shares these names with another "
+            f"project's packages; install {DISTRIBUTION} in a virtual environment of its own "
+            f"(e.g. pipx install {DISTRIBUTION})")
+
+
+def version() -> str:
+    """The installed distribution's version, or in a source checkout run without installing it, its
+    pyproject.toml's."""
+    from importlib import metadata
+
+    try:
+        return metadata.version(DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        pass
+    import tomllib
+
+    try:
+        with open(Path(__file__).parents[1] / "pyproject.toml", "rb") as file:
+            project = tomllib.load(file).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        project = {}
+    if project.get("name") != DISTRIBUTION or "version" not in project:
+        return "unknown (not installed)"
+    return f"{project['version']} (not installed)"
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked for (importlib.metadata would slow every ``--help``)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{DISTRIBUTION} {version()}")
+        parser.exit()
 
 
 def display_problem(environ=os.environ) -> str:
@@ -142,6 +205,7 @@ DELEGATED = {
 def build_parser() -> argparse.ArgumentParser:
     config_help = "a TOML file overriding the shipped defaults (palpation-console's app/default.toml)"
     parser = argparse.ArgumentParser(prog="palpation-console", description=__doc__)
+    parser.add_argument("--version", action=_Version, nargs=0, help="print the version and exit")
     parser.add_argument("--config", type=Path, help=config_help)
     # the same option after the subcommand (``simulate --config FILE``); SUPPRESS keeps a value given before it
     config_after = argparse.ArgumentParser(add_help=False)
@@ -195,6 +259,13 @@ def _delegated(argv: list[str]) -> tuple[str, list[str]] | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    stray = stray_packages()
+    if stray:
+        print(f"error: {stray}", file=sys.stderr)
+        return 2
+    # before anything imports numpy: for this process and every process it starts
+    process.keep_numpy_off_huge_pages()
+    process.limit_blas_threads()
     argv = list(sys.argv[1:] if argv is None else argv)
     delegated = _delegated(argv)
     if delegated is not None:  # these subcommands own their argparse
@@ -210,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         args = parser.parse_args([*argv, "run"])
     from hardware.interfaces import DeviceError
+    from hardware.settings import ConfigError
     from tissue.phantom import PhantomError
 
     try:

@@ -1,42 +1,79 @@
 #!/usr/bin/env bash
-# Make a fresh machine ready: the system libraries Qt needs, Xvfb and the HDF5 tools (when missing), and
-# .venv with everything.
+# Make a machine ready: the system packages the console needs (installed with apt when missing), then .venv
+# with the console installed in editable mode at the versions of constraints.txt.
+#   scripts/bootstrap.sh run    what running needs (make run, simulate, bench, study, depth-library)
+#   scripts/bootstrap.sh test   that and the test stack (make test, make bootstrap)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
-# Qt's offscreen and xcb platforms load these at run time; pip cannot provide them.
-need=()
-have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
-have_lib libEGL.so.1 || need+=(libegl1)
-have_lib libGL.so.1 || need+=(libgl1)
-have_lib libxkbcommon.so.0 || need+=(libxkbcommon0)
-have_lib libxkbcommon-x11.so.0 || need+=(libxkbcommon-x11-0)
-have_lib libfontconfig.so.1 || need+=(libfontconfig1)
-have_lib libdbus-1.so.3 || need+=(libdbus-1-3)
-have_lib libxcb-cursor.so.0 || need+=(libxcb-cursor0)
-have_lib libxcb-icccm.so.4 || need+=(libxcb-icccm4)
-have_lib libxcb-keysyms.so.1 || need+=(libxcb-keysyms1)
-have_lib libxcb-image.so.0 || need+=(libxcb-image0)
-have_lib libxcb-render-util.so.0 || need+=(libxcb-render-util0)
-have_lib libxcb-shape.so.0 || need+=(libxcb-shape0)
-have_lib libxcb-xinerama.so.0 || need+=(libxcb-xinerama0)
-have_lib libusb-1.0.so.0 || need+=(libusb-1.0-0)
-command -v Xvfb >/dev/null || need+=(xvfb)
-command -v h5dump >/dev/null || need+=(hdf5-tools)  # the test that other HDF5 tools read our files
-if [ ${#need[@]} -gt 0 ]; then
-  echo "bootstrap: installing system packages: ${need[*]}"
-  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-  if ! { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}"; } >/dev/null; then
-    echo "bootstrap: could not install ${need[*]}; install them with your package manager" >&2
-    exit 1
+case "${1:-}" in
+  run) extras="" ;;
+  test) extras="[test]" ;;
+  *) echo "usage: scripts/bootstrap.sh run|test" >&2; exit 2 ;;
+esac
+
+# Qt's offscreen and xcb platforms load these libraries at run time and pip cannot provide them; pyusb needs
+# libusb; Xvfb is the display of `xvfb-run -a make run` on a machine without one.
+packages=(libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libfontconfig1 libdbus-1-3 libxcb-cursor0
+  libxcb-icccm4 libxcb-keysyms1 libxcb-image0 libxcb-render-util0 libxcb-shape0 libxcb-xinerama0 libusb-1.0-0
+  xvfb)
+if [ "$1" = test ]; then
+  packages+=(hdf5-tools)  # the test that other HDF5 tools read our files
+fi
+
+# need: the packages dpkg does not record as installed for this machine's architecture. One query per package
+# and no pipe: `ldconfig -p | grep -q` under pipefail reported installed libraries missing (3 runs in 50),
+# when grep's exit at the first match broke ldconfig's pipe.
+find_missing() {
+  local arch package
+  arch=$(dpkg --print-architecture)
+  need=()
+  for package in "${packages[@]}"; do
+    [[ $(dpkg-query -W -f='${db:Status-Abbrev}' "$package:$arch" 2>/dev/null) == ii* ]] || need+=("$package")
+  done
+}
+
+if ! command -v dpkg-query >/dev/null; then
+  echo "bootstrap: not a Debian-based system, so its packages are not checked; the console needs what these" \
+    "Debian packages hold: ${packages[*]}" >&2
+else
+  find_missing
+  if [ ${#need[@]} -gt 0 ]; then
+    if [ "$(id -u)" -eq 0 ]; then
+      as_root=()
+    elif command -v sudo >/dev/null && sudo -n true 2>/dev/null; then
+      as_root=(sudo -n)
+    else  # a password prompt in the middle of make is easily missed: say what to run instead
+      echo "bootstrap: system packages are missing; install them, then run make again:" >&2
+      echo "  sudo apt-get install -y ${need[*]}" >&2
+      exit 1
+    fi
+    echo "bootstrap: installing system packages: ${need[*]}"
+    if ! "${as_root[@]}" apt-get update -qq \
+      || ! "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive \
+        apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null; then
+      echo "bootstrap: apt-get could not install ${need[*]}" >&2
+      exit 1
+    fi
+    find_missing
+    if [ ${#need[@]} -gt 0 ]; then
+      echo "bootstrap: apt-get ran, but these are still not installed: ${need[*]}" >&2
+      exit 1
+    fi
   fi
 fi
 
-stamp=.venv/.installed
-if [ ! -x .venv/bin/python ] || [ pyproject.toml -nt "$stamp" ]; then
-  [ -x .venv/bin/python ] || "$PY" -m venv .venv
-  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q -e ".[test]"
-  touch "$stamp"
+# The stamps hold what .venv was installed from; .installed-test covers make run's needs too.
+inputs=$(sha256sum pyproject.toml constraints.txt)
+installed_from_these() { [ -x .venv/bin/python ] && [ -f "$1" ] && [ "$(<"$1")" = "$inputs" ]; }
+if installed_from_these .venv/.installed-test || { [ "$1" = run ] && installed_from_these .venv/.installed-run; }; then
+  exit 0
 fi
+if ! installed_from_these .venv/.installed-run; then
+  # new, or installed from other pins: made afresh, so that no package the pins no longer name stays behind
+  "$PY" -m venv --clear .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -c constraints.txt -e ".$extras"
+printf '%s\n' "$inputs" >".venv/.installed-$1"

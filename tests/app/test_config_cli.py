@@ -124,18 +124,47 @@ def test_the_command_line_loads_no_heavy_module_until_a_command_runs():
     assert out.strip() == "[]"
 
 
-@pytest.mark.parametrize("given, kept", [(None, "1"), ("2", "2")])
-def test_the_application_runs_blas_on_one_thread_unless_the_user_says_otherwise(given, kept):
+BLAS_PROBE = """
+import multiprocessing, os, sys, threadpoolctl
+if sys.argv[1] == "numpy first":
+    import numpy
+import app.cli
+
+def blas_threads():
+    import numpy, scipy.linalg
+    return sorted({i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"})
+
+def command(argv):  # what a command, and a process it starts, run with
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        child = pool.apply(blas_threads)
+    print(blas_threads(), child, os.environ["NUMPY_MADVISE_HUGEPAGE"])
+    return 0
+
+if __name__ == "__main__":
+    app.cli.DELEGATED["probe"] = (command, "", None)
+    sys.exit(app.cli.main(["probe"]))
+"""
+
+
+@pytest.mark.parametrize("loaded, given", [("numpy after", None), ("numpy first", None), ("numpy first", "2")])
+def test_the_application_runs_blas_on_one_thread_unless_the_user_says_otherwise(tmp_path, loaded, given):
+    """main() limits BLAS, in its process whether numpy was loaded before it or not, and in the processes it
+    starts; it keeps numpy off huge pages for them all; a thread count of the user's own is left alone."""
     import os
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    from app.process import BLAS_THREAD_VARIABLES
+
+    env = {k: v for k, v in os.environ.items() if k not in (*BLAS_THREAD_VARIABLES, "NUMPY_MADVISE_HUGEPAGE")}
     if given is not None:
         env["OPENBLAS_NUM_THREADS"] = given
-    probe = "import os, app.cli; print(os.environ['OPENBLAS_NUM_THREADS'])"
-    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True, text=True, env=env)
-    assert out.stdout.strip() == kept
+    (tmp_path / "probe.py").write_text(BLAS_PROBE)
+    out = subprocess.run([sys.executable, str(tmp_path / "probe.py"), loaded], check=True, capture_output=True,
+                         text=True, env=env, timeout=100).stdout
+    # OpenBLAS takes no more threads than the process may use cores
+    kept = 1 if given is None else min(int(given), len(os.sched_getaffinity(0)))
+    assert out.split() == [f"[{kept}]", f"[{kept}]", "0"]
 
 
 def test_the_parser_names_exactly_the_backends_the_rig_builder_knows():
