@@ -14,7 +14,7 @@ Even so, on this project's 2-core machine (a virtual one) the solves stall the l
 The console therefore holds the worker (:meth:`LivePhysics.hold`) while the loop controls force: 61 ticks
 missed and 7 ms, and the findings come between areas or after the last one. Between areas, with the TSI in
 the air, a solve still cost the loop stalls of 25-36 ms; most of that was the kernel's work on the huge pages
-numpy asks for, which the console no longer asks for (``app/__init__.py``): over 140 s, 22-27 ticks missed
+numpy asks for, which the console no longer asks for (``app/process.py``): over 140 s, 22-27 ticks missed
 and stalls of 12-15 ms.
 """
 

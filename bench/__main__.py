@@ -14,6 +14,8 @@ import time
 import traceback
 from pathlib import Path
 
+from app import process
+
 BENCHMARKS = ["bench.loop_bench", "bench.gui_bench", "bench.rig_bench", "bench.hardware_bench", "bench.sessions_bench",
               "bench.safety_bench",
               "bench.cli_bench"]
@@ -25,6 +27,8 @@ def _short(module: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    process.keep_numpy_off_huge_pages()  # as the console runs numpy, before any benchmark loads it
+    process.limit_blas_threads()
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     known = [_short(m) for m in BENCHMARKS]
     parser.add_argument("names", nargs="*", metavar="name", help=f"benchmarks to run (default: all of {known})")

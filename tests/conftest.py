@@ -12,7 +12,11 @@ try:
 except ImportError:  # Windows: each worker computes the model itself
     fcntl = None
 
-import app  # noqa: F401  (its BLAS thread and huge-page settings must come before any test module loads numpy)
+from app import process
+
+# The suite starts processes as the console does: the same numpy settings, before any test module loads numpy.
+process.keep_numpy_off_huge_pages()
+process.limit_blas_threads()
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
