@@ -24,9 +24,10 @@ test: bootstrap
 	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -n auto
 	@$(MAKE) --no-print-directory lint
 
-# the static checks make test ends with
+# the static checks make test ends with: the floors' import contracts, then ruff ([tool.ruff] in pyproject.toml)
 lint: bootstrap
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/ruff check .
 
 bench: bootstrap-run
 	QT_QPA_PLATFORM=offscreen $(PY) -m bench

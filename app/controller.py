@@ -27,7 +27,6 @@ moves on to the current period, and the loop clamps its integration step (``Cont
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 import contextlib
 import ctypes
 import gc
@@ -40,6 +39,7 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 

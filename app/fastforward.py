@@ -14,8 +14,8 @@ from collections.abc import Callable
 import numpy as np
 
 from app.runtime import make_loop, run_tick
-from control.loop import StepResult
 from control.config import ControlConfig
+from control.loop import StepResult
 from control.messages import Command
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from hardware.interfaces import Phase

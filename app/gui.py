@@ -15,10 +15,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.config import AppConfig
-from session.depth import LIBRARY_PATH, DepthModel, DepthModelError
 from app.recording import SessionRecording, session_info
-from tissue.mechanics.progress import Progress
+from session.depth import LIBRARY_PATH, DepthModel, DepthModelError
 from session.info import sessions_dir
+from tissue.mechanics.progress import Progress
 
 
 def console_rig(config: AppConfig):

@@ -29,9 +29,9 @@ import numpy as np
 from PySide6 import QtCore
 
 from app.realtime import loop_cpu
-from session.physics import BlockResponse
 from session.analysis import expected_patterns
 from session.info import SessionInfo
+from session.physics import BlockResponse
 
 Extent = tuple[float, float, float, float]  # (x0, x1, y0, y1) in m
 POLL_MS = 100  # how often the console looks for the answer: a tenth of a second on 14-20 s is nothing

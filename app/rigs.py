@@ -84,8 +84,8 @@ def plan_for_rig(spec: RigSpec, config: ControlConfig,
     height; None for other backends (no phantom file to take the areas from)."""
     if spec.backend != "sim":
         return None
-    from tissue.phantom import load_phantom
     from hardware.sim.settings import SimSettings
+    from tissue.phantom import load_phantom
 
     operator = SimSettings.from_mapping(dict(spec.sim)).operator
     try:

@@ -12,13 +12,13 @@ import os
 import sys
 from pathlib import Path
 
-from session.depth import DepthModel, DepthModelError
-from session.physics import PHYSICS, physics_for
-from session.analysis import AnalysisParams, SessionAnalysis
 from session import export
+from session.analysis import AnalysisParams, SessionAnalysis
+from session.depth import DepthModel, DepthModelError
 from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams, widths_from_mm, widths_text_mm
 from session.flatfield import FlatFieldError, Reference
 from session.info import sessions_dir
+from session.physics import PHYSICS, physics_for
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams
 

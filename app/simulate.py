@@ -11,12 +11,20 @@ import numpy as np
 from app.config import AppConfig
 from app.fastforward import FastForward
 from app.rigs import build_rig
-from control.messages import (CommandApplied, CommandRefused, FaultRaised, LevelRecorded, LevelTimedOut, Notice,
-                              RegionAborted, RegionDone)
+from control.messages import (
+    CommandApplied,
+    CommandRefused,
+    FaultRaised,
+    LevelRecorded,
+    LevelTimedOut,
+    Notice,
+    RegionAborted,
+    RegionDone,
+)
 from hardware.settings import ConfigError
-from tissue.mechanics.progress import TextProgressBar
 from session.info import new_session_path
 from session.writer import RecorderError, SessionRecorder
+from tissue.mechanics.progress import TextProgressBar
 
 
 def _level_line(r) -> str:

@@ -17,7 +17,6 @@ from hardware.interfaces import DeviceError
 from hardware.serial_tactile.emulator import SerialSensorEmulator, SimSensorFeed
 from hardware.settings import ConfigError, read_toml
 from hardware.sim.rig import build_sim_rig
-
 from hardware.udp.server import DEFAULT_PORT, SlaveServer, SlaveServerSettings
 from tissue.phantom import PhantomError
 

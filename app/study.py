@@ -1,8 +1,8 @@
 """The validation study: how well the console finds tumours and their depth, on phantoms nobody tuned for.
 
 ``palpation-console study`` draws phantoms from a documented, seeded distribution
-(:class:`tissue.generator.StudyDistribution`), palpates each one with the simulated rig on the fast-forward driver exactly as
-``simulate`` does (the scripted operator, the default ramp, every area of the phantom), records it to a
+(:class:`tissue.generator.StudyDistribution`), palpates each one with the simulated rig on the fast-forward driver
+exactly as ``simulate`` does (the scripted operator, the default ramp, every area of the phantom), records it to a
 session file, analyses that file with the same pipeline the reviewer and the ``stitch`` command use
 (:class:`session.analysis.SessionAnalysis`, default parameters), and scores what was found against the
 phantom's ground truth (:func:`session.scoring.score`). The paper's two phantoms can be added to the set (``--paper``).
@@ -20,9 +20,7 @@ option ``stitch`` takes applies to a study too (:func:`analysis_options`).
 
 from __future__ import annotations
 
-import math
 import os
-import statistics
 import sys
 import tempfile
 import time
@@ -38,8 +36,6 @@ import tomli_w
 from hardware.settings import ConfigError, read_toml
 from session.scoring import case_failures, print_summary, score
 from tissue.generator import StudyDistribution, draw_phantom, surface_kind
-
-
 
 # ---- one case ------------------------------------------------------------------------------------------
 
@@ -121,8 +117,8 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
 
     A top-level function of plain arguments, so any executor can ship it to a worker."""
     from hardware.interfaces import DeviceError
-    from tissue.phantom import PhantomError
     from session.reader import SessionFileError
+    from tissue.phantom import PhantomError
 
     try:
         return _run_case(case, Path(out_dir), keep_session, settings or {}, analysis or analysis_options())
@@ -134,8 +130,8 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
               analysis: dict[str, Any]) -> dict[str, Any]:
     from app.config import load_config, merge_tables
     from app.recording import record_simulation
-    from tissue.phantom import load_phantom
     from hardware.sim.rig import build_sim_rig, build_tissue
+    from tissue.phantom import load_phantom
 
     folder.mkdir(parents=True, exist_ok=True)
     phantom_path = folder / f"{case.name}.toml"
@@ -304,7 +300,8 @@ class DaskExecutor:
 
     def __init__(self, address):
         try:
-            from distributed import Client, as_completed as dask_completed
+            from distributed import Client
+            from distributed import as_completed as dask_completed
         except ImportError:
             raise ConfigError("--scheduler", "Dask distributed is not installed: pip install "
                                              "'palpation-console[study]'") from None

@@ -90,7 +90,8 @@ def _slave_side(conn, serving, answering) -> None:
         while answering.is_set():
             if select.select([fd], [], [], 0.05)[0]:
                 server.step(frozen)
-        conn.send({"slave_rt_priority": rt, "steps": steps, "frames_sent": emulator.device.sent, "serial_dropped_bytes": emulator.port.dropped_bytes,
+        conn.send({"slave_rt_priority": rt, "steps": steps, "frames_sent": emulator.device.sent,
+                   "serial_dropped_bytes": emulator.port.dropped_bytes,
                    **{f"slave_{k}": v for k, v in server.stats.items() if isinstance(v, int)}})
     finally:
         server.close()
@@ -264,7 +265,8 @@ def run(out_dir: Path) -> dict:
         "regions_done": sum(isinstance(e, RegionDone) for e in events),
         "faults": faults,
         "load_avg_1min": os.getloadavg()[0],
-        **{f"serial_{k}": v for k, v in serial_stats.items() if isinstance(v, (int, float)) and not isinstance(v, bool)},
+        **{f"serial_{k}": v for k, v in serial_stats.items()
+           if isinstance(v, (int, float)) and not isinstance(v, bool)},
         **{f"link_{k}": v for k, v in link_stats.items()
            if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("round_trip")},
         **slave_stats,

@@ -33,8 +33,7 @@ import numpy as np
 from tissue.mechanics.finite_strain import homogeneous, punch
 from tissue.mechanics.model import ContinuumTissue, MeshSettings, phantom_material
 from tissue.mechanics.progress import TextProgressBar
-from tissue.mechanics.study import (height_for_force, palpate, tumour_contrast, tumour_standout,
-                                          without_inclusions)
+from tissue.mechanics.study import height_for_force, palpate, tumour_contrast, tumour_standout, without_inclusions
 from tissue.phantom import load_phantom, parse_phantom
 from tissue.winkler import WinklerTissue
 

@@ -8,8 +8,9 @@ tissue, and a fuzz of every reader of outside input, a recorded session included
 ``fuzz_inputs``, ``fuzz_crashes``, and the detail beside them: ``by_scenario`` (runs, the trouble come to
 pass, violations) and ``by_stiffness``, the runs the two maxima come from (``max_force_run``,
 ``max_indentation_run``), and ``worst_runs`` and ``worst_by_scenario`` (seed, kind, what it drew and its first
-violation, to replay with ``python -m bench.safety_campaign --replay SEED --kind KIND``). ``plant_seconds`` is the plant runs' time
-on the clock, ``cpu_seconds`` what all the runs cost (on a machine shared with other work the two differ).
+violation, to replay with ``python -m bench.safety_campaign --replay SEED --kind KIND``). ``plant_seconds`` is the
+plant runs' time on the clock, ``cpu_seconds`` what all the runs cost (on a machine shared with other work the two
+differ).
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ def _record_session(folder: Path) -> Path:
     from app.recording import record_simulation
     from hardware.interfaces import TactileConstraints
     from hardware.settings import read_toml
-    from tissue.phantom import PHANTOM_DIR, load_phantom
     from hardware.sim.rig import build_sim_rig
+    from tissue.phantom import PHANTOM_DIR, load_phantom
     from tissue.winkler import WinklerTissue
 
     data = read_toml(PHANTOM_DIR / "flat.toml", "phantom file")

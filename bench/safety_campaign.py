@@ -58,8 +58,15 @@ from control.messages import ClearFault, EStop, FaultRaised, Jog, Notice, SetGai
 from control.safety import RETRACT_FAULTS
 from hardware.interfaces import MasterState, Phase, TactileConstraints, TactileFrame
 from hardware.settings import ConfigError
-from hardware.sim.plant import (ELEMENT_AREA_M2, ELEMENTS, RIG_BANDWIDTH_HZ, RIG_MAX_ACCEL_M_S2, RIG_MAX_SPEED_M_S,
-                                LayerPlant, SecondOrderRobot)
+from hardware.sim.plant import (
+    ELEMENT_AREA_M2,
+    ELEMENTS,
+    RIG_BANDWIDTH_HZ,
+    RIG_MAX_ACCEL_M_S2,
+    RIG_MAX_SPEED_M_S,
+    LayerPlant,
+    SecondOrderRobot,
+)
 from hardware.sim.rig import build_sim_rig
 from widgets.settings_panel import GAIN_FIELDS
 
@@ -943,8 +950,8 @@ def _fuzz_file(rng, n: int, good: bytes, suffix: str, read, allowed, folder: Pat
 def fuzz(n_per_reader: int, seed: int, folder: Path, session: Path | None = None) -> dict:
     """Feed each reader ``n_per_reader`` mutated inputs; the counts and the crashes."""
     from app.config import DEFAULT_CONFIG, load_config
-    from tissue.phantom import PHANTOM_DIR, PhantomError, load_phantom
     from session.reader import SessionFileError, open_session
+    from tissue.phantom import PHANTOM_DIR, PhantomError, load_phantom
 
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True, exist_ok=True)

@@ -316,5 +316,6 @@ def report(late_ticks: list[LateTick]) -> str:
     for tick in late_ticks:
         s = tick.shares_s
         lines.append(f"{tick.late_s * 1e3:8.2f} {tick.cause:<12} {s['steal'] * 1e3:7.2f} "
-                     f"{s['idle_wakeup'] * 1e3:7.2f} {s['kernel'] * 1e3:7.2f} {s['unexplained'] * 1e3:7.2f}  {tick.detail}")
+                     f"{s['idle_wakeup'] * 1e3:7.2f} {s['kernel'] * 1e3:7.2f} {s['unexplained'] * 1e3:7.2f}  "
+                     f"{tick.detail}")
     return "\n".join(lines)

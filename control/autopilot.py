@@ -28,8 +28,18 @@ from typing import Protocol
 
 import numpy as np
 
-from control.messages import (CancelJog, Command, CommandRefused, FaultRaised, Jog, LevelTimedOut, RegionAborted,
-                              RegionDone, SetRegion, SetSz)
+from control.messages import (
+    CancelJog,
+    Command,
+    CommandRefused,
+    FaultRaised,
+    Jog,
+    LevelTimedOut,
+    RegionAborted,
+    RegionDone,
+    SetRegion,
+    SetSz,
+)
 from hardware.interfaces import Phase, TactileConstraints
 
 # A move has arrived when X_d is at the target (to rounding) and the robot is within this of it.

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from hardware.settings import ConfigError, Settings, Vec3, bounded, number, positive, vec3
+from hardware.settings import ConfigError, Settings, Vec3, bounded, positive, vec3
 
 # The stiffest environment the law's own integration must stay stable against at one step: the whole 8 x 30 mm
 # face on 1 mm of a 400 kPa silicone over the table (E A / h), beyond any tissue the console palpates.
@@ -66,7 +66,8 @@ class RampSettings(Settings):
                                ("level_timeout_s", 120.0, "a level that has not settled in two minutes will not")):
             bounded(name, getattr(self, name), 0.0, top, why)
         if self.force_max_N < self.force_min_N:
-            raise ConfigError("force_max_N", f"must be >= force_min_N ({self.force_min_N:g} N), got {self.force_max_N:g}")
+            raise ConfigError("force_max_N",
+                              f"must be >= force_min_N ({self.force_min_N:g} N), got {self.force_max_N:g}")
         if self.force_step_N > self.force_max_N - self.force_min_N and self.force_max_N > self.force_min_N:
             raise ConfigError("force_step_N", f"{self.force_step_N:g} N is larger than the ramp span "
                               f"{self.force_max_N - self.force_min_N:g} N")
@@ -78,7 +79,8 @@ class RampSettings(Settings):
     @cached_property  # read on every control tick; the settings are frozen
     def n_levels(self) -> int:
         span = self.force_max_N - self.force_min_N
-        return int(math.floor(span / self.force_step_N + 1e-9)) + 1 + (0 if _is_multiple(span, self.force_step_N) else 1)
+        whole = int(math.floor(span / self.force_step_N + 1e-9)) + 1
+        return whole + (0 if _is_multiple(span, self.force_step_N) else 1)
 
     def level_force_N(self, k: int) -> float:
         """Level k's desired force; the last level is always exactly F_max."""
@@ -121,7 +123,8 @@ class ContactSettings(Settings):
         object.__setattr__(self, "table_height_m", bounded("table_height_m", self.table_height_m, -1.0, 1.0,
                                                            "a bench robot's reach, in m"))
         if self.confirm_threshold_pa <= self.onset_threshold_pa:
-            raise ConfigError("confirm_threshold_pa", f"must exceed onset_threshold_pa ({self.onset_threshold_pa:g} Pa)")
+            raise ConfigError("confirm_threshold_pa",
+                              f"must exceed onset_threshold_pa ({self.onset_threshold_pa:g} Pa)")
 
 
 @dataclass(frozen=True)
@@ -169,7 +172,8 @@ class SafetyLimits(Settings):
             for key, v in (("workspace_min_m", lo[i]), ("workspace_max_m", hi[i])):
                 bounded(f"{key}[{i}]", v, -1.0, 1.0, "a bench robot's reach, in m")
             if hi[i] <= lo[i]:
-                raise ConfigError("workspace_max_m", f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
+                raise ConfigError("workspace_max_m",
+                                  f"{axis} upper bound {hi[i]:g} m must exceed lower bound {lo[i]:g} m")
         object.__setattr__(self, "workspace_min_m", lo)
         object.__setattr__(self, "workspace_max_m", hi)
 
@@ -245,9 +249,10 @@ class ControlConfig(Settings):
             raise ConfigError("max_step_s", f"must be at most ten periods ({10.0 / self.rate_hz:g} s): a longer step "
                                             "moves the reference too far at once")
         if self.safety.workspace_min_m[2] < self.contact.table_height_m:
-            raise ConfigError("safety.workspace_min_m", f"its z {self.safety.workspace_min_m[2]:g} m lies below the "
-                                                        f"table (contact.table_height_m {self.contact.table_height_m:g} "
-                                                        f"m): the probe could be driven into it")
+            raise ConfigError("safety.workspace_min_m",
+                              f"its z {self.safety.workspace_min_m[2]:g} m lies below the table "
+                              f"(contact.table_height_m {self.contact.table_height_m:g} m): the probe could be driven "
+                              f"into it")
         if self.ramp.force_max_N > self.safety.force_ceiling_N:
             raise ConfigError("ramp.force_max_N", f"{self.ramp.force_max_N:g} N is above the force ceiling "
                                                   f"({self.safety.force_ceiling_N:g} N): the last level would trip it")

@@ -24,8 +24,17 @@ from typing import Generic, TypeVar
 import numpy as np
 
 from control.config import ControlConfig
-from control.messages import (Command, CommandApplied, CommandRefused, FaultCleared, FaultKind, FaultRaised, SetGains,
-                              SetRamp, SetSz)
+from control.messages import (
+    Command,
+    CommandApplied,
+    CommandRefused,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    SetGains,
+    SetRamp,
+    SetSz,
+)
 from hardware.interfaces import Phase
 
 T = TypeVar("T")

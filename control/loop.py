@@ -17,20 +17,51 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.analysis import (NOISE_MIN_FRAMES, ONSET_NOISE_SIGMAS, AirNoise, PoseHistory, StiffnessWindow,
-                              contact_thresholds, element_analysis)
+from control.analysis import (
+    NOISE_MIN_FRAMES,
+    ONSET_NOISE_SIGMAS,
+    AirNoise,
+    PoseHistory,
+    StiffnessWindow,
+    contact_thresholds,
+    element_analysis,
+)
 from control.config import ControlConfig
-from hardware.settings import ConfigError
 from control.law import HybridImpedanceLaw
-from control.messages import (AbortRegion, CancelJog, ClearFault, Command, CommandApplied, CommandRefused, EStop, Event,
-                              FaultCleared, FaultKind, FaultRaised, Jog, Notice, SetGains, SetRamp, SetRegion, SetSz,
-                              Source, SzChanged, Tare)
+from control.messages import (
+    AbortRegion,
+    CancelJog,
+    ClearFault,
+    Command,
+    CommandApplied,
+    CommandRefused,
+    EStop,
+    Event,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    Jog,
+    Notice,
+    SetGains,
+    SetRamp,
+    SetRegion,
+    SetSz,
+    Source,
+    SzChanged,
+    Tare,
+)
 from control.palpation import FRAME_BUFFER, PalpationStateMachine
-from control.safety import (FORCE_RESERVE_N, IMPLAUSIBLE_NEGATIVE_FRACTION, RETRACT_FAULTS,
-                            UNMEASURED_NEGATIVE_FRACTION, SafetySupervisor)
+from control.safety import (
+    FORCE_RESERVE_N,
+    IMPLAUSIBLE_NEGATIVE_FRACTION,
+    RETRACT_FAULTS,
+    UNMEASURED_NEGATIVE_FRACTION,
+    SafetySupervisor,
+)
 from control.telemetry import empty_frame, empty_tick
-from hardware.liveness import RepeatWatch, TravelWatch
 from hardware.interfaces import MasterFeedback, MasterState, Phase, SlaveState, TactileConstraints, TactileFrame, Vec3
+from hardware.liveness import RepeatWatch, TravelWatch
+from hardware.settings import ConfigError
 
 Z = 2
 OVERDUE_FRAME_PERIODS = 3.0  # a frame this many periods old is late: jitter stays well inside it, a stall does not
@@ -236,7 +267,8 @@ class ControlLoop:
         hide that force from every ceiling, so only with the operator in position control between areas,
         nothing faulted, and no element reading contact or saturated."""
         if not self.sm.phase.idle:
-            return "tare only between areas, with the probe lifted off the tissue (not during a ramp, a retract or a fault)"
+            return ("tare only between areas, with the probe lifted off the tissue (not during a ramp, a retract or "
+                    "a fault)")
         if self._sensor_seq < 0:
             return "no tactile frame has arrived yet"
         confirm = self.config.contact.confirm_threshold_pa
@@ -554,7 +586,8 @@ class ControlLoop:
         if z_m < top - DEAD_DEPTH_M and not (pressure_pa >= tracker.onset_pa).any():
             self._contradiction = (
                 f"Dead tactile array: no element reads contact while the probe is {(top - z_m) * 1e3:.1f} mm below "
-                f"where it confirmed contact; the array is not reading the tissue. The probe was lifted off the tissue.")
+                f"where it confirmed contact; the array is not reading the tissue. The probe was lifted off the "
+                f"tissue.")
             return
         self._travel.push(self._force_N, z_m)
 

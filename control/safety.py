@@ -91,8 +91,8 @@ class SafetySupervisor:
             if sensor_repeats and not math.isinf(sensor_age_s):
                 return FaultKind.SENSOR_STALE, (
                     f"Frozen tactile array: its last {sensor_repeats + 1} frames ({sensor_age_s * 1e3:.0f} ms) were "
-                    f"identical, element by element, as no array with noise gives (limit {lim.sensor_timeout_s * 1e3:.0f} "
-                    f"ms). {action}")
+                    f"identical, element by element, as no array with noise gives (limit "
+                    f"{lim.sensor_timeout_s * 1e3:.0f} ms). {action}")
             return FaultKind.SENSOR_STALE, _stale("tactile sensor", sensor_age_s, lim.sensor_timeout_s, action)
         if master_age_s is not None and not (master_age_s <= lim.master_timeout_s) \
                 and not (grace and math.isinf(master_age_s)):

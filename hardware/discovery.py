@@ -4,15 +4,11 @@ and on request a probe of a serial port (does a TSI send frames there?) or of a 
 
 from __future__ import annotations
 
-import argparse
-import json
 import secrets
 import select
 import socket
-import sys
 import time
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 
 import serial
 import usb.core
@@ -21,9 +17,7 @@ from serial.tools import list_ports
 from hardware.serial_tactile.adapter import describe_open_error
 from hardware.serial_tactile.config import format_vid_pid
 from hardware.serial_tactile.driver import FrameParser
-from hardware.settings import ConfigError, read_toml
 from hardware.udp import protocol as P
-from hardware.udp.rig import HardwareSettings
 from hardware.udp.server import DEFAULT_PORT
 from hardware.usb.spacemouse import KNOWN_SPACEMICE
 from hardware.usb.tactile import DEFAULT_TACTILE_ID
@@ -43,8 +37,8 @@ def serial_ports() -> list[Found]:
     for p in sorted(list_ports.comports(), key=lambda p: p.device):
         ids = f" (USB {p.vid:04x}:{p.pid:04x})" if p.vid is not None and p.pid is not None else ""
         desc = p.description if p.description and p.description != "n/a" else "serial port"
-        found.append(Found("serial", p.device, desc + ids,
-                           note="a TSI on this port: check with --probe-serial " + p.device if p.vid is not None else ""))
+        note = "a TSI on this port: check with --probe-serial " + p.device if p.vid is not None else ""
+        found.append(Found("serial", p.device, desc + ids, note=note))
     return found
 
 
@@ -108,7 +102,8 @@ def probe_serial(port: str, baud: int = 460800, listen_s: float = 0.5) -> Found:
     span_us = (frames[-1].device_time_us - frames[0].device_time_us) % P.U32
     rate = (len(frames) - 1) / (span_us * 1e-6) if len(frames) > 1 and span_us else float("nan")
     bad = parser.crc_errors + parser.truncated
-    return Found("serial", port, "serial port", role=f'tactile sensor: [hardware.sensor] kind = "serial", port = "{port}"',
+    return Found("serial", port, "serial port",
+                 role=f'tactile sensor: [hardware.sensor] kind = "serial", port = "{port}"',
                  note=f"TSI frames, {parser.rows} x {parser.cols}, {rate:.0f} frames/s by the device clock, "
                       f"{bad} damaged, {parser.garbage_bytes} garbage bytes")
 

@@ -16,9 +16,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from session.detect import (SOURCES, DepthParams, DetectParams, Tumour, TruthMatch, detect, explained_away,
-                            match_ground_truth, over_each_other)
 from session.depth import DepthModel
+from session.detect import (
+    SOURCES,
+    DepthParams,
+    DetectParams,
+    TruthMatch,
+    Tumour,
+    detect,
+    explained_away,
+    match_ground_truth,
+    over_each_other,
+)
 from session.flatfield import Contrast, Reference, contrast
 from session.physics import HomogeneousTissue, Pattern
 from session.reader import Session

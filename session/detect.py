@@ -450,7 +450,7 @@ def over_each_other(tumours: list[Tumour], levels: np.ndarray, contrast: Contras
     for _ in range(DEPTH_SWEEPS if len(tumours) > 1 else 1):
         given = dict(zip(tumours, over))
         # a sphere's fit in this sweep is the same whichever tumour is read over it: solved once
-        said = _Said(lambda o, records: fitted(o, given[o], records))
+        said = _Said(lambda o, records, given=given: fitted(o, given[o], records))
         over = [_over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels, contrast,
                                  said, reach_m) for t in tumours]
         if all(np.array_equal(new.contrast, given[t].contrast) for t, new in zip(tumours, over)):

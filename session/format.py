@@ -46,8 +46,21 @@ import math
 
 import numpy as np
 
-from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultKind, FaultRaised, LevelRecord,
-                              LevelRecorded, LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, SzChanged)
+from control.messages import (
+    CommandApplied,
+    CommandRefused,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    LevelRecord,
+    LevelRecorded,
+    LevelTimedOut,
+    Notice,
+    PhaseChanged,
+    RegionAborted,
+    RegionDone,
+    SzChanged,
+)
 from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
 from hardware.interfaces import Phase
 

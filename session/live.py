@@ -34,8 +34,8 @@ from hardware.interfaces import TactileConstraints
 from session.analysis import CONTRAST_MAPS, DepthModel
 from session.detect import SOURCES, DetectParams, Tumour, detect, evidence_by_width, significant_peaks, threshold
 from session.flatfield import MIN_VOUCHING, Contrast, FlatFieldError, Reference, contrast
-from session.physics import Pattern
 from session.format import LEVEL_DTYPE, level_row
+from session.physics import Pattern
 from session.stitch import StitchParams, StitchResult, level_groups, stitch
 
 # the level field whose pattern flat-fields each live map
@@ -185,7 +185,8 @@ class LiveMaps:
         return covered if len({row[1] for row in self._rows[:covered]}) > MIN_VOUCHING else 0
 
     def set_physics(self, records: int, patterns: dict[str, Pattern], description: str) -> None:
-        """The pattern homogeneous tissue gives each map (``patterns[map]``, :meth:`session.physics.HomogeneousTissue.pattern`)
+        """The pattern homogeneous tissue gives each map (``patterns[map]``,
+        :meth:`session.physics.HomogeneousTissue.pattern`)
         on the first ``records`` level records, as computed from them (``description`` says how)."""
         if not 0 < records <= len(self._rows) or set(patterns) != set(SOURCES):
             raise ValueError(f"physics for {records} records of {len(self._rows)}, maps {sorted(patterns)}")

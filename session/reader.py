@@ -41,8 +41,16 @@ import numpy as np
 
 from control.config import RATE_HZ_RANGE
 from control.telemetry import TICK_DTYPE
-from session.format import (ADDED_COLUMNS, FORMAT_NAME, FORMAT_VERSION, OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TABLES,
-                            EventKind, Overview)
+from session.format import (
+    ADDED_COLUMNS,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    OVERVIEW_BUCKET_ROWS,
+    OVERVIEW_DTYPE,
+    TABLES,
+    EventKind,
+    Overview,
+)
 
 _META_KEYS = ("config_json", "calibration_json", "rig_json", "phantom_json", "ground_truth_json")
 _TAIL_WINDOWS = 64  # how far back (in chunks) a damaged stream tail is looked for
@@ -657,7 +665,7 @@ def _open_hdf5(path: Path, fd: int, size: int) -> Session:
         if f is None:
             raise SessionFileError(path, _explain_open_error(plain_err)
                                    + " (this installation's HDF5 cannot be told to give up on damaged data quickly, "
-                                     "so the file is not opened in recovery mode)")
+                                     "so the file is not opened in recovery mode)") from None
         note = ("The recording did not end cleanly (the console stopped while recording, or the file is "
                 "still being written); showing everything that reached the disk.")
         return Session(path, f, size, recovered=True, note=note)

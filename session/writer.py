@@ -44,9 +44,22 @@ import h5py
 import numpy as np
 
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
-from session.format import (CHUNK_ROWS, EVENT_CODES, EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE,
-                            OVERVIEW_BUCKET_ROWS, OVERVIEW_DTYPE, TICK_CODES, TICK_NOTES, EventKind, Overview,
-                            event_row, rows_for_event)
+from session.format import (
+    CHUNK_ROWS,
+    EVENT_CODES,
+    EVENT_DTYPE,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    LEVEL_DTYPE,
+    OVERVIEW_BUCKET_ROWS,
+    OVERVIEW_DTYPE,
+    TICK_CODES,
+    TICK_NOTES,
+    EventKind,
+    Overview,
+    event_row,
+    rows_for_event,
+)
 from session.info import SessionInfo, software_version
 
 log = logging.getLogger(__name__)

@@ -60,3 +60,14 @@ def _nothing_left_running():
     leftover = [t for t in threading.enumerate() if t.ident not in threads_before and t.is_alive()
                 and not t.daemon]
     assert not leftover, f"test left threads running: {leftover}"
+
+
+@pytest.fixture
+def bus():
+    """An emulated USB bus: the tactile array, a SpaceMouse, a keyboard and a SpaceMouse the user may not open."""
+    from hardware.usb.emulator import EmulatedBackend, EmulatedDevice, InterfaceSpec, SpaceMouseDevice, UsbTactileDevice
+
+    keyboard = EmulatedDevice(0x046D, 0xC31C, [InterfaceSpec(0, 3)], manufacturer="Logitech", product="Keyboard")
+    locked = EmulatedDevice(0x256F, 0xC635, [InterfaceSpec(0, 3)], manufacturer="3Dconnexion", product="SpaceMouse")
+    locked.access_denied = True
+    return EmulatedBackend(UsbTactileDevice(), SpaceMouseDevice(product_id=0xC62E), keyboard, locked)

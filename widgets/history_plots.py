@@ -24,8 +24,14 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from widgets.plot_style import (DEPTH_COLOUR, F_DESIRED_COLOUR, F_MEASURED_COLOUR, LIMIT_COLOUR, RECORDED_COLOUR,
-                                 follow_palette)
+from widgets.plot_style import (
+    DEPTH_COLOUR,
+    F_DESIRED_COLOUR,
+    F_MEASURED_COLOUR,
+    LIMIT_COLOUR,
+    RECORDED_COLOUR,
+    follow_palette,
+)
 from widgets.tactile_map import nice_step
 
 SAMPLE_HZ = 50.0

@@ -40,9 +40,23 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from control.autopilot import Autopilot, AutopilotError, AutopilotPlan, AutopilotState
 from control.config import ControlConfig, RampSettings
 from control.console_state import ConsoleState
-from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop, FaultKind, Jog,
-                              LevelRecorded, LevelTimedOut, Notice, RegionAborted, RegionDone, SetGains, SetRamp, SetSz,
-                              Tare)
+from control.messages import (
+    ClearFault,
+    CommandApplied,
+    CommandRefused,
+    EStop,
+    FaultKind,
+    Jog,
+    LevelRecorded,
+    LevelTimedOut,
+    Notice,
+    RegionAborted,
+    RegionDone,
+    SetGains,
+    SetRamp,
+    SetSz,
+    Tare,
+)
 from control.telemetry import LiveSnapshot, LoopHealth
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError

@@ -15,8 +15,20 @@ from datetime import datetime
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.console_state import fault_name
-from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultRaised, LevelRecorded,
-                              LevelTimedOut, Notice, PhaseChanged, RegionAborted, RegionDone, Source, SzChanged)
+from control.messages import (
+    CommandApplied,
+    CommandRefused,
+    FaultCleared,
+    FaultRaised,
+    LevelRecorded,
+    LevelTimedOut,
+    Notice,
+    PhaseChanged,
+    RegionAborted,
+    RegionDone,
+    Source,
+    SzChanged,
+)
 
 MAX_LINES = 2000
 

@@ -17,7 +17,6 @@ from PySide6 import QtCore, QtWidgets
 
 from control.config import ImpedanceGains, RampSettings
 from control.console_state import Setting
-
 from hardware.settings import ConfigError
 
 # (field, label, unit, decimals, maximum)

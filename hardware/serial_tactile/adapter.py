@@ -97,7 +97,8 @@ class SerialTactileSensor(StreamedTactileSensor):
     @property
     def stats(self) -> dict[str, Any]:
         return {"device": self.name, "port": self.settings.port, "connection": self._state.name,
-                "last_error": self.last_error or self._stream.tare_refused, "disconnects": self.disconnects, "reconnects": self.reconnects,
+                "last_error": self.last_error or self._stream.tare_refused, "disconnects": self.disconnects,
+                "reconnects": self.reconnects,
                 "stale_episodes": self.stale_episodes, **self._stream.counters()}
 
     def describe(self) -> dict[str, Any]:

@@ -26,8 +26,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hardware.interfaces import (MasterConstraints, MasterDevice, MasterFeedback, MasterState, Phase,
-                                 TactileConstraints, Vec3)
+from hardware.interfaces import (
+    MasterConstraints,
+    MasterDevice,
+    MasterFeedback,
+    MasterState,
+    Phase,
+    TactileConstraints,
+    Vec3,
+)
 from hardware.settings import ConfigError
 from hardware.sim.world import SimDevice, SimWorld
 

@@ -6,16 +6,16 @@ from typing import Any
 
 from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
-from tissue.mechanics import ContinuumTissue, MeshSettings
-from tissue.mechanics.progress import Progress
 from hardware.sim.operator import ScriptedOperator
-from tissue.phantom import Phantom, load_phantom
 from hardware.sim.robot import SimSlave
 from hardware.sim.sensor import SimTactileSensor
 from hardware.sim.settings import SimSettings
 from hardware.sim.tissue import TissueModel
-from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
+from tissue.mechanics import ContinuumTissue, MeshSettings
+from tissue.mechanics.progress import Progress
+from tissue.phantom import Phantom, load_phantom
+from tissue.winkler import WinklerTissue
 
 
 def _resolve(phantom: Phantom | str, settings: SimSettings | dict[str, Any] | None) -> tuple[Phantom, SimSettings]:

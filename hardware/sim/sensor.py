@@ -45,7 +45,6 @@ from hardware.interfaces import DeviceError, TactileConstraints, TactileFrame, T
 from hardware.sim.world import SimDevice, SimWorld
 from tissue.face import cover_operators, cover_weight
 
-
 LOADED_PA = 10.0  # an element under less than this carries no press (a fraction of the array's noise)
 PRESS_STEP_M = 0.1e-3  # how much deeper the tissue is asked, to read its stiffness under each element
 

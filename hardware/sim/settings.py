@@ -95,7 +95,8 @@ class SensorSimSettings(Settings):
         object.__setattr__(self, "first_press_recovery_s", positive("first_press_recovery_s",
                                                                     self.first_press_recovery_s))
         for name in ("press_offset_m", "press_offset_element_m", "first_press_m"):
-            bounded(name, getattr(self, name), hi=3e-3, why="an offset that large is a loose array, not a reading error")
+            bounded(name, getattr(self, name), hi=3e-3,
+                    why="an offset that large is a loose array, not a reading error")
         bounded("first_press_recovery_s", self.first_press_recovery_s, hi=3600.0, why="an hour's rest is a long one")
         bounded("session_offset_fraction", self.session_offset_fraction, hi=0.2, why="a tare refuses more")
         if self.model not in SENSOR_MODELS:

@@ -24,9 +24,9 @@ import numpy as np
 from scipy.linalg import expm
 
 from hardware.interfaces import ConnectionState, Vec3
-from tissue.phantom import Phantom
 from hardware.sim.settings import RobotSimSettings, SimSettings
 from hardware.sim.tissue import TissueModel
+from tissue.phantom import Phantom
 
 HISTORY_S = 0.5  # trajectory kept for readings that describe a past instant (sensor latency, slow polls)
 _GRID_EPS = 1e-6  # fraction of a step: absorbs rounding when a time lies on the grid

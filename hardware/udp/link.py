@@ -34,8 +34,19 @@ from typing import Any
 import numpy as np
 
 from hardware.connection import Connection
-from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
-                                 TactileConstraints, TactileFrame, TactileSensor, Vec3, finite_vec3, tare_problem)
+from hardware.interfaces import (
+    ConnectionState,
+    DeviceError,
+    SlaveConstraints,
+    SlaveManipulator,
+    SlaveState,
+    TactileConstraints,
+    TactileFrame,
+    TactileSensor,
+    Vec3,
+    finite_vec3,
+    tare_problem,
+)
 from hardware.serial_tactile.config import integer, text
 from hardware.settings import ConfigError, Settings, bounded
 from hardware.udp import protocol as P
@@ -156,8 +167,8 @@ class UdpSlaveLink(Connection, SlaveManipulator):
         self.force_N = math.nan  # the slave's own force measurement, NaN when it has none
         self.tactile: UdpTactileSensor | None = None
         self.counters = dict.fromkeys(("sent", "send_errors", "received", "rejected_peers", "oversize", "malformed",
-                                       "crc_errors", "invalid_values", "unexpected", "tactile_ignored", "unmapped", "link_losses",
-                                       "slave_holds", "socket_errors"), 0)
+                                       "crc_errors", "invalid_values", "unexpected", "tactile_ignored", "unmapped",
+                                       "link_losses", "slave_holds", "socket_errors"), 0)
         self._intake = Intake(self.counters, self._set_error)
 
     def _set_error(self, message: str) -> None:

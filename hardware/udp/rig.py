@@ -69,7 +69,8 @@ class HardwareSettings:
         for name, cls_, table in (("sensor", sensor_cls, sensor_table), ("master", master_cls, master_table)):
             if cls_ is None and table:
                 raise ConfigError(f"{prefix}{name}.{sorted(table)[0]}",
-                                  f"unknown key for kind {tables[name].get('kind', 'default')!r} (it takes no settings)")
+                                  f"unknown key for kind {tables[name].get('kind', 'default')!r} "
+                                  f"(it takes no settings)")
         return cls(slave=slave, sensor_kind=sensor_kind,
                    sensor=sensor_cls.from_mapping(sensor_table, f"{prefix}sensor.") if sensor_cls else None,
                    master_kind=master_kind,

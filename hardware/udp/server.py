@@ -32,25 +32,20 @@ Safety rules, all on this side so they hold whatever the master does, from the s
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import math
-import os
 import secrets
-import signal
 import socket
-import sys
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from hardware.interfaces import ConnectionState, SlaveManipulator, TactileSensor, Vec3
 from hardware.liveness import RepeatWatch, TravelWatch
 from hardware.serial_tactile.config import integer, text
-from hardware.settings import ConfigError, Settings, bounded, read_toml, vec3
+from hardware.settings import ConfigError, Settings, bounded, vec3
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
@@ -60,8 +55,8 @@ FORCE_RESUME_FRACTION = 0.8  # below this share of the force limit the latch let
 CONTACT_N = 0.3  # more than this on the slave's array is pressing tissue (its noise is a few mN)
 FORCE_RISE_N = 0.05  # what counts as the force rising, for the travel below the last rise
 SENSOR_GRACE_S = 1.0  # after start-up, before the array's first frame is due
-RETIRED_SESSIONS = 64
-STEP_TOLERANCE_M = 1e-6  # rounding in the master's reference: far below any step that matters  # replaced masters' sessions remembered, so their delayed packets stay refused
+RETIRED_SESSIONS = 64  # replaced masters' sessions remembered, so their delayed packets stay refused
+STEP_TOLERANCE_M = 1e-6  # rounding in the master's reference: far below any step that matters
 
 
 def _network(key: str, value: Any) -> ipaddress.IPv4Network | ipaddress.IPv6Network:

@@ -343,9 +343,9 @@ class UsbTactileDevice(EmulatedDevice):
     bulk endpoint carries a frame per transfer, an interrupt endpoint splits it into packets.
     """
 
-    def __init__(self, vendor_id: int = 0x1209, product_id: int = 0x0001, *, transfer: int = usb.util.ENDPOINT_TYPE_BULK,
-                 endpoint: int = 0x81, serial_number: str = "TSI-0001", calibration=None,
-                 device_epoch_s: float = 7000.0):
+    def __init__(self, vendor_id: int = 0x1209, product_id: int = 0x0001, *,
+                 transfer: int = usb.util.ENDPOINT_TYPE_BULK, endpoint: int = 0x81, serial_number: str = "TSI-0001",
+                 calibration=None, device_epoch_s: float = 7000.0):
         self.transfer = transfer
         self.ep = endpoint
         max_packet = 64

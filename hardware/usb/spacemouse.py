@@ -32,8 +32,16 @@ from typing import Any
 import usb.core
 
 from hardware.connection import Connection
-from hardware.interfaces import (ConnectionState, DeviceError, MasterConstraints, MasterDevice, MasterFeedback,
-                                 MasterState, Phase, Vec3)
+from hardware.interfaces import (
+    ConnectionState,
+    DeviceError,
+    MasterConstraints,
+    MasterDevice,
+    MasterFeedback,
+    MasterState,
+    Phase,
+    Vec3,
+)
 from hardware.serial_tactile.config import format_vid_pid, integer, text, vid_pid
 from hardware.settings import ConfigError, Settings, bounded
 from hardware.usb.transport import Attached, Lost, UsbInPipe

@@ -96,7 +96,8 @@ class UsbTactileSensor(StreamedTactileSensor):
     @property
     def stats(self) -> dict[str, Any]:
         return {"device": self.name, "usb": self.pipe.description or self.settings.vid_pid,
-                "connection": self._state.name, "last_error": self.last_error or self.pipe.last_error or self._stream.tare_refused,
+                "connection": self._state.name,
+                "last_error": self.last_error or self.pipe.last_error or self._stream.tare_refused,
                 "stale_episodes": self.stale_episodes, **self.pipe.counters, **self._stream.counters()}
 
     def describe(self) -> dict[str, Any]:

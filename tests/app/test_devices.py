@@ -6,7 +6,6 @@ import pytest
 
 from app.devices import main
 from hardware.usb.emulator import EmulatedBackend, UsbTactileDevice
-from tests.hardware.test_discovery import bus  # noqa: F401 - the emulated bus, a fixture
 
 
 def test_the_command_prints_recognised_devices_and_counts_the_rest(bus, capsys):

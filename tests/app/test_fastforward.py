@@ -106,7 +106,8 @@ def test_the_tick_applies_a_tare_the_loop_asks_for(ff, monkeypatch):
     ff.send(Tare())
     ff.step()
     assert tared == [pytest.approx(0.1)]
-    assert any(isinstance(e, CommandApplied) and isinstance(e.command, Tare) and "tared" in e.message for e in ff.events)
+    assert any(isinstance(e, CommandApplied) and isinstance(e.command, Tare) and "tared" in e.message
+               for e in ff.events)
 
 
 def test_an_estop_while_moving_stops_within_the_braking_plan_and_says_how_far_it_went():

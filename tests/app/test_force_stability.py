@@ -9,8 +9,17 @@ import pytest
 from app.fastforward import FastForward
 from control.config import ControlConfig, ImpedanceGains, force_loop_stiffness_limit_N_m
 from control.loop import ControlLoop
-from control.messages import (CommandApplied, CommandRefused, FaultKind, FaultRaised, Jog, LevelRecorded, RegionDone,
-                              SetGains, SetSz)
+from control.messages import (
+    CommandApplied,
+    CommandRefused,
+    FaultKind,
+    FaultRaised,
+    Jog,
+    LevelRecorded,
+    RegionDone,
+    SetGains,
+    SetSz,
+)
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig

@@ -12,16 +12,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.study import (ACCURACY_KEYS, DaskExecutor, LocalExecutor, _abort_reasons, _areas_started, analysis_options,
-                       kept_cases, reanalyse_study, run_study, study_cases, study_document, study_main)
+from app.study import (
+    ACCURACY_KEYS,
+    DaskExecutor,
+    LocalExecutor,
+    _abort_reasons,
+    _areas_started,
+    analysis_options,
+    kept_cases,
+    reanalyse_study,
+    run_study,
+    study_cases,
+    study_document,
+    study_main,
+)
 from control.messages import LevelRecorded, RegionAborted, RegionDone
 from session.reader import open_session
 from session.scoring import score
 from session.synthetic import level_record
 from session.writer import SessionRecorder
 from tests.session.test_recorder import INFO
-from tissue.phantom import parse_phantom
 from tissue.generator import StudyDistribution
+from tissue.phantom import parse_phantom
 
 # small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
 # harness (draws, executors, scoring), not the detector, which `make study` measures

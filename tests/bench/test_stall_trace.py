@@ -38,7 +38,8 @@ def test_a_kernel_worker_that_takes_the_cpu_is_named():
     trace = [
         runtime(10.0001, 100_000),
         switch(10.0001, PYTHON, WORKER, state="R"),
-        line("kworker/1:2", 7, 10.000105, "workqueue_execute_start", "work struct 00000000e61ea04c: function gc_worker"),
+        line("kworker/1:2", 7, 10.000105, "workqueue_execute_start",
+             "work struct 00000000e61ea04c: function gc_worker"),
         switch(10.003, WORKER, PYTHON, state="I"),
     ]
     [late] = attribute(trace, ticks((10.0, 0.0), (10.0030, 2.0e-3)))
@@ -54,7 +55,8 @@ def test_a_wakeup_timer_that_fires_late_on_an_idle_cpu_is_an_idle_wakeup():
         runtime(20.0001, 100_000),
         switch(20.0001, PYTHON, ("swapper/1", 0)),
         line("<idle>", 0, 20.0040, "local_timer_entry", "vector=236"),
-        line("<idle>", 0, 20.0040, "hrtimer_expire_entry", "hrtimer=00000000aa function=hrtimer_wakeup now=20004000000"),
+        line("<idle>", 0, 20.0040, "hrtimer_expire_entry",
+             "hrtimer=00000000aa function=hrtimer_wakeup now=20004000000"),
         line("<idle>", 0, 20.0040, "local_timer_exit", "vector=236"),
         # the kernel records no switch away from the idle task: the loop's next event says it runs again
         line("python", LOOP, 20.0045, "hrtimer_start", "hrtimer=00000000bb function=hrtimer_wakeup "

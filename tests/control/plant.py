@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from hardware.sim.plant import LayerPlant
 from control.config import ControlConfig
 from control.loop import ControlLoop
 from hardware.interfaces import MasterState, TactileConstraints
+from hardware.sim.plant import LayerPlant
 
 
 class Harness:

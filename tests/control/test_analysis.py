@@ -3,8 +3,14 @@
 import numpy as np
 import pytest
 
-from control.analysis import (NOISE_MIN_FRAMES, AirNoise, ContactTracker, PoseHistory, contact_thresholds,
-                              element_analysis)
+from control.analysis import (
+    NOISE_MIN_FRAMES,
+    AirNoise,
+    ContactTracker,
+    PoseHistory,
+    contact_thresholds,
+    element_analysis,
+)
 from control.config import ContactSettings
 
 A = 4e-6

@@ -9,8 +9,15 @@ import pytest
 
 from app.fastforward import FastForward
 from app.rigs import RigSpec, build_rig, plan_for_rig
-from control.autopilot import (ARRIVAL_TOLERANCE_M, Area, Autopilot, AutopilotError, AutopilotPlan, AutopilotState,
-                               plan_from_surface)
+from control.autopilot import (
+    ARRIVAL_TOLERANCE_M,
+    Area,
+    Autopilot,
+    AutopilotError,
+    AutopilotPlan,
+    AutopilotState,
+    plan_from_surface,
+)
 from control.config import ControlConfig, MasterMapping, RampSettings
 from control.messages import CancelJog, CommandRefused, EStop, Jog, LevelRecorded, RegionDone, SetRegion, SetSz
 from control.telemetry import empty_tick

@@ -6,8 +6,17 @@ import math
 
 from control.config import ControlConfig, ImpedanceGains, RampSettings
 from control.console_state import ConsoleState, fault_name
-from control.messages import (CommandApplied, CommandRefused, FaultCleared, FaultKind, FaultRaised, Jog, SetGains,
-                              SetRamp, SetSz)
+from control.messages import (
+    CommandApplied,
+    CommandRefused,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    Jog,
+    SetGains,
+    SetRamp,
+    SetSz,
+)
 from control.telemetry import empty_tick
 from hardware.interfaces import Phase
 

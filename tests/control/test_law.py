@@ -56,7 +56,8 @@ def test_force_control_on_a_linear_spring_settles_at_fd_with_the_predicted_respo
     t = np.arange(1, len(zs) + 1) * DT
     wn, zeta = math.sqrt(ks / m), b / (2 * math.sqrt(ks * m))
     wd = wn * math.sqrt(1 - zeta**2)
-    expected = -force / ks * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * t)))
+    ringing = np.cos(wd * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * t)
+    expected = -force / ks * (1 - np.exp(-zeta * wn * t) * ringing)
     np.testing.assert_allclose(zs, expected, atol=force / ks * 0.01)
     assert ks * -zs[-1] == pytest.approx(force, rel=1e-3)
 

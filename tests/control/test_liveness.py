@@ -7,7 +7,7 @@ import pytest
 from control.messages import FaultKind, FaultRaised, SetSz
 from hardware.interfaces import Phase, TactileFrame
 
-from .plant import Harness, LayerPlant
+from .plant import Harness
 
 
 def start_region(h):

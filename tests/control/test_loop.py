@@ -6,9 +6,27 @@ import numpy as np
 import pytest
 
 from control.config import ControlConfig, RampSettings, SafetyLimits
-from control.messages import (AbortRegion, CancelJog, ClearFault, CommandRefused, EStop, FaultCleared, FaultKind,
-                              FaultRaised, Jog, LevelRecorded, LevelTimedOut, Notice, PhaseChanged, RegionAborted,
-                              RegionDone, SetRamp, SetSz, SzChanged, Tare)
+from control.messages import (
+    AbortRegion,
+    CancelJog,
+    ClearFault,
+    CommandRefused,
+    EStop,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    Jog,
+    LevelRecorded,
+    LevelTimedOut,
+    Notice,
+    PhaseChanged,
+    RegionAborted,
+    RegionDone,
+    SetRamp,
+    SetSz,
+    SzChanged,
+    Tare,
+)
 from hardware.interfaces import Phase
 
 from .plant import Harness, LayerPlant
@@ -516,7 +534,8 @@ def test_a_sensor_too_noisy_to_tell_contact_is_refused():
     ({"contact": {"pose_history_s": 1e6}}, "contact.pose_history_s: must lie between 0 and 5"),
     ({"ramp": {"level_timeout_s": 1e300}}, "ramp.level_timeout_s: must lie between 0 and 120"),
     ({"ramp": {"settle_window_s": 1e300}}, "ramp.settle_window_s: must lie between 0 and 2"),
-    ({"safety": {"workspace_min_m": [-0.02, -0.02, -0.01]}}, "safety.workspace_min_m: its z -0.01 m lies below the table"),
+    ({"safety": {"workspace_min_m": [-0.02, -0.02, -0.01]}},
+     "safety.workspace_min_m: its z -0.01 m lies below the table"),
     ({"master": {"scale": 1e9}}, "master.scale: must lie between 0 and 100"),
 ])
 def test_settings_that_would_never_end_or_reach_the_table_are_refused(table, said):

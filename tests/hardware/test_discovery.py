@@ -3,21 +3,11 @@
 import threading
 
 import numpy as np
-import pytest
 
 from hardware import discovery
 from hardware.serial_tactile.emulator import SerialSensorEmulator
 from hardware.udp import SlaveServer, SlaveServerSettings
-from hardware.usb.emulator import EmulatedBackend, EmulatedDevice, InterfaceSpec, SpaceMouseDevice, UsbTactileDevice
 from tests.hardware.test_udp_link import Robot
-
-
-@pytest.fixture
-def bus():
-    keyboard = EmulatedDevice(0x046D, 0xC31C, [InterfaceSpec(0, 3)], manufacturer="Logitech", product="Keyboard")
-    locked = EmulatedDevice(0x256F, 0xC635, [InterfaceSpec(0, 3)], manufacturer="3Dconnexion", product="SpaceMouse")
-    locked.access_denied = True
-    return EmulatedBackend(UsbTactileDevice(), SpaceMouseDevice(product_id=0xC62E), keyboard, locked)
 
 
 def test_usb_devices_are_listed_with_the_role_they_could_play(bus):

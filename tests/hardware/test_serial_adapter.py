@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from control.config import ControlConfig
-
 from control.loop import ControlLoop
 from control.messages import FaultKind, FaultRaised
 from hardware.interfaces import ConnectionState, DeviceError, SlaveState
@@ -68,7 +67,7 @@ def test_frames_arrive_calibrated_tared_and_on_the_host_clock(emulator, sensor):
     assert sensor.connection == ConnectionState.CONNECTING
     for k in range(10):
         t = T0 + 0.01 * k
-        deliver(sensor, t + 0.002, lambda: emulator.send(pressure(k), t))
+        deliver(sensor, t + 0.002, lambda k=k, t=t: emulator.send(pressure(k), t))
         frame = sensor.latest()
         assert frame.seq == k
         # zeroed at the first frame; 24 Pa counts, so within half a count per element

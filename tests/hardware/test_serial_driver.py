@@ -8,10 +8,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hardware.interfaces import TactileConstraints
-from hardware.serial_tactile.calibration import (Calibration, CalibrationError, equilibrate, load_equilibration,
-                                                 save_equilibration)
+from hardware.serial_tactile.calibration import (
+    Calibration,
+    CalibrationError,
+    equilibrate,
+    load_equilibration,
+    save_equilibration,
+)
 from hardware.serial_tactile.clock import DeviceClock
-from hardware.serial_tactile.driver import (FLAG_OVERRUN, SYNC, FrameParser, crc16, encode_frame, frame_size)
+from hardware.serial_tactile.driver import FLAG_OVERRUN, SYNC, FrameParser, crc16, encode_frame, frame_size
 from hardware.serial_tactile.stream import TactileStream
 
 RNG = np.random.default_rng(7)

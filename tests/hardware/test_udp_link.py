@@ -15,13 +15,20 @@ from app.runtime import make_loop, run_tick
 from control.config import ControlConfig
 from control.loop import ControlLoop
 from control.messages import ClearFault, FaultCleared, FaultKind, FaultRaised
-from hardware.interfaces import (ConnectionState, DeviceError, SlaveConstraints, SlaveManipulator, SlaveState,
-                                 TactileConstraints)
+from hardware.interfaces import (
+    ConnectionState,
+    DeviceError,
+    SlaveConstraints,
+    SlaveManipulator,
+    SlaveState,
+    TactileConstraints,
+)
 from hardware.rig import Rig
 from hardware.settings import ConfigError
 from hardware.sim.rig import build_sim_rig
-from hardware.udp import SlaveServer, SlaveServerSettings, UdpLinkSettings, UdpSlaveLink, protocol as P
-from hardware.udp.relay import TO_MASTER, TO_SLAVE, FaultyRelay, Faults
+from hardware.udp import SlaveServer, SlaveServerSettings, UdpLinkSettings, UdpSlaveLink
+from hardware.udp import protocol as P
+from hardware.udp.relay import TO_MASTER, TO_SLAVE, Faults, FaultyRelay
 
 T0 = 100.0
 MS = 1e-3
@@ -565,7 +572,7 @@ def test_the_slave_holds_on_its_own_when_its_array_stops_reading_the_tissue(robo
             if k == at:
                 if lie == "repeat":
                     frozen = sensor.latest().pressure_pa.copy()
-                    sensor.reading = lambda pressure: frozen
+                    sensor.reading = lambda pressure, frozen=frozen: frozen
                 else:
                     sensor.reading = lie
             master.send(now, (HOME[0], HOME[1], max(robot.position[2] - 0.02 * MS, 0.0)))

@@ -6,8 +6,15 @@ import pytest
 from control.config import ControlConfig
 from control.loop import ControlLoop
 from control.messages import FaultKind, FaultRaised
-from hardware.interfaces import (ConnectionState, DeviceError, MasterFeedback, Phase, SlaveState, TactileConstraints,
-                                 TactileFrame)
+from hardware.interfaces import (
+    ConnectionState,
+    DeviceError,
+    MasterFeedback,
+    Phase,
+    SlaveState,
+    TactileConstraints,
+    TactileFrame,
+)
 from hardware.settings import ConfigError
 from hardware.usb.emulator import EmulatedBackend, SpaceMouseDevice
 from hardware.usb.spacemouse import ReportDecoder, SpaceMouseMaster, SpaceMouseSettings, pack_axes

@@ -64,7 +64,8 @@ def test_pyusb_sees_the_emulated_array_as_a_device():
     usb.util.dispose_resources(dev)
 
 
-@pytest.mark.parametrize("transfer", [usb.util.ENDPOINT_TYPE_BULK, usb.util.ENDPOINT_TYPE_INTR], ids=["bulk", "interrupt"])
+@pytest.mark.parametrize("transfer", [usb.util.ENDPOINT_TYPE_BULK, usb.util.ENDPOINT_TYPE_INTR],
+                         ids=["bulk", "interrupt"])
 def test_frames_arrive_calibrated_and_on_the_host_clock(transfer):
     device, _, sensor = make(transfer)
     sensor.open()
@@ -72,7 +73,7 @@ def test_frames_arrive_calibrated_and_on_the_host_clock(transfer):
         for k in range(5):
             t = T0 + 0.01 * k
             device.send(pressure(k), t)
-            until(sensor, t + 0.003, lambda: sensor.latest() is not None and sensor.latest().seq == k)
+            until(sensor, t + 0.003, lambda k=k: sensor.latest() is not None and sensor.latest().seq == k)
             assert np.allclose(sensor.latest().pressure_pa, pressure(k) - pressure(0), atol=QUANTUM)
             assert sensor.latest().t_s == pytest.approx(t + 0.003, abs=1e-5)
         assert sensor.connection == ConnectionState.CONNECTED

@@ -16,8 +16,8 @@ import tomli_w
 from app.config import load_config
 from app.recording import record_simulation
 from hardware.interfaces import TactileConstraints
-from tissue.phantom import PHANTOM_DIR, load_phantom
 from hardware.sim.rig import build_sim_rig
+from tissue.phantom import PHANTOM_DIR, load_phantom
 from tissue.winkler import WinklerTissue
 
 REGIONS_XY_M = ((0.012, 0.015), (0.018, 0.015), (0.036, 0.015))

@@ -10,8 +10,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from session.depth import (LIBRARY_PATH, DepthModel, DepthModelError, LibraryGrid, _block_solve, build_library,
-                             _kept_block_solve, load_library)
+from session.depth import (
+    LIBRARY_PATH,
+    DepthModel,
+    DepthModelError,
+    LibraryGrid,
+    _block_solve,
+    _kept_block_solve,
+    build_library,
+    load_library,
+)
 from session.detect import DepthParams
 
 PITCH = 2e-3

@@ -12,14 +12,23 @@ import numpy as np
 import pytest
 
 from session.analysis import SessionAnalysis
-from session.detect import (DetectError, DetectParams, Tumour, detect, evidence, evidence_by_width,
-                            match_ground_truth, significant_peaks, spots, threshold)
+from session.detect import (
+    DetectError,
+    DetectParams,
+    Tumour,
+    detect,
+    evidence,
+    evidence_by_width,
+    match_ground_truth,
+    significant_peaks,
+    spots,
+    threshold,
+)
 from session.flatfield import Reference, contrast
 from session.reader import open_session
-from tissue.face import element_offsets_m
 from session.synthetic import level_record
-
 from tests.session.test_stitch import PITCH, levels_of
+from tissue.face import element_offsets_m
 
 TUMOUR = (0.020, 0.015)
 FORCES = (1.0, 2.0, 3.0, 4.0)

@@ -12,7 +12,6 @@ import pytest
 from session.detect import detect
 from session.flatfield import FlatFieldError, Reference, contrast
 from session.synthetic import level_record
-
 from tests.session.test_hostile_files import refusal
 from tests.session.test_stitch import PITCH, levels_of
 

@@ -13,7 +13,6 @@ from control.messages import LevelRecorded
 from session.reader import open_session
 from session.synthetic import level_record
 from session.writer import SessionRecorder
-
 from tests.session.test_reader import _drop_columns
 from tests.session.test_recorder import INFO
 

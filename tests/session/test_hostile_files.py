@@ -20,7 +20,6 @@ from session.format import TABLES
 from session.reader import open_session
 from session.synthetic import frame_rows, level_record, tick_rows
 from session.writer import SessionRecorder
-
 from tests.session.test_recorder import INFO
 
 REPO = Path(__file__).resolve().parents[2]

@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from session.depth import DepthModel
 from session.analysis import AnalysisParams, SessionAnalysis
+from session.depth import DepthModel
 from session.detect import DepthParams, DetectParams
 from session.flatfield import Reference
 from session.info import SessionInfo

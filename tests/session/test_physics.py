@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from session.physics import BlockResponse, _block_compliance, measured_surface
-from tissue.mechanics.model import FiniteStrain
 from session.synthetic import level_record
 from tests.session.test_stitch import levels_of
+from tissue.mechanics.model import FiniteStrain
 
 PITCH = 2e-3
 BASE_M, RIDGE_M = 0.020, 0.023

@@ -16,7 +16,6 @@ from session.reader import SessionFileError, open_session
 from session.stitch import StitchError, StitchParams, stitch_session
 from session.synthetic import level_record, tick_rows
 from session.writer import SessionRecorder
-
 from tests.session.test_recorder import INFO
 
 

@@ -20,18 +20,15 @@ import pytest
 from app.config import load_config
 from app.recording import session_info
 from app.rigs import build_rig
-from control.messages import (FaultKind, FaultRaised, LevelRecorded, Notice, PhaseChanged, RegionDone, Source,
-                              SzChanged)
+from control.messages import FaultKind, FaultRaised, LevelRecorded, Notice, PhaseChanged, RegionDone, Source, SzChanged
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from hardware.interfaces import Phase, TactileConstraints
 from session import writer as recorder_module
 from session.format import EVENT_DTYPE, FORMAT_NAME, FORMAT_VERSION, LEVEL_DTYPE, OVERVIEW_BUCKET_ROWS, EventKind
-from session.info import new_session_path
-from session.info import SessionInfo, calibration_of, sessions_dir
+from session.info import SessionInfo, calibration_of, new_session_path, sessions_dir
 from session.reader import open_session
 from session.synthetic import frame_rows, level_record, tick_rows
 from session.writer import RecorderError, SessionRecorder
-
 from tests.session.conftest import RAMP, REGIONS_XY_M
 
 REPO = Path(__file__).resolve().parents[2]

@@ -17,12 +17,11 @@ from session.reader import open_session
 from session.stitch import L0Source, StitchParams
 from session.synthetic import level_record, tick_rows
 from session.writer import SessionRecorder
-from widgets.review import RecentSessions, ReviewWindow
-from widgets.tactile_map import TactileMapWidget
-
 from tests.session.test_hostile_files import claiming, small_session
 from tests.session.test_reader import sha256
 from tests.session.test_recorder import INFO
+from widgets.review import RecentSessions, ReviewWindow
+from widgets.tactile_map import TactileMapWidget
 
 
 @pytest.fixture

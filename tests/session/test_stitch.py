@@ -7,8 +7,15 @@ import pytest
 
 from session.format import LEVEL_DTYPE, level_row
 from session.reader import open_session
-from session.stitch import (L0Source, StitchError, StitchParams, level_groups, recompute_stiffness, stitch,
-                                stitch_session)
+from session.stitch import (
+    L0Source,
+    StitchError,
+    StitchParams,
+    level_groups,
+    recompute_stiffness,
+    stitch,
+    stitch_session,
+)
 from session.synthetic import level_record
 
 PITCH = 2e-3

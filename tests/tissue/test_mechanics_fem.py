@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-from tissue.mechanics.fem import (HexGrid, assemble_sparse, condensed_surface_stiffness, element_stiffness,
-                                        graded_levels, table_dofs, top_dofs)
+from tissue.mechanics.fem import (
+    HexGrid,
+    assemble_sparse,
+    condensed_surface_stiffness,
+    element_stiffness,
+    graded_levels,
+    table_dofs,
+    top_dofs,
+)
 
 
 def homogeneous(young=20e3, nu=0.49):

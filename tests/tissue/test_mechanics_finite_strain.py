@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from hardware.interfaces import TactileConstraints
 from tissue.mechanics.fem import HexGrid, assemble_sparse, graded_levels
 from tissue.mechanics.finite_strain import HyperelasticBlock, corner_gap, homogeneous, punch
-from hardware.interfaces import TactileConstraints
 from tissue.mechanics.model import FIT_STRAIN, ContinuumTissue, FiniteStrain, MeshSettings, compressed_material
 from tissue.phantom import Hyperelastic, parse_phantom
 

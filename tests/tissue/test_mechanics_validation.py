@@ -9,8 +9,7 @@ see tissue/mechanics/reference.py. The configuration is the paper's: the TSI's 8
 import numpy as np
 import pytest
 
-from tissue.mechanics.reference import (layer_kernel, layer_kernel_ode, pais_kausel_stiffness,
-                                              rect_punch_stiffness)
+from tissue.mechanics.reference import layer_kernel, layer_kernel_ode, pais_kausel_stiffness, rect_punch_stiffness
 from tissue.mechanics.validation import layer_punch_fe_stiffness
 
 E, H, SIZE = 20e3, 0.025, (0.008, 0.030)

@@ -119,7 +119,8 @@ def test_the_content_hash_follows_the_content_only():
     # parser alone more than 15 min)
     (base(length_m=1e-9), "phantom.length_m", "at least 0.004"),
     (base(youngs_modulus_pa=1e-300), "phantom.youngs_modulus_pa", "at least 100"),
-    (base(inclusions=[sphere(depth_m=0.005)] * 3000), "phantom.inclusions", "3000 of them; a bench phantom has at most 20"),
+    (base(inclusions=[sphere(depth_m=0.005)] * 3000), "phantom.inclusions",
+     "3000 of them; a bench phantom has at most 20"),
     (base(surface=[{"kind": "slope", "x_range_m": [0, 0.01], "gradient": [0, 0]}] * 4000), "phantom.surface",
      "at most 20"),
 ])

@@ -14,8 +14,21 @@ from PySide6 import QtCore, QtWidgets
 
 from control.autopilot import Area, AutopilotPlan
 from control.config import ControlConfig, RampSettings, SafetyLimits
-from control.messages import (ClearFault, CommandApplied, CommandRefused, EStop, FaultCleared, FaultKind,
-                              FaultRaised, Jog, LevelRecord, LevelRecorded, Notice, SetRamp, SetSz)
+from control.messages import (
+    ClearFault,
+    CommandApplied,
+    CommandRefused,
+    EStop,
+    FaultCleared,
+    FaultKind,
+    FaultRaised,
+    Jog,
+    LevelRecord,
+    LevelRecorded,
+    Notice,
+    SetRamp,
+    SetSz,
+)
 from control.telemetry import LiveSnapshot, LoopHealth, empty_frame, empty_tick
 from hardware.interfaces import Phase, TactileConstraints
 from widgets.flowchart import LevelLadder
@@ -395,7 +408,8 @@ def test_invalid_ramp_is_refused_with_the_reason_and_never_sent(qtbot, window, c
     qtbot.mouseClick(apply, QtCore.Qt.MouseButton.LeftButton)
     assert controller.sent == [SetRamp(RampSettings(force_min_N=2.0, rmse_threshold_N=0.1))]
     status = label(window, "rampStatus")
-    push(controller, make_tick(), events=[CommandRefused(1.0, controller.sent[-1], "settings can change only between regions")])
+    push(controller, make_tick(),
+         events=[CommandRefused(1.0, controller.sent[-1], "settings can change only between regions")])
     assert status.text() == "Not applied — the controller refused: settings can change only between regions"
     assert window.findChild(LevelLadder, "levelLadder").forces() == [1, 2, 3, 4, 5, 6, 7]
 
@@ -781,7 +795,8 @@ def test_the_live_maps_show_the_frame_flat_fielded_with_its_significant_spot_cir
     assert not pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
     assert pressure.findChild(QtWidgets.QDoubleSpinBox, "levelMax").isHidden()  # no kPa beside a % map
     plot = pressure.findChild(QtWidgets.QGraphicsView, "plot")
-    text_item = next(i for i in plot.scene().items() if isinstance(i, QtCore.QObject) and i.objectName() == "noDataText")
+    text_item = next(i for i in plot.scene().items()
+                     if isinstance(i, QtCore.QObject) and i.objectName() == "noDataText")
     assert text_item.isVisible() and text_item.textItem.toPlainText() == NO_CONTRAST_TEXT
     for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
         events = [LevelRecorded(10.0 * region + k, record(region, k, f, x)) for k, f in enumerate((1.0, 2.0, 3.0))]

@@ -122,7 +122,8 @@ def record(x_m, level, force_N, stiffness_pa=40e3, region=0):
     return LevelRecord(region=region, level=level, t_s=float(level), force_desired_N=force_N,
                        force_measured_N=force_N, rmse_N=0.01, settle_time_s=0.5,
                        tsi_position_m=(x_m, 0.015, 0.024), indentation_m=1e-3, pressure_pa=p,
-                       pressure_std_pa=np.full((4, 15), 50.0), window_frames=30, element_force_N=p * 4e-6, onset_height_m=np.full((4, 15), 0.025),
+                       pressure_std_pa=np.full((4, 15), 50.0), window_frames=30, element_force_N=p * 4e-6,
+                       onset_height_m=np.full((4, 15), 0.025),
                        L0_m=np.full((4, 15), 0.025), dL_m=np.full((4, 15), 1e-3),
                        stiffness_pa=np.full((4, 15), stiffness_pa))
 

@@ -5,8 +5,15 @@ import pytest
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from widgets.colormaps import CONTOUR_COLORMAP, CONTOUR_LUT, NO_DATA_RGB
-from widgets.tactile_map import (UPSAMPLE, TactileMapWidget, ViewMode, auto_levels, cubic_upsampling_matrix,
-                                 iso_segments, nice_step)
+from widgets.tactile_map import (
+    UPSAMPLE,
+    TactileMapWidget,
+    ViewMode,
+    auto_levels,
+    cubic_upsampling_matrix,
+    iso_segments,
+    nice_step,
+)
 
 ROWS, COLS = 4, 15
 

@@ -220,7 +220,7 @@ class _Substructurer:
     def _build(self, lo, hi) -> _Box:
         box = _Box(lo, hi)
         box.keep = self._boundary(lo, hi)
-        sizes = [h - l for l, h in zip(lo, hi)]
+        sizes = [h - low for low, h in zip(lo, hi)]
         nodes = np.prod([s + 1 for s in sizes])
         if 3 * nodes > self.leaf_dofs:
             # Cut across the axis whose separator (a plane of nodes) is smallest.
@@ -234,7 +234,7 @@ class _Substructurer:
                 axis = best[1]
                 mid = lo[axis] + sizes[axis] // 2
                 hi1 = tuple(mid if a == axis else h for a, h in enumerate(hi))
-                lo2 = tuple(mid if a == axis else l for a, l in enumerate(lo))
+                lo2 = tuple(mid if a == axis else low for a, low in enumerate(lo))
                 box.children = (self._build(lo, hi1), self._build(lo2, hi))
         n_all = (len(self._box_dofs(lo, hi)) if box.children is None
                  else len(np.union1d(box.children[0].keep, box.children[1].keep)))

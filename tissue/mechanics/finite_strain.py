@@ -38,11 +38,11 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from tissue.mechanics.fem import _REF, HexGrid, MaterialFn, element_dofs, graded_levels, table_dofs
 from tissue.mechanics.contact import tributary_weights
+from tissue.mechanics.fem import _REF, HexGrid, MaterialFn, element_dofs, graded_levels, table_dofs
 from tissue.mechanics.progress import Progress
-from tissue.phantom import Hyperelastic
 from tissue.mechanics.validation import graded_line
+from tissue.phantom import Hyperelastic
 
 
 def _cofactor(f):

@@ -62,10 +62,10 @@ import numpy as np
 from tissue.face import Face
 from tissue.mechanics import cache as cache_mod
 from tissue.mechanics.contact import contact_path, tributary_weights
-from tissue.mechanics.fem import (HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs,
-                                        wall_dofs)
+from tissue.mechanics.fem import HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs, wall_dofs
 from tissue.mechanics.progress import Progress, stage
-from tissue.mechanics.workers import Job, run as run_jobs, usable_cores
+from tissue.mechanics.workers import Job, usable_cores
+from tissue.mechanics.workers import run as run_jobs
 from tissue.phantom import Phantom
 
 log = logging.getLogger(__name__)

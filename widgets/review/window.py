@@ -81,7 +81,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._physics_factories = dict(physics or {})
-        self._physics: dict[str, Physics | None] = {}  # per option, for the open session (a solve when new)
+        self._physics: dict[str, HomogeneousTissue | None] = {}  # per option, for the open session (a solve when new)
         self._depth_factory = depth_model
         self._depth_model: tuple[DepthModel | None, str] | None = None  # for the open session, and any problem
         self._reference: Reference | None = None

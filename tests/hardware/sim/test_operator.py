@@ -6,10 +6,10 @@ import pytest
 from hardware.interfaces import ConnectionState, MasterFeedback, Phase
 from hardware.settings import ConfigError
 from hardware.sim.operator import ScriptedOperator
-from tissue.phantom import load_phantom, parse_phantom
 from hardware.sim.settings import OperatorSimSettings, SimSettings
-from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
+from tissue.phantom import load_phantom, parse_phantom
+from tissue.winkler import WinklerTissue
 
 T0 = 12.0
 MS = 1e-3

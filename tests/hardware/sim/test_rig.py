@@ -7,11 +7,11 @@ from hardware.interfaces import ConnectionState, TactileConstraints
 from hardware.rig import Rig
 from hardware.settings import ConfigError
 from hardware.sim.operator import ScriptedOperator
-from tissue.phantom import PhantomError, load_phantom, parse_phantom
 from hardware.sim.rig import build_sim_rig
 from hardware.sim.robot import SimSlave
 from hardware.sim.sensor import SimTactileSensor
 from hardware.sim.settings import SimSettings
+from tissue.phantom import PhantomError, load_phantom, parse_phantom
 from tissue.winkler import WinklerTissue
 
 T0 = 1000.0

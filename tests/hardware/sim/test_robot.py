@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from hardware.interfaces import ConnectionState, DeviceError
-from tissue.phantom import load_phantom
 from hardware.sim.robot import SimSlave
 from hardware.sim.settings import RobotSimSettings, SimSettings
-from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
+from tissue.phantom import load_phantom
+from tissue.winkler import WinklerTissue
 
 T0 = 250.0  # a host-clock-like start, so nothing relies on time starting at zero
 MS = 1e-3

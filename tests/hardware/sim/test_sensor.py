@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from hardware.interfaces import ConnectionState, DeviceError, TactileConstraints
-from tissue.phantom import load_phantom
 from hardware.sim.sensor import SimTactileSensor
 from hardware.sim.settings import SensorSimSettings, SimSettings
-from tissue.winkler import WinklerTissue
 from hardware.sim.world import SimWorld
+from tissue.phantom import load_phantom
+from tissue.winkler import WinklerTissue
 
 T0 = 40.0
 MS = 1e-3
