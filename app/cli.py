@@ -46,6 +46,18 @@ def sensor_choice(text: str) -> dict:
     raise argparse.ArgumentTypeError(f"{text!r} is not one of {SENSOR_FLAG} (e.g. serial:/dev/ttyACM0)")
 
 
+def seconds(text: str) -> float:
+    """A duration option: a finite number of seconds, more than none and at most a day (nan was taken, and
+    a screenshot never came, a simulation never ended)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0.0 < value <= 86400.0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 and at most 86400 s (a day), got {text}")
+    return value
+
+
 def config_overrides(args) -> dict:
     """The command line's flags as overrides of the configuration files' keys."""
     from hardware.settings import ConfigError
@@ -146,6 +158,8 @@ def cmd_run(args) -> int:
     from app.gui import run_gui
 
     problem = display_problem()
+    if args.screenshot is not None and not Path(args.screenshot).resolve().parent.is_dir():
+        problem = f"--screenshot {args.screenshot}: the folder {Path(args.screenshot).resolve().parent} does not exist"
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
@@ -224,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f"the tactile array: {SENSOR_FLAG}; udp (default) is forwarded by the slave; "
                       "other [hardware.sensor] keys of the config (calibration, baud, ...) are kept")
     run.add_argument("--screenshot", metavar="PNG", help="save the window to PNG after --screenshot-after-s, then quit")
-    run.add_argument("--screenshot-after-s", type=float, default=10.0, metavar="SECONDS",
+    run.add_argument("--screenshot-after-s", type=seconds, default=10.0, metavar="SECONDS",
                      help="how long after the window opens --screenshot is taken (default 10)")
     run.set_defaults(func=cmd_run)
 
@@ -232,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "the session", parents=[config_after])
     sim.add_argument("--phantom", help="a shipped phantom's name (flat, uneven) or a TOML file")
     sim.add_argument("--seed", type=int, help="random seed of the simulated sensor")
-    sim.add_argument("--max-time-s", type=float, default=600.0, help="give up after this much simulated time")
+    sim.add_argument("--max-time-s", type=seconds, default=600.0, help="give up after this much simulated time")
     sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
     sim.add_argument("--no-record", action="store_true",
                      help="do not record the session (by default it goes to a new file in the sessions folder, "

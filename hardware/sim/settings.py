@@ -136,6 +136,10 @@ class RobotSimSettings(Settings):
         for name in ("bandwidth_hz", "damping_ratio", "max_speed_m_s", "max_accel_m_s2", "rate_hz"):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
         bounded("damping_ratio", self.damping_ratio, hi=2.0, why="an inner loop is not tuned that sluggish")
+        # (1e300 Hz was accepted, and the integration raised a traceback)
+        bounded("bandwidth_hz", self.bandwidth_hz, 0.5, 200.0, "a robot arm's Cartesian position loop")
+        bounded("max_speed_m_s", self.max_speed_m_s, hi=2.0, why="a palpation robot near tissue")
+        bounded("max_accel_m_s2", self.max_accel_m_s2, hi=100.0, why="a robot arm's, not a shaker's")
         bounded("rate_hz", self.rate_hz, hi=10e3, why="encoder readings are polled by a 1 kHz loop")
         lo = vec3("workspace_min_m", self.workspace_min_m)
         hi = vec3("workspace_max_m", self.workspace_max_m)
@@ -197,7 +201,8 @@ class SimSettings(Settings):
             if not isinstance(getattr(self, name), kind):
                 raise ConfigError(name, f"must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
         substep = positive("substep_s", self.substep_s)
-        bounded("substep_s", substep, hi=1e-3, why="the world must be integrated at 1 kHz or finer")
+        # 1e-300 s never got through a second of the world
+        bounded("substep_s", substep, 1e-5, 1e-3, "the world is integrated at 1 to 100 kHz")
         if self.tissue not in TISSUE_MODELS:
             raise ConfigError("tissue", f"unknown tissue model {self.tissue!r} (known: {', '.join(TISSUE_MODELS)})")
         if not isinstance(self.finite_strain, bool):

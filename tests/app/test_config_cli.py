@@ -222,3 +222,23 @@ def test_run_without_a_display_says_what_to_do_before_building_anything(monkeypa
     monkeypatch.delenv("QT_QPA_PLATFORM")
     monkeypatch.setenv("DISPLAY", ":99")
     assert display_problem() == ""
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["run", "--screenshot-after-s", "nan"], "argument --screenshot-after-s: must be more than 0"),
+    (["simulate", "--max-time-s", "nan"], "argument --max-time-s: must be more than 0"),
+    (["simulate", "--max-time-s", "-1"], "argument --max-time-s: must be more than 0"),
+])
+def test_durations_that_never_end_are_refused_in_one_line(argv, said, capsys):
+    """Issue 49: nan was taken, and a screenshot never came, a simulation never ended."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_a_screenshot_into_a_missing_folder_is_refused_before_anything_runs(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")
+    monkeypatch.setattr("app.rigs.prepare_rig", lambda *_: pytest.fail("the tissue model was built first"))
+    assert main(["run", "--screenshot", str(tmp_path / "nowhere" / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --screenshot ") and "does not exist" in err and err.count("\n") == 1

@@ -78,6 +78,10 @@ def test_a_config_with_hardware_tables_drives_the_slave_and_a_serial_sensor(tmp_
     ("[hardware.robot]\nx = 1\n", "hardware.robot", "unknown table"),
     ("[sim.sensor]\nnoise_std_pa = -1\n", "sim.sensor.noise_std_pa", ">= 0"),
     ("[sim]\nsubstep = 0.001\n", "sim.substep", "unknown key"),
+    # issue 49: tracebacks from the world's integration before
+    ("[sim.robot]\nbandwidth_hz = 1e300\n", "sim.robot.bandwidth_hz", "between 0.5 and 200"),
+    ("[sim]\nsubstep_s = 1e-300\n", "sim.substep_s", "between 1e-05 and 0.001"),
+    ("[sim.sensor]\nmodel = \"perfect\"\n", "sim.sensor.model", "one of ideal, realistic"),
     ("[rig]\nbackend = \"ethercat\"\n", "rig.backend", "unknown backend 'ethercat' (known: sim, udp)"),
 ])
 def test_bad_hardware_and_sim_keys_are_refused_at_load_time_naming_file_and_key(tmp_path, text, key, problem):
