@@ -1,7 +1,8 @@
 """The controller process: the 1 kHz loop in a process of its own, and the parent-side handle to it.
 
 Why a process: PySide releases and retakes the GIL around nearly every Qt call, so a control thread in
-the GUI process misses its period whenever pyqtgraph paints (see DESIGN.md, "One tick, one process").
+the GUI process misses its period whenever pyqtgraph paints (measured in docs/performance.md, "The 1 kHz
+loop's real time").
 
 Channels between the two sides:
 

@@ -7,7 +7,9 @@ APPROACH (S_z = 1, the operator positions the TSI above an area)
      eps and the level has lasted the minimum settle time, record the level (pressure and force per
      element averaged over the window and each element's scatter over it, L0, dL, stiffness, TSI
      indentation) and go to level k + 1
-  -> after the F_max level: set "region done" and RETRACT (S_z = 1, lift the TSI) -> DONE
+  -> after the F_max level, or earlier when the next level would press an element near the pressure ceiling
+     (the ramp capped: every level so far kept, the cap recorded with "region done"): set "region done" and
+     RETRACT (S_z = 1, lift the TSI) -> DONE
 A level that does not settle within the level timeout, a seek that finds no tissue, or an operator abort
 ends the region without "region done" (RETRACT -> APPROACH). A fault (from the safety supervisor) goes to
 HOLD from any phase and stays there until the operator clears it.

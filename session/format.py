@@ -24,10 +24,11 @@ it for readers outside Python; :mod:`session.writer` writes it, :mod:`session.re
     /events                 EVENT_DTYPE: one row per event, kinds in EventKind; a cleanly closed file ends
                             with one "closed" row
 
-/stream/ticks, /levels and /events carry ``notes_json`` (what a column means where its name cannot say: that
-``missed_ticks`` is a running total, that regions and levels count from 0 where the console shows them from 1),
-and /stream/ticks and /events ``codes_json``, the name of every code of their coded integer columns
-(:data:`TICK_CODES`; for /events per kind, :data:`EVENT_CODES`).
+Every dataset carries ``description`` (one line: what a row is); /stream/overview carries ``bucket_rows``
+(:data:`OVERVIEW_BUCKET_ROWS`). /stream/ticks, /levels and /events carry ``notes_json`` (what a column means
+where its name cannot say: that ``missed_ticks`` is a running total, that regions and levels count from 0
+where the console shows them from 1), and /stream/ticks and /events ``codes_json``, the name of every code of
+their coded integer columns (:data:`TICK_CODES`; for /events per kind, :data:`EVENT_CODES`).
 
 Text attributes are fixed-length UTF-8 strings. Every dataset is 1-D, chunked, resizable, appended in blocks,
 byte-shuffled, deflated (level 1) and Fletcher-32 checksummed, all of it built into every HDF5, so any HDF5

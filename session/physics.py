@@ -315,8 +315,8 @@ class BlockResponse(HomogeneousTissue):
         the live maps' newest area read its far edge as a tumour after four of the flat phantom's first
         eight areas (z 6-10); taken to go on by 4 mm more on every side, as often (the free end's effect
         reaches further into 20 mm of tissue), and at the tissue's real end the face's other edge read as
-        one. The README's "live findings" and docs/session-format.md ``--physics partial`` say what this
-        costs and gains on the validation study's phantoms."""
+        one. docs/validation.md, "Live findings on part of a tissue", says what this costs and gains on
+        the validation study's phantoms."""
         modes = []
         rows, cols = self.shape
         reach = ((self.block.length_m, rows * self.pitch_m), (self.block.width_m, cols * self.pitch_m))

@@ -6,7 +6,7 @@ created first, then SWMR is switched on, after which HDF5 orders its metadata wr
 disk is consistent at every instant (that is what lets a reader follow a live file; it also means a file
 left by a killed process opens). The writer flushes every ``flush_interval_s``, so a ``kill -9`` loses at
 most that much plus what was still queued. Such a file carries HDF5's "open for writing" mark, which
-readers without SWMR refuse: :mod:`app.session.reader` opens it in SWMR-read mode, without modifying it.
+readers without SWMR refuse: :mod:`session.reader` opens it in SWMR-read mode, without modifying it.
 Metadata is checksummed throughout and there is no variable-length data (whose unchecked global heap can
 send HDF5 into an endless loop), so a damaged file gives read errors, not hangs.
 
