@@ -136,7 +136,8 @@ def test_every_dataset_column_is_on_the_page_as_the_code_has_it():
             f"{PAGE.name}, /{dataset}: the columns differ from the code's "
             f"(missing {sorted(set(dtype.names) - {p[0] for p in page})}, "
             f"not in the code {sorted({p[0] for p in page} - set(dtype.names))}); as the code has them:\n{skeleton}")
-        assert page == expected, f"{PAGE.name}, /{dataset}: type, shape or unit differ; as the code has them:\n{skeleton}"
+        assert page == expected, (
+            f"{PAGE.name}, /{dataset}: type, shape or unit differ; as the code has them:\n{skeleton}")
         empty = [r[0] for r in rows if len(r) < 5 or not r[4]]
         assert not empty, f"{PAGE.name}, /{dataset}: no description for {empty}"
 
@@ -148,7 +149,8 @@ def test_the_attributes_are_those_a_written_file_carries(tmp_path):
         page.setdefault(unquote(row[0]), set()).add(unquote(row[1]))
         assert len(row) >= 3 and row[2], f"{PAGE.name}: no description for attribute {row[1]} of {row[0]}"
     written = written_attributes(tmp_path)
-    assert page == written, f"{PAGE.name}: the attributes differ from a written file's:\n  page    {page}\n  written {written}"
+    assert page == written, (
+        f"{PAGE.name}: the attributes differ from a written file's:\n  page    {page}\n  written {written}")
     docstring = fmt.__doc__
     unnamed = sorted({name for names in written.values() for name in names
                       if not re.search(rf"\b{re.escape(name)}\b", docstring)})
@@ -166,7 +168,8 @@ def test_event_kinds_codes_and_versions_are_the_codes():
     assert codes == expected, f"{PAGE.name}: coded columns differ from TICK_CODES; as the code has them:\n" + "\n".join(
         f"| `{c}` | {t} |" for c, t in expected.items())
 
-    added = {("/" + unquote(r[0]).lstrip("/"), unquote(r[1])): int(r[2]) for r in table_under(all_tables, "Columns added")}
+    added = {("/" + unquote(r[0]).lstrip("/"), unquote(r[1])): int(r[2])
+             for r in table_under(all_tables, "Columns added")}
     assert added == {("/" + d, c): v for (d, c), v in fmt.ADDED_COLUMNS.items()}, f"{PAGE.name}: added columns differ"
 
     part = checked_part()
@@ -185,7 +188,8 @@ def test_the_checked_layout_names_nothing_the_code_does_not_have(tmp_path):
     known |= {suffix for suffix, _ in UNITS}  # the page explains the naming convention
     unknown = sorted({token for token in re.findall(r"`([^`]+)`", checked_part())
                       if token not in known and not (REPO / token).exists()})
-    assert not unknown, f"{PAGE.name} names what session/format.py does not have (or a path that does not exist): {unknown}"
+    assert not unknown, (
+        f"{PAGE.name} names what session/format.py does not have (or a path that does not exist): {unknown}")
 
 
 if __name__ == "__main__":  # the tables as the code has them now, descriptions to fill in
