@@ -26,7 +26,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -35,14 +35,15 @@ import tomli_w
 
 from hardware.settings import ConfigError, read_toml
 from session.scoring import case_failures, print_summary, score
-from tissue.generator import StudyDistribution, draw_phantom, surface_kind
+from tissue.generator import StudyDistribution, draw_conditions, draw_phantom, surface_kind
 
 # ---- one case ------------------------------------------------------------------------------------------
 
 # The worlds a study palpates in, as the settings every case's rig is built with. "ideal": the analysis and the
 # simulator share the mechanics, and the array's only fast error is white noise. "realistic": the array has
-# the errors a real capacitive array has (hardware/sim/settings.py, SENSOR_MODELS), which the analysis does
-# not know of.
+# the errors a real capacitive array has (hardware/sim/settings.py, SENSOR_MODELS), and each phantom is
+# palpated under conditions drawn for it (tissue.generator.draw_conditions: law, sides, micro-relief, probe
+# tilt); the analysis knows of none of it.
 WORLDS: dict[str, dict[str, Any]] = {
     "ideal": {"sim": {"sensor": {"model": "ideal"}}},
     "realistic": {"sim": {"sensor": {"model": "realistic"}}},
@@ -59,6 +60,7 @@ class StudyCase:
     paper: bool = False  # one of the paper's two phantoms
     tissue: str = "continuum"  # the simulator's tissue model (hardware.sim.settings.TISSUE_MODELS)
     world: str = "ideal"  # WORLDS
+    conditions: dict[str, Any] = field(default_factory=dict)  # what the realistic world drew for this case
 
 
 def ramp_for(phantom: dict[str, Any]) -> float:
@@ -75,20 +77,30 @@ def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution 
                 **overrides) -> list[StudyCase]:
     """``n`` phantoms drawn with ``seed`` (the same seed gives the same study), then the paper's two."""
     rng = np.random.default_rng(seed)
+    realistic = overrides.get("world") == "realistic"
     cases = []
     for k in range(n):
         name = f"s{seed}-{k:04d}"
         phantom = draw_phantom(rng, name, dist)
-        cases.append(StudyCase(name, phantom, int(rng.integers(2**31)), int(rng.integers(2**31)),
-                               **{"force_max_N": ramp_for(phantom), **overrides}))
+        force_max = ramp_for(phantom)  # as the operator would choose it, not knowing the conditions
+        case = StudyCase(name, phantom, int(rng.integers(2**31)), int(rng.integers(2**31)),
+                         **{"force_max_N": force_max, **overrides})
+        # their own stream: both worlds palpate the same phantoms with the same seeds
+        cases.append(_under_conditions(case, np.random.default_rng([seed, k])) if realistic else case)
     if paper:
         from tissue.phantom import PHANTOM_DIR
 
-        for name in ("flat", "uneven"):
+        for i, name in enumerate(("flat", "uneven")):
             data = read_toml(PHANTOM_DIR / f"{name}.toml", "phantom file")
-            cases.append(StudyCase(f"paper-{name}", data, rig_seed=seed, sensor_seed=0, paper=True,
-                                   **{k: v for k, v in overrides.items() if k != "force_max_N"}))
+            case = StudyCase(f"paper-{name}", data, rig_seed=seed, sensor_seed=0, paper=True,
+                             **{k: v for k, v in overrides.items() if k != "force_max_N"})
+            cases.append(_under_conditions(case, np.random.default_rng([seed, n + i])) if realistic else case)
     return cases
+
+
+def _under_conditions(case: StudyCase, rng: np.random.Generator) -> StudyCase:
+    phantom, conditions = draw_conditions(rng, case.phantom, paper=case.paper)
+    return replace(case, phantom=phantom, conditions=conditions)
 
 
 def analysis_options(**given) -> dict[str, Any]:
@@ -138,7 +150,8 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     phantom_path.write_text(tomli_w.dumps(case.phantom), encoding="utf-8")
     config = load_config(None, merge_tables(merge_tables(settings, WORLDS[case.world]), {
         "rig": {"backend": "sim", "phantom": str(phantom_path), "seed": case.rig_seed},
-        "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue},
+        "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue,
+                "probe_tilt_deg": list(case.conditions.get("probe_tilt_deg", (0.0, 0.0)))},
         "control": {"ramp": {"force_max_N": case.force_max_N}}}))
     started = time.perf_counter()
     phantom = load_phantom(phantom_path)
@@ -181,7 +194,22 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
             "truths": truths, "matches": [asdict(m) for m in analysis.matches],
             "false_positives": analysis.false_positives,
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
+            "conditions": _conditions_of(session),
         }
+
+
+def _conditions_of(session) -> dict[str, Any]:
+    """What the realistic world drew for a case (tissue.generator.draw_conditions), as its session recorded
+    it; empty for a case of the ideal world."""
+    table = (session.phantom or {}).get("phantom", {})
+    relief = [f for f in table.get("surface", []) if isinstance(f, dict) and f.get("kind") == "relief"]
+    if not relief:
+        return {}
+    material = table.get("material", {})
+    return {"law": material.get("law", "neo_hookean"), "c2_over_c1": material.get("c2_over_c1", 0.0),
+            "c3_over_c1": material.get("c3_over_c1", 0.0), "sides": table.get("sides", "free"),
+            "relief_rms_m": relief[0]["rms_m"], "relief_wavelength_m": relief[0]["wavelength_m"],
+            "probe_tilt_deg": list((session.config.get("sim") or {}).get("probe_tilt_deg", [0.0, 0.0]))}
 
 
 def _areas_started(session) -> int:
@@ -230,11 +258,21 @@ def kept_cases(folder: Path) -> list[KeptCase]:
             if not toml.exists():
                 continue  # not a case of a study (a session put there by hand)
             raise ConfigError("--reanalyse", f"cannot read the phantom {toml}: {err.problem}") from None
-        cases.append(KeptCase(session.stem, phantom, str(session), phantom in paper))
+        cases.append(KeptCase(session.stem, phantom, str(session), _without_conditions(phantom) in paper))
     if not cases:
         raise ConfigError("--reanalyse", f"{folder} holds no kept study case (NAME.h5 beside NAME.toml); "
                                          "a study keeps them unless run with --no-sessions")
     return cases
+
+
+def _without_conditions(phantom: dict[str, Any]) -> dict[str, Any]:
+    """A phantom file's content without what the realistic world adds (tissue.generator.draw_conditions)."""
+    table = {k: v for k, v in phantom.get("phantom", {}).items() if k not in ("material", "sides")}
+    if "surface" in table:
+        table["surface"] = [f for f in table["surface"] if not (isinstance(f, dict) and f.get("kind") == "relief")]
+        if not table["surface"]:
+            del table["surface"]
+    return {**phantom, "phantom": table}
 
 
 def reanalyse_case(case: KeptCase, analysis: dict[str, Any]) -> dict[str, Any]:

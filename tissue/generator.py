@@ -118,8 +118,59 @@ def _room_around_tumours(phantom, dist: StudyDistribution) -> bool:
 
 
 def surface_kind(phantom: dict[str, Any]) -> str:
-    """Which of :data:`SURFACES` a phantom file's table has (a drawn phantom's features are all of one kind)."""
-    features = phantom["phantom"].get("surface", [])
+    """Which of :data:`SURFACES` a phantom file's table has (a drawn phantom's features are all of one kind;
+    micro-relief, :func:`draw_conditions`, is on every surface of the realistic world and does not count)."""
+    features = [f for f in phantom["phantom"].get("surface", []) if f["kind"] != "relief"]
     if not features:
         return "flat"
     return "sloped" if features[0]["kind"] == "slope" else "bumpy"
+
+
+@dataclass(frozen=True)
+class RealisticConditions:
+    """What the study's realistic world changes about a phantom and its palpation, none of which the analysis
+    knows of or reads (ranges uniform; lengths in m, angles in degrees).
+
+    * **Law**: Yeoh, ``W = C1 (I1-3) + C2 (I1-3)^2 + C3 (I1-3)^3``, with C2/C1 and C3/C1 spanning the two Yeoh
+      fits for Ecoflex 00-30 that circulate in soft-robotics finite-element material libraries (C1 17 kPa,
+      C2 -0.2 kPa, C3 0.023 kPa; and C1 8.4 kPa, C2 0.1 kPa, C3 0); the analysis assumes neo-Hookean.
+    * **Sides**: in the casting mould with probability ``mould_odds`` (lateral faces held; 1.7x stiffer for the
+      paper's flat phantom, docs/phantoms.md), else free on the table as the paper's; the analysis assumes free.
+      The paper's own phantoms stay free: the paper says they lay on the table.
+    * **Micro-relief** of a cast surface, rms and wavelength as given (the mesh's 1 mm nodes resolve 3 mm
+      ripples); the analysis measures the surface from the contact onsets.
+    * **Probe tilt** about both axes: a hand-mounted probe is off by a degree or so; the analysis assumes a
+      level face.
+    """
+
+    c2_over_c1: tuple[float, float] = (-0.0118, 0.0119)
+    c3_over_c1: tuple[float, float] = (0.0, 0.00135)
+    mould_odds: float = 0.3
+    relief_rms_m: tuple[float, float] = (0.1e-3, 0.3e-3)
+    relief_wavelength_m: tuple[float, float] = (3e-3, 8e-3)
+    tilt_deg: tuple[float, float] = (-1.5, 1.5)
+
+
+def draw_conditions(rng: np.random.Generator, phantom: dict[str, Any], paper: bool = False,
+                    dist: RealisticConditions = RealisticConditions()) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``phantom`` (a phantom file's content) under conditions drawn from ``dist``: the phantom file with its
+    law, sides and micro-relief, and the conditions as plain values (``probe_tilt_deg`` for the rig, the rest
+    for the record)."""
+    table = dict(phantom["phantom"])
+    c3 = round(_uniform(rng, dist.c3_over_c1), 6)
+    # a softening C2 needs C3 enough to keep the energy rising (tissue.phantom's check), as both fits have
+    c2 = round(_uniform(rng, (max(dist.c2_over_c1[0], -0.99 * math.sqrt(3.0 * c3)), dist.c2_over_c1[1])), 5)
+    sides = "free" if paper or rng.uniform() >= dist.mould_odds else "mould"
+    rms = round(_uniform(rng, dist.relief_rms_m), 5)
+    wavelength = round(_uniform(rng, dist.relief_wavelength_m), 4)
+    relief_seed = int(rng.integers(2**31))
+    tilt = [round(_uniform(rng, dist.tilt_deg), 2) for _ in range(2)]
+    table["material"] = {"law": "yeoh", "c2_over_c1": c2, "c3_over_c1": c3}
+    table["sides"] = sides
+    table["surface"] = [*table.get("surface", []),
+                        {"kind": "relief", "rms_m": rms, "wavelength_m": wavelength, "seed": relief_seed,
+                         "x_range_m": [0.0, table["length_m"]]}]
+    data = {**phantom, "phantom": table}
+    parse_phantom(data, str(table.get("name", "<phantom>")))  # valid by construction; a bug if not
+    return data, {"law": "yeoh", "c2_over_c1": c2, "c3_over_c1": c3, "sides": sides, "relief_rms_m": rms,
+                  "relief_wavelength_m": wavelength, "probe_tilt_deg": tilt}

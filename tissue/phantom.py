@@ -29,6 +29,13 @@ Schema (all lengths in m, moduli in Pa)::
     origin_m = [0.0, 0.0]
     x_range_m = [0.0, 0.072]
 
+    [[phantom.surface]]
+    kind = "relief"           # micro-relief: a smooth random height field of rms_m over x_range_m, made of
+    rms_m = 0.2e-3            # ripples between wavelength_m and twice it, in all directions, fixed by seed
+    wavelength_m = 0.004
+    seed = 7
+    x_range_m = [0.0, 0.072]
+
     [[phantom.inclusions]]    # spheres, inside the phantom and apart from each other
     centre_xy_m = [0.012, 0.015]
     diameter_m = 0.008
@@ -63,6 +70,10 @@ MIN_SURFACE_HEIGHT_M = 1e-3  # a thinner layer is no phantom, and the mesh needs
 MAX_LENGTH_M, MAX_WIDTH_M, MAX_THICKNESS_M = 0.5, 0.3, 0.1  # the bench's phantom tray, with room to spare
 MAX_COORDINATE_M = 1.0  # positions and sizes of features, m
 MAX_GRADIENT = 10.0  # a slope steeper than 84 degrees is a wall
+# A cast surface's micro-relief: ripples finer than the mesh's 1 mm nodes could not be represented, and a
+# relief of millimetres is a feature of its own (half_cylinder, slope)
+MAX_RELIEF_RMS_M, RELIEF_WAVELENGTH_M = 1e-3, (2e-3, 0.05)
+RELIEF_WAVES = 12
 MAX_MODULUS_PA = 1e9
 MIN_MODULUS_PA = 100.0  # softer than any tissue or gel (1e-300 Pa was accepted, and the solver failed on it)
 MIN_EXTENT_M = 4e-3  # two elements: a smaller block has nothing to palpate (1e-9 m was accepted)
@@ -85,21 +96,38 @@ class PhantomError(ValueError):
 
 @dataclass(frozen=True)
 class SurfaceFeature:
-    kind: str  # "half_cylinder" | "slope"
+    kind: str  # "half_cylinder" | "slope" | "relief"
     x_range_m: tuple[float, float]
     centre_y_m: float = 0.0
     radius_m: float = 0.0
     gradient: tuple[float, float] = (0.0, 0.0)
     origin_m: tuple[float, float] = (0.0, 0.0)
+    rms_m: float = 0.0
+    wavelength_m: float = 0.0
+    seed: int = 0
 
     def height_m(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         inside = (x >= self.x_range_m[0]) & (x <= self.x_range_m[1])
         if self.kind == "half_cylinder":
             d2 = self.radius_m**2 - (y - self.centre_y_m) ** 2
             h = np.sqrt(np.clip(d2, 0.0, None))
+        elif self.kind == "relief":
+            h = self._relief(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
         else:
             h = self.gradient[0] * (x - self.origin_m[0]) + self.gradient[1] * (y - self.origin_m[1])
         return np.where(inside, h, 0.0)
+
+    def _relief(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """A sum of plane waves of random direction, wavelength (within an octave) and phase: a field whose
+        rms over a large area is ``rms_m``, the same for every reader of the same file."""
+        rng = np.random.default_rng(self.seed)
+        angle = rng.uniform(0.0, np.pi, RELIEF_WAVES)
+        k = 2.0 * np.pi / (self.wavelength_m * rng.uniform(1.0, 2.0, RELIEF_WAVES))
+        phase = rng.uniform(0.0, 2.0 * np.pi, RELIEF_WAVES)
+        h = np.zeros(np.broadcast(x, y).shape)
+        for a, kk, ph in zip(angle, k, phase, strict=True):
+            h = h + np.cos(kk * (np.cos(a) * x + np.sin(a) * y) + ph)
+        return self.rms_m * math.sqrt(2.0 / RELIEF_WAVES) * h
 
 
 @dataclass(frozen=True)
@@ -289,7 +317,16 @@ def _feature(r: "_Reader") -> SurfaceFeature:
         r.no_unknown({"kind", "x_range_m", "gradient", "origin_m"})
         return SurfaceFeature(kind, x_range, gradient=r.pair("gradient", bound=MAX_GRADIENT),
                               origin_m=r.pair("origin_m", (0.0, 0.0), bound=MAX_COORDINATE_M))
-    r.fail("kind", f"unknown surface feature {kind!r} (known: half_cylinder, slope)")
+    if kind == "relief":
+        r.no_unknown({"kind", "x_range_m", "rms_m", "wavelength_m", "seed"})
+        wavelength = r.bounded("wavelength_m", RELIEF_WAVELENGTH_M[1], "a ripple, not a slope",
+                               least=RELIEF_WAVELENGTH_M[0])
+        seed = r.data.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+            r.fail("seed", f"must be a non-negative integer, got {seed!r}")
+        return SurfaceFeature(kind, x_range, rms_m=r.bounded("rms_m", MAX_RELIEF_RMS_M, "micro-relief"),
+                              wavelength_m=wavelength, seed=seed)
+    r.fail("kind", f"unknown surface feature {kind!r} (known: half_cylinder, slope, relief)")
     raise AssertionError
 
 

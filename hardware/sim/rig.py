@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from hardware.interfaces import TactileConstraints
@@ -47,7 +48,9 @@ def build_tissue(
     if settings.tissue == "winkler":
         return WinklerTissue(phantom, sensor_geometry)
     return ContinuumTissue.load(phantom, progress=progress, sensor=sensor_geometry,
-                                settings=MeshSettings(finite_strain=settings.finite_strain), workers=workers)
+                                settings=MeshSettings(finite_strain=settings.finite_strain,
+                                                      tilt_rad=tuple(math.radians(a) for a in settings.probe_tilt_deg)),
+                                workers=workers)
 
 
 def build_sim_rig(

@@ -8,12 +8,13 @@ the console reports simulator settings exactly like control settings.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 from hardware.settings import ConfigError, Settings, bounded, non_negative, positive, vec3
 from tissue.face import COVER_SPREAD_M
-from tissue.mechanics.model import RIG_FINITE_STRAIN
+from tissue.mechanics.model import MAX_TILT_RAD, RIG_FINITE_STRAIN
 
 Vec3 = tuple[float, float, float]
 
@@ -189,6 +190,9 @@ class SimSettings(Settings):
     max_catchup_s: float = 0.1  # longest host stall integrated step by step; the rest is skipped
     tissue: str = "continuum"  # continuum (finite elements, tissue/mechanics) | winkler (spring baseline)
     finite_strain: bool = RIG_FINITE_STRAIN  # continuum: the reduced finite-strain model (tissue/mechanics/model.py)
+    # continuum: the probe's face tilted about y and x, in degrees (a face that rises along x, along y); the
+    # analysis assumes a level face, so this is one of the realistic world's conditions it does not know
+    probe_tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     _nested: ClassVar[dict[str, type[Settings]]] = {
         "sensor": SensorSimSettings,
@@ -210,5 +214,13 @@ class SimSettings(Settings):
         catchup = positive("max_catchup_s", self.max_catchup_s)
         if catchup < substep:
             raise ConfigError("max_catchup_s", f"must be at least one substep ({substep:g} s)")
+        tilt = self.probe_tilt_deg
+        if (not isinstance(tilt, (list, tuple)) or len(tilt) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in tilt)):
+            raise ConfigError("probe_tilt_deg", f"must be two numbers of degrees, got {tilt!r}")
+        for value in tilt:
+            bounded("probe_tilt_deg", value, -math.degrees(MAX_TILT_RAD), math.degrees(MAX_TILT_RAD),
+                    why="a face tilted further no longer presses with its whole area")
+        object.__setattr__(self, "probe_tilt_deg", (float(tilt[0]), float(tilt[1])))
         object.__setattr__(self, "substep_s", substep)
         object.__setattr__(self, "max_catchup_s", catchup)

@@ -65,6 +65,26 @@ def test_the_same_seed_gives_the_same_study_and_another_seed_another():
 
 
 
+def test_the_realistic_world_palpates_the_same_phantoms_under_conditions_drawn_for_each():
+    """issue 48: law, sides, micro-relief and probe tilt drawn per phantom, the phantoms and seeds the ideal
+    world's, the paper's phantoms left free on the table; a kept case is told as the paper's by its content."""
+    from app.study import _without_conditions
+
+    ideal, real = study_cases(12, 3, paper=True), study_cases(12, 3, paper=True, world="realistic")
+    assert [(c.name, c.rig_seed, c.sensor_seed, c.force_max_N) for c in ideal] == \
+        [(c.name, c.rig_seed, c.sensor_seed, c.force_max_N) for c in real]
+    assert [_without_conditions(c.phantom) for c in real] == [c.phantom for c in ideal]
+    assert all(not c.conditions for c in ideal)
+    for case in real:
+        phantom = parse_phantom(case.phantom, case.name)
+        assert phantom.material.law == "yeoh" and phantom.surface[-1].kind == "relief"
+        assert phantom.sides == case.conditions["sides"]
+        assert all(abs(a) <= 1.5 for a in case.conditions["probe_tilt_deg"])
+    assert {c.conditions["sides"] for c in real if not c.paper} == {"free", "mould"}
+    assert all(c.conditions["sides"] == "free" for c in real if c.paper)
+    assert [c.conditions for c in real] == [c.conditions for c in study_cases(12, 3, paper=True, world="realistic")]
+
+
 def _without_timings(results) -> str:
     """The results as comparable text (NaN included), without what depends on the machine or the folder."""
     return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s") and k not in ("session", "session_here")}
@@ -185,6 +205,12 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
 
         sensor = SimSettings.from_mapping(session.config["sim"]).sensor
         assert sensor.model == "realistic" and sensor.gain_spread == 0.07 and sensor.press_offset_m > 0
+        # and the conditions drawn for the phantom: its law, sides and relief, the probe's tilt
+        conditions = doc["cases"][0]["conditions"]
+        assert session.phantom["phantom"]["material"]["law"] == "yeoh"
+        assert session.phantom["phantom"]["sides"] == conditions["sides"]
+        assert session.phantom["phantom"]["surface"][-1]["rms_m"] == conditions["relief_rms_m"]
+        assert session.config["sim"]["probe_tilt_deg"] == conditions["probe_tilt_deg"] != [0.0, 0.0]
     capsys.readouterr()
     config.write_text("[control.ramp]\nforce_step_N = -1.0\n")
     assert study_main(["-n", "1", "--out", str(out), "--config", str(config)]) == 2

@@ -214,6 +214,30 @@ def test_the_terminal_bar_keeps_to_one_line_of_the_terminal(monkeypatch):
     assert max(len(line.rstrip()) for line in drawn) <= 59 and drawn[1].endswith("25% compressed tables: co")
 
 
+def test_a_tilted_face_presses_its_low_side_first_and_harder_and_mirrors_with_the_tilt(cache_dir):
+    """issue 48: the probe tilted by hand, which the analysis does not know of."""
+    import math
+    from dataclasses import replace
+
+    block = small(length=0.016)
+    level = ContinuumTissue.load(block, cache_dir, settings=LEVEL)
+    tilt = math.radians(1.5)
+    along_x = ContinuumTissue.load(block, cache_dir, settings=replace(LEVEL, tilt_rad=(tilt, 0.0)))
+    along_y = ContinuumTissue.load(block, cache_dir, settings=replace(LEVEL, tilt_rad=(0.0, tilt)))
+    back = ContinuumTissue.load(block, cache_dir, settings=replace(LEVEL, tilt_rad=(0.0, -tilt)))
+    z = 0.009
+    flat, fx, fy, fb = (m.element_forces_N(0.008, 0.015, z) for m in (level, along_x, along_y, back))
+    # rising along y, the face is 0.39 mm lower at its first column than at its last
+    assert fy[:, 0].sum() > 1.3 * fy[:, -1].sum() and np.allclose(fb, fy[:, ::-1], rtol=1e-6)
+    assert fx[0].sum() > fx[-1].sum() and not np.allclose(fx, flat)
+    assert fy.sum() == pytest.approx(flat.sum(), rel=0.05)  # tilted about its centre, the same mean depth
+    # the low corner touches before a level face would
+    assert along_y.element_forces_N(0.008, 0.015, 0.0101).any()
+    assert not level.element_forces_N(0.008, 0.015, 0.0101).any()
+    with pytest.raises(ValueError, match="tilt_rad"):
+        ContinuumTissue.load(block, cache_dir, settings=replace(LEVEL, tilt_rad=(0.2, 0.0)))
+
+
 def test_bad_mesh_settings_are_refused():
     with pytest.raises(ValueError, match="spacing_m.*divide the sensor pitch"):
         ContinuumTissue.load(small(), settings=MeshSettings(spacing_m=0.7e-3))

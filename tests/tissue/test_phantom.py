@@ -3,6 +3,7 @@
 import copy
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from tissue.phantom import PHANTOM_DIR, Phantom, PhantomError, load_phantom, parse_phantom
@@ -109,6 +110,15 @@ def test_the_content_hash_follows_the_content_only():
     (base(inclusions=[sphere(depth_m=0.005, diameter_m=0.5)]), "phantom.inclusions[0].diameter_m", "fit in the layer"),
     # issue 15: the sides and the law at finite strain
     (base(sides="tray"), "phantom.sides", "one of free, mould"),
+    # issue 48: micro-relief
+    (base(surface=[{"kind": "relief", "x_range_m": [0, 0.07], "rms_m": 2e-3, "wavelength_m": 4e-3}]),
+     "phantom.surface[0].rms_m", "at most 0.001"),
+    (base(surface=[{"kind": "relief", "x_range_m": [0, 0.07], "rms_m": 2e-4, "wavelength_m": 1e-3}]),
+     "phantom.surface[0].wavelength_m", "at least 0.002"),
+    (base(surface=[{"kind": "relief", "x_range_m": [0, 0.07], "rms_m": 2e-4, "wavelength_m": 4e-3, "seed": -1}]),
+     "phantom.surface[0].seed", "non-negative integer"),
+    (base(surface=[{"kind": "relief", "x_range_m": [0, 0.07], "rms_m": 2e-4, "wavelength_m": 4e-3,
+                    "gradient": [0, 0]}]), "phantom.surface[0].gradient", "unknown key"),
     (base(material={"law": "ogden"}), "phantom.material.law", "one of neo_hookean, yeoh"),
     (base(material={"law": "neo_hookean", "c2_over_c1": 0.1}), "phantom.material.c2_over_c1", "unknown key"),
     (base(material={"law": "yeoh", "c2_over_c1": -0.5, "c3_over_c1": 0.05}), "phantom.material.c2_over_c1",
@@ -130,6 +140,20 @@ def test_a_bad_phantom_names_the_key_and_the_problem(data, key, words):
     assert err.value.key == key
     assert words in err.value.problem
     assert str(err.value).startswith(f"bad.toml: {key}: ")
+
+
+def test_micro_relief_has_the_rms_asked_for_is_fixed_by_its_seed_and_carries_the_tumours_with_it():
+    def relief(seed, rms=0.2e-3):
+        return {"kind": "relief", "x_range_m": [0.0, 0.072], "rms_m": rms, "wavelength_m": 4e-3, "seed": seed}
+
+    a, b = parse_phantom(base(surface=[relief(1)])), parse_phantom(base(surface=[relief(2)]))
+    x, y = np.meshgrid(np.linspace(0, 0.072, 289), np.linspace(0, 0.030, 121), indexing="ij")
+    ha, hb = a.surface_height_m(x, y) - a.thickness_m, b.surface_height_m(x, y) - b.thickness_m
+    assert 0.14e-3 < ha.std() < 0.26e-3 and abs(ha.mean()) < 0.1e-3
+    assert np.array_equal(ha, parse_phantom(base(surface=[relief(1)])).surface_height_m(x, y) - a.thickness_m)
+    assert not np.allclose(ha, hb) and a.content_hash() != b.content_hash()
+    sunk = parse_phantom(base(surface=[relief(1)], inclusions=[sphere(depth_m=0.004)]))
+    assert sunk.ground_truth()[0]["depth_m"] == pytest.approx(0.004)
 
 
 def test_a_sphere_under_a_bump_must_clear_the_bump_edge_not_only_its_centre():

@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 # The simulated rig presses its tissue at finite strain unless its settings say otherwise; a recorded
 # session that does not say is read as the rig's default.
 RIG_FINITE_STRAIN = True
+# A face tilted further than this no longer presses with its whole area at palpation depths (5 degrees over
+# the TSI's 30 mm is 2.6 mm of height)
+MAX_TILT_RAD = math.radians(5.0)
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,10 @@ class MeshSettings:
     top_layer_m: float = 0.5e-3  # thickness of the top layer where the surface is at the base thickness
     drift_y_m: float = 1e-3  # y offsets of the TSI from the phantom's mid-line that are tabulated
     finite_strain: bool = False  # the reduced finite-strain model on top of the linear tables (see above)
+    # Not a discretisation, but it shapes every table: the face tilted about its centre, by these angles
+    # about y (its height rising along x) and about x (rising along y). A probe mounted by hand is off by a
+    # degree or so; the analysis assumes a level face.
+    tilt_rad: tuple[float, float] = (0.0, 0.0)
 
     def validate(self, sensor: Face) -> None:
         ratio = sensor.pitch_m / self.spacing_m
@@ -95,6 +102,8 @@ class MeshSettings:
             raise ValueError(f"MeshSettings.top_layer_m: must be > 0, got {self.top_layer_m:g}")
         if self.drift_y_m < 0:
             raise ValueError(f"MeshSettings.drift_y_m: must be >= 0, got {self.drift_y_m:g}")
+        if not all(math.isfinite(a) and abs(a) <= MAX_TILT_RAD for a in self.tilt_rad):
+            raise ValueError(f"MeshSettings.tilt_rad: each within +-{MAX_TILT_RAD:g} rad, got {self.tilt_rad}")
 
 
 def _line(length_m: float, spacing_m: float) -> np.ndarray:
@@ -148,6 +157,8 @@ def cache_key(phantom: Phantom, settings: MeshSettings, sensor: Face, what: str 
     or of the finite-strain stiffening (``"stiffening"``, which depends on the phantom only)."""
     mesh = asdict(settings)
     mesh.pop("finite_strain")  # applied on top of the tables, not part of them
+    if not any(mesh["tilt_rad"]):
+        mesh.pop("tilt_rad")  # a level face keeps the keys it had before tilt was a setting
     blob = json.dumps({
         "what": what,
         "phantom": phantom.content_hash(),
@@ -212,7 +223,10 @@ def precompute(phantom: Phantom, settings: MeshSettings, sensor: Face,
             weights = tributary_weights(xs[under], ys[under], extent, lo, sensor.pitch_m, sensor.shape)
             carried = weights.sum(axis=0) > 0
             under, weights = under[carried], weights[:, carried]
-            path = contact_path(compliance[np.ix_(under, under)], hs[under]).mapped(weights)
+            # a node meets the tilted face when the face's centre is this far above the node's own height
+            level = hs[under] - (xs[under] - cx) * math.tan(settings.tilt_rad[0]) \
+                - (ys[under] - cy) * math.tan(settings.tilt_rad[1])
+            path = contact_path(compliance[np.ix_(under, under)], level).mapped(weights)
             t_all.append(path.t)
             f_all.append(path.f0)
             g_all.append(path.df)
@@ -488,7 +502,7 @@ class _Tables:
 
 
 class ContinuumTissue:
-    """Continuum phantom on a rigid table under a rigid, level TSI face.
+    """Continuum phantom on a rigid table under a rigid TSI face, level unless ``MeshSettings.tilt_rad``.
 
     Implements :class:`hardware.sim.tissue.TissueModel`. Build it with :meth:`load`.
     """

@@ -51,6 +51,8 @@ def test_settings_come_from_a_mapping_and_bad_ones_name_their_key():
         ({"operator": []}, r"^operator: must be a table"),
         ({"substep_s": 2e-3}, r"^substep_s: must lie between 1e-05 and 0\.001 .*, got 0\.002$"),
         ({"warp": 1}, r"^warp: unknown key"),
+        ({"probe_tilt_deg": [0.0, -7.0]}, r"^probe_tilt_deg: must lie between -5 and 5 .*, got -7$"),
+        ({"probe_tilt_deg": [1.0]}, r"^probe_tilt_deg: must be two numbers of degrees"),
     ]
     for mapping, message in cases:
         with pytest.raises(ConfigError, match=message):
