@@ -32,10 +32,11 @@ lint: bootstrap
 bench: bootstrap-run
 	QT_QPA_PLATFORM=offscreen $(PY) -m bench
 
-# The validation study as a benchmark (app/study.py): 12 seeded phantoms and the paper's two, figures in
-# build/bench/accuracy.json, the plot beside it, every case's phantom and session in build/study.
+# The validation study as a benchmark (app/study.py): 12 seeded phantoms and the paper's two, in the ideal world
+# and in the realistic one, figures in build/bench/accuracy.json (the realistic world's keys prefixed
+# realistic_), the plot beside it, every case's phantom and session in build/study.
 study: bootstrap-run
-	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --out build/study \
+	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --world both --out build/study \
 		--json build/bench/accuracy.json --plot build/bench/accuracy.png
 
 # The model-based depth's library of finite-element solves (session/depth.py), shipped beside it:

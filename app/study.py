@@ -35,7 +35,7 @@ import tomli_w
 
 from hardware.settings import ConfigError, read_toml
 from session.scoring import case_failures, print_summary, score
-from tissue.generator import StudyDistribution, draw_conditions, draw_phantom, surface_kind
+from tissue.generator import RealisticConditions, StudyDistribution, draw_conditions, draw_phantom, surface_kind
 
 # ---- one case ------------------------------------------------------------------------------------------
 
@@ -75,7 +75,16 @@ def ramp_for(phantom: dict[str, Any]) -> float:
 
 def study_cases(n: int, seed: int, paper: bool = False, dist: StudyDistribution = StudyDistribution(),
                 **overrides) -> list[StudyCase]:
-    """``n`` phantoms drawn with ``seed`` (the same seed gives the same study), then the paper's two."""
+    """``n`` phantoms drawn with ``seed`` (the same seed gives the same study), then the paper's two; with
+    ``world="both"``, those of the ideal world, then the same in the realistic world (named ``realistic-...``)."""
+    if overrides.get("world") == "both":
+        ideal = _drawn_cases(n, seed, paper, dist, {**overrides, "world": "ideal"})
+        realistic = _drawn_cases(n, seed, paper, dist, {**overrides, "world": "realistic"})
+        return [*ideal, *(replace(c, name=f"realistic-{c.name}") for c in realistic)]
+    return _drawn_cases(n, seed, paper, dist, overrides)
+
+
+def _drawn_cases(n: int, seed: int, paper: bool, dist: StudyDistribution, overrides: dict[str, Any]) -> list[StudyCase]:
     rng = np.random.default_rng(seed)
     realistic = overrides.get("world") == "realistic"
     cases = []
@@ -135,7 +144,7 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
     try:
         return _run_case(case, Path(out_dir), keep_session, settings or {}, analysis or analysis_options())
     except (ConfigError, PhantomError, DeviceError, SessionFileError, ValueError, OSError) as err:
-        return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
+        return {"name": case.name, "paper": case.paper, "world": case.world, "error": f"{type(err).__name__}: {err}"}
 
 
 def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[str, Any],
@@ -183,6 +192,7 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
 
     with open_session(session_path) as session:
         analysis = analyse(session, argparse.Namespace(**options))
+        conditions = _conditions_of(session)
         tissue_pa = float(phantom["phantom"]["youngs_modulus_pa"])
         truths = [{"x_m": t["x_m"], "y_m": t["y_m"], "depth_m": t["depth_m"], "diameter_m": t["diameter_m"],
                    "modulus_ratio": t["youngs_modulus_pa"] / tissue_pa} for t in session.ground_truth]
@@ -194,7 +204,7 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
             "truths": truths, "matches": [asdict(m) for m in analysis.matches],
             "false_positives": analysis.false_positives,
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
-            "conditions": _conditions_of(session),
+            "conditions": conditions, "world": "realistic" if conditions else "ideal",
         }
 
 
@@ -285,7 +295,7 @@ def reanalyse_case(case: KeptCase, analysis: dict[str, Any]) -> dict[str, Any]:
     try:
         result = _analysed(case.name, case.paper, case.phantom, Path(case.session), analysis)
     except (ConfigError, AnalysisInputError, SessionFileError, ValueError, OSError) as err:
-        return {"name": case.name, "paper": case.paper, "error": f"{type(err).__name__}: {err}"}
+        return {"name": case.name, "paper": case.paper, "world": case.world, "error": f"{type(err).__name__}: {err}"}
     result.update(analyse_s=time.perf_counter() - started, session=case.session)
     return result
 
@@ -406,13 +416,27 @@ ACCURACY_KEYS = ("sensitivity_pct", "sensitivity_le6mm_pct", "false_positives_pe
 
 def study_document(cases: list, results: list[dict], wall_s: float, seed: int | None, workers: int,
                    executor: str, analysis: dict[str, Any] | None = None) -> dict[str, Any]:
-    figures = {source: score(results, source) for source in ("stiffness", "force")}
+    """The study's JSON. A study of both worlds gives the ideal world's figures under today's keys and the
+    realistic world's under the same keys prefixed ``realistic_`` (its maps as ``realistic_maps``)."""
+    worlds = {r.get("world", "ideal") for r in results if "error" not in r}
+    both = worlds == {"ideal", "realistic"}
+    first = [r for r in results if r.get("world", "ideal") == "ideal"] if both else results
+    figures = _figures(first)
     doc: dict[str, Any] = {key: figures["stiffness"][key] for key in ACCURACY_KEYS}
+    if both:
+        other = _figures([r for r in results if r.get("world") == "realistic"])
+        doc.update({f"realistic_{key}": other["stiffness"][key] for key in ACCURACY_KEYS})
+        doc.update(realistic_maps=other, realistic_phantoms=other["stiffness"]["phantoms"],
+                   realistic_conditions=asdict(RealisticConditions()))
     doc.update(study_wall_s=wall_s, phantoms=figures["stiffness"]["phantoms"], seed=seed, workers=workers,
                executor=executor, distribution=asdict(StudyDistribution()),
                analysis={k: str(v) if isinstance(v, Path) else v for k, v in (analysis or analysis_options()).items()},
                maps=figures, cases=results)
     return doc
+
+
+def _figures(results: list[dict]) -> dict[str, dict]:
+    return {source: score(results, source) for source in ("stiffness", "force")}
 
 
 # what only palpating a study takes; re-analysing kept cases refuses them
@@ -448,9 +472,11 @@ def study_parser():
                         help="run on this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786) instead of "
                              "local processes; needs pip install 'palpation-console[study]'")
     parser.add_argument("--no-sessions", action="store_true", help="do not keep the session files")
-    parser.add_argument("--world", choices=list(WORLDS),
-                        help="ideal: the array's only fast error is white noise; realistic: the errors a real "
-                             "capacitive array has, which the analysis does not know of (default ideal)")
+    parser.add_argument("--world", choices=[*WORLDS, "both"],
+                        help="ideal: the analysis shares the simulator's mechanics and the array's only fast "
+                             "error is white noise; realistic: the errors a real capacitive array has and "
+                             "conditions drawn for each phantom (law, sides, micro-relief, probe tilt), none of "
+                             "which the analysis knows of; both: the same phantoms in each (default ideal)")
     parser.add_argument("--config", type=Path, help="a TOML configuration whose [control] and [sim] settings "
                         "(ramp steps, gains, contact, safety; sensor noise, tissue model) every phantom is "
                         "palpated with; each case keeps its own phantom, seeds and top force")
@@ -566,7 +592,13 @@ def study_main(argv: list[str] | None = None) -> int:
     doc["world"] = None if args.reanalyse else args.world or "ideal"
     if args.reanalyse:
         doc["reanalysed"] = str(args.reanalyse)
-    print_summary(doc["maps"], wall_s)
+    if "realistic_maps" in doc:
+        print("\n== the ideal world ==")
+        print_summary(doc["maps"], wall_s)
+        print("\n== the realistic world ==")
+        print_summary(doc["realistic_maps"], wall_s)
+    else:
+        print_summary(doc["maps"], wall_s)
     try:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(json_ready(doc), indent=1, allow_nan=False), encoding="utf-8")

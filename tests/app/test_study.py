@@ -218,6 +218,27 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
     assert "control.ramp.force_step_N" in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_study_of_both_worlds_reports_each_under_its_own_keys(tmp_path, capsys, monkeypatch, qapp):
+    """issue 48: `make study` runs both worlds on the same phantoms; the realistic world's figures are today's
+    keys prefixed realistic_."""
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
+    out = tmp_path / "both"
+    assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--physics", "none",
+                       "--no-depth-model", "--world", "both"]) == 0
+    printed = capsys.readouterr().out
+    assert "== the ideal world ==" in printed and "== the realistic world ==" in printed
+    doc = json.loads((out / "study.json").read_text())
+    assert doc["world"] == "both" and doc["phantoms"] == doc["realistic_phantoms"] == 1
+    assert [c["name"] for c in doc["cases"]] == ["s2-0000", "realistic-s2-0000"]
+    assert [c["world"] for c in doc["cases"]] == ["ideal", "realistic"]
+    for key in ACCURACY_KEYS:
+        assert f"realistic_{key}" in doc
+    assert doc["sensitivity_pct"] == doc["maps"]["stiffness"]["sensitivity_pct"]
+    assert doc["realistic_sensitivity_pct"] == doc["realistic_maps"]["stiffness"]["sensitivity_pct"]
+    assert doc["realistic_conditions"]["mould_odds"] == 0.3
+    assert sorted(p.name for p in out.glob("*.h5")) == ["realistic-s2-0000.h5", "s2-0000.h5"]
+
+
 def test_a_kept_study_is_analysed_again_with_other_options_without_palpating(tmp_path, capsys, monkeypatch, qapp):
     from session.detect import threshold
 
