@@ -647,7 +647,10 @@ def rig_run(seed: int, phantom: str, sim: dict, tissue, seconds: float = 3.0) ->
     # default gains, with which the robot follows the jog briskly (drawn gains may follow it very slowly)
     config = config.replace(master=config.master.replace(jog_speed_m_s=config.safety.velocity_limit_m_s))
     if rng.integers(2):
-        config = config.replace(gains=ControlConfig().gains)
+        # and the stiffest tissue they are made for (a drawn limit may need the drawn gains' damping)
+        default = ControlConfig()
+        config = config.replace(gains=default.gains, safety=config.safety.replace(
+            tissue_stiffness_max_N_m=default.safety.tissue_stiffness_max_N_m))
     rig = build_sim_rig(phantom, settings=dict(sim), tissue=tissue, seed=seed)
     rig.master = None  # X_d from the jog: the campaign is the operator
     robot = rig.slave.world.settings.robot

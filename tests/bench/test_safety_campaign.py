@@ -153,7 +153,8 @@ def test_each_kind_of_trouble_keeps_the_invariants(kind):
     assert [v for r in results for v in r.violations] == []
 
 
-@pytest.mark.parametrize("seed", (500_000, 500_001))
+# 1_500_011: the first rig run of `make bench`'s campaign (seed 1); the default gains refused its drawn limit
+@pytest.mark.parametrize("seed", (500_000, 500_001, 1_500_011))
 def test_the_rig_keeps_the_invariants(seed):
     result = campaign.replay(seed, "rig", sim={"tissue": "winkler"})
     assert result.violations == []
