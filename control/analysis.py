@@ -277,7 +277,9 @@ def element_analysis(
     dL = np.where(in_contact, onset_height_m - tsi_z_m, np.nan)
     stiffness = stiffness_pa(pressure_pa * element_area_m2, L0, dL, element_area_m2, contact.min_indentation_m)
     n = np.count_nonzero(in_contact)
-    indentation = float(dL[in_contact].sum() / n) if n else float("nan")
+    # An element still reading after the face has risen above its onset (the array's creep and hysteresis
+    # while the probe is lifted) is in no deeper than zero: the operator saw -8.2 mm while retracting.
+    indentation = float(np.maximum(dL[in_contact], 0.0).sum() / n) if n else float("nan")
     return L0, dL, stiffness, in_contact, indentation
 
 

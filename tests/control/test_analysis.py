@@ -48,6 +48,18 @@ def test_elements_never_in_contact_are_nan_not_inf():
     assert depth == pytest.approx((0.005 + 0.0001) / 2)
 
 
+def test_a_reading_left_while_the_face_is_lifted_above_the_surface_is_no_negative_depth():
+    """issue 50: the creep of the array kept elements reading while retracting, and the depth read -8.2 mm."""
+    contact = ContactSettings(table_height_m=0.0)
+    onset = np.full(SHAPE, 0.025)
+    _, dL, E, in_contact, depth = element_analysis(np.full(SHAPE, 2e3), onset, 0.033, contact.onset_threshold_pa,
+                                                   contact, A)
+    assert in_contact.all() and depth == 0.0 and np.isnan(E).all()
+    onset[0] = 0.034  # one row still under the face: the depth is its share, never less than zero
+    _, _, _, _, depth = element_analysis(np.full(SHAPE, 2e3), onset, 0.033, contact.onset_threshold_pa, contact, A)
+    assert depth == pytest.approx(0.001 * 15 / 60)
+
+
 def test_no_contact_gives_nan_depth():
     nowhere = np.full(SHAPE, np.nan)
     _, _, E, in_contact, depth = element_analysis(np.zeros(SHAPE), nowhere, 0.02, 300.0, ContactSettings(), A)
