@@ -142,15 +142,24 @@ class _Version(argparse.Action):
         parser.exit()
 
 
-def display_problem(environ=os.environ) -> str:
-    """Why Qt could not open the console's window here, or '' (told before the tissue model is built, not
-    after, by Qt's abort)."""
+def display_problem(environ=os.environ, command: str = "run", find_library=None) -> str:
+    """Why Qt could not open a window here, or '' (told before the tissue model is built or a session read,
+    not after, by Qt's abort: exit 134 and a paragraph about plugins)."""
     if environ.get("QT_QPA_PLATFORM"):  # a platform was chosen (offscreen, vnc, ...): Qt says if it fails
         return ""
-    if sys.platform.startswith("linux") and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
+    if not sys.platform.startswith("linux"):
+        return ""
+    if not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
         return ("no display to open the console on (neither DISPLAY nor WAYLAND_DISPLAY is set): run it under a "
-                "virtual one (xvfb-run -a palpation-console run), or set QT_QPA_PLATFORM=offscreen for a "
+                f"virtual one (xvfb-run -a palpation-console {command}), or set QT_QPA_PLATFORM=offscreen for a "
                 "headless check")
+    if not environ.get("WAYLAND_DISPLAY"):
+        import ctypes.util
+
+        # Qt 6's X11 platform will not load without it, and pip cannot install it
+        if (find_library or ctypes.util.find_library)("xcb-cursor") is None:
+            return ("Qt's X11 platform needs the system library libxcb-cursor0, which is not installed: "
+                    "sudo apt-get install libxcb-cursor0 (or run make bootstrap-run)")
     return ""
 
 

@@ -284,14 +284,20 @@ def review_main(argv: list[str] | None = None) -> int:
     args, code = _parse(review_parser(), argv)
     if args is None:
         return code
+    if args.screenshot and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    from app.cli import display_problem
+
+    problem = display_problem(command="review")
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_INPUT
     if args.file is not None:
         try:
             open_session(args.file).close()  # report a bad file here, before any window opens
         except SessionFileError as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_INPUT
-    if args.screenshot and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6 import QtCore, QtWidgets
 
     from widgets.review import ReviewWindow

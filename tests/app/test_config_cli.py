@@ -221,7 +221,17 @@ def test_run_without_a_display_says_what_to_do_before_building_anything(monkeypa
     assert display_problem() == ""
     monkeypatch.delenv("QT_QPA_PLATFORM")
     monkeypatch.setenv("DISPLAY", ":99")
-    assert display_problem() == ""
+    assert display_problem(find_library=lambda name: f"lib{name}.so.0") == ""
+    # issue 50: with a display but without the library Qt's X11 platform needs, Qt aborted (exit 134)
+    missing = display_problem(find_library=lambda name: None)
+    assert "libxcb-cursor0" in missing and "apt-get install" in missing
+    # and review says it in one line as run does, before it reads the session
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.setattr("app.session_commands.open_session", lambda *_: pytest.fail("read before the display"))
+    assert main(["review", "some.h5"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no display") and "xvfb-run -a palpation-console review" in err
+    assert err.count("\n") == 1
 
 
 @pytest.mark.parametrize("argv, said", [
