@@ -88,6 +88,10 @@ def analysis_params(args) -> AnalysisParams:
 def analyse(session: Session, args) -> SessionAnalysis:
     """The session analysed as the options say; raises AnalysisInputError for physics or a reference that
     cannot be had for it (a cache hit or a finite-element solve of the rebuilt block: seconds when new)."""
+    if not len(session.levels):
+        # said before any option is tried, and with what the reader found (a truncated file loses its levels)
+        why = f"{session.warnings[0].rstrip('.')}; " if session.recovered and session.warnings else ""
+        raise AnalysisInputError(f"{why}the session holds no recorded level, so there is no palpated area to analyse")
     try:
         physics = physics_for(session, args.physics)
     except ValueError as err:

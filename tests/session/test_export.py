@@ -81,6 +81,14 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
     assert stitch_main([str(tmp_path / "notes.h5")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "not an HDF5 file" in err and "Traceback" not in err
+    # issue 50: a file cut short before its levels said "--physics rebuilt: ...", an option never given, and
+    # not that the file was truncated
+    data = recorded[0].read_bytes()
+    (tmp_path / "cut.h5").write_bytes(data[:int(len(data) * 0.011)])
+    assert stitch_main([str(tmp_path / "cut.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: The file is truncated") and "missing" in err and "--physics" not in err
+    assert "no recorded level" in err and err.count("\n") == 1
     assert stitch_main([str(recorded[0]), "--cell-mm", "0"]) == 2
     assert "cell size must be between 0.1 and 20 mm" in capsys.readouterr().err
     assert stitch_main([str(recorded[0]), "--l0", "fixed"]) == 2
