@@ -194,6 +194,12 @@ def _stitch(argv: list[str]) -> int:
     return stitch_main(argv)
 
 
+def _export(argv: list[str]) -> int:
+    from app.session_commands import export_main
+
+    return export_main(argv)
+
+
 def _slave(argv: list[str]) -> int:
     from app.slave import slave_main
 
@@ -217,6 +223,7 @@ def _study(argv: list[str]) -> int:
 DELEGATED = {
     "review": (_review, "open a recorded session read-only in the reviewer", None),
     "stitch": (_stitch, "stitch a session into whole-tissue maps and find the tumours", None),
+    "export": (_export, "write a session's ticks, frames and levels as tidy CSV or Parquet tables", None),
     "slave": (_slave, "run the slave side of the UDP master/slave link", "its simulated robot's [sim] table"),
     "devices": (_devices, "list the tactile sensors, masters and links this machine can see",
                 "also probe the [hardware] devices it names"),

@@ -21,6 +21,7 @@ from session.info import sessions_dir
 from session.physics import PHYSICS, physics_for
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams
+from session.tables import TABLES, TableError, write_csv, write_parquet
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
 
@@ -328,4 +329,55 @@ def review_main(argv: list[str] | None = None) -> int:
             return EXIT_OUTPUT
         return EXIT_OK
     app.exec()
+    return EXIT_OK
+
+
+# ---- export -------------------------------------------------------------------------------------------
+
+
+def export_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="palpation-console export",
+        description="Write a recorded session's streams as tidy tables for pandas, R or a spreadsheet: ticks (one "
+                    "row per control period), frames and levels (one row per element). pandas: "
+                    "pd.read_csv('FOLDER/NAME-ticks.csv') or pd.read_parquet('FOLDER/NAME-frames.parquet').")
+    parser.add_argument("file", type=Path, help="a session file (.h5)")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--csv", type=Path, metavar="FOLDER", help="write NAME-ticks.csv, -frames.csv, -levels.csv here")
+    where.add_argument("--parquet", type=Path, metavar="FOLDER",
+                       help="write NAME-ticks.parquet, ... here (needs pyarrow: "
+                            "pip install 'palpation-console[parquet]')")
+    parser.add_argument("--tables", default=",".join(TABLES),
+                        help=f"which tables, comma-separated (default {','.join(TABLES)})")
+    return parser
+
+
+def export_main(argv: list[str] | None = None) -> int:
+    args, code = _parse(export_parser(), argv)
+    if args is None:
+        return code
+    tables = tuple(t.strip() for t in args.tables.split(",") if t.strip())
+    unknown = [t for t in tables if t not in TABLES]
+    if unknown or not tables:
+        print(f"error: --tables {args.tables}: each must be one of {', '.join(TABLES)}", file=sys.stderr)
+        return EXIT_INPUT
+    folder = args.csv or args.parquet
+    if not folder.is_dir():
+        print(f"error: {folder}: no such folder", file=sys.stderr)
+        return EXIT_OUTPUT
+    try:
+        session = open_session(args.file)
+    except SessionFileError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_INPUT
+    with session:
+        for warning in session.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
+        try:
+            written = (write_csv if args.csv else write_parquet)(session, folder, tables)
+        except TableError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return EXIT_OUTPUT
+    for path in written:
+        print(path)
     return EXIT_OK
