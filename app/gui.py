@@ -137,14 +137,15 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
 
     rig = console_rig(config)
     plan = plan_for_rig(rig, config.control)  # first: a bad phantom is a configuration error, not a crash
-    info = session_info(config, spec=rig)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(argv or sys.argv[:1])
     app.setApplicationName("Palpation Console")
     app.setOrganizationName("palpation-console")
-    # the first use of a phantom: its tissue model, before the controller process starts
+    # the first use of a phantom: its tissue model, before the controller process starts, and before anything
+    # else builds the rig (the session's description did, for 36 s of black window and a silent terminal)
     prepare_in_console(lambda progress: prepare_rig(rig, progress),
                        f"Preparing the tissue model of {rig.phantom!r} (once per phantom; cached after)",
                        terminal=TextProgressBar())
+    info = session_info(config, spec=rig)
     bridge = ControllerBridge.for_process(config.control, rig)
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)

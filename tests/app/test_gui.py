@@ -38,6 +38,30 @@ def test_a_bad_phantom_is_reported_before_any_window_opens(tmp_path):
         run_gui(config, screenshot=str(tmp_path / "never.png"))
 
 
+def test_nothing_builds_the_tissue_model_before_the_progress_dialog_can_show_it(monkeypatch, qapp):
+    """issue 50: the session's description built the rig, and with it the tissue model, before the Qt
+    application and its progress dialog existed: 36 s of black window and a silent terminal on a first run."""
+    order = []
+
+    class Stop(Exception):
+        pass
+
+    def described(*args, **kwargs):
+        order.append("session described")
+        raise Stop
+
+    def prepared(prepare, title, terminal=None):
+        from PySide6 import QtWidgets
+
+        order.append("prepared with progress" if QtWidgets.QApplication.instance() else "prepared without Qt")
+
+    monkeypatch.setattr("app.gui.session_info", described)
+    monkeypatch.setattr("app.gui.prepare_in_console", prepared)
+    with pytest.raises(Stop):
+        run_gui(load_config())
+    assert order == ["prepared with progress", "session described"]
+
+
 def test_the_console_runs_on_the_controller_process_and_saves_a_screenshot(tmp_path):
     # Its own process, as `make run` starts it: the console quits its QApplication at the end, which a
     # test process must not do to the QApplication the other tests share.
