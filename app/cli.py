@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from app import process
+from app.display import display_problem
 
 # Imports stop at the standard library here (app.process's too), so ``--help`` and a mistyped flag answer at
 # once, and another project's package found in place of one of ours is told before anything is imported from
@@ -140,27 +141,6 @@ class _Version(argparse.Action):
     def __call__(self, parser, namespace, values, option_string=None):
         print(f"{DISTRIBUTION} {version()}")
         parser.exit()
-
-
-def display_problem(environ=os.environ, command: str = "run", find_library=None) -> str:
-    """Why Qt could not open a window here, or '' (told before the tissue model is built or a session read,
-    not after, by Qt's abort: exit 134 and a paragraph about plugins)."""
-    if environ.get("QT_QPA_PLATFORM"):  # a platform was chosen (offscreen, vnc, ...): Qt says if it fails
-        return ""
-    if not sys.platform.startswith("linux"):
-        return ""
-    if not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
-        return ("no display to open the console on (neither DISPLAY nor WAYLAND_DISPLAY is set): run it under a "
-                f"virtual one (xvfb-run -a palpation-console {command}), or set QT_QPA_PLATFORM=offscreen for a "
-                "headless check")
-    if not environ.get("WAYLAND_DISPLAY"):
-        import ctypes.util
-
-        # Qt 6's X11 platform will not load without it, and pip cannot install it
-        if (find_library or ctypes.util.find_library)("xcb-cursor") is None:
-            return ("Qt's X11 platform needs the system library libxcb-cursor0, which is not installed: "
-                    "sudo apt-get install libxcb-cursor0 (or run make bootstrap-run)")
-    return ""
 
 
 def cmd_run(args) -> int:

@@ -291,7 +291,7 @@ def review_main(argv: list[str] | None = None) -> int:
         return code
     if args.screenshot and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
-    from app.cli import display_problem
+    from app.display import display_problem
 
     problem = display_problem(command="review")
     if problem:

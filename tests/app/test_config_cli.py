@@ -216,7 +216,7 @@ def test_run_without_a_display_says_what_to_do_before_building_anything(monkeypa
     assert err.startswith("error: no display to open the console on") and "xvfb-run" in err
     assert "QT_QPA_PLATFORM=offscreen" in err and err.count("\n") == 1
     monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")  # a platform chosen: Qt is left to it
-    from app.cli import display_problem
+    from app.display import display_problem
 
     assert display_problem() == ""
     monkeypatch.delenv("QT_QPA_PLATFORM")
