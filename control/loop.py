@@ -12,6 +12,7 @@ changes this tick's reference, not the next one's.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -80,8 +81,27 @@ FUTURE_TOLERANCE_S = 2e-3
 # of this at most. Less than 1 mm by the time the probe stops: the force loop descends at up to 20-30 mm/s,
 # and the lift starts within a tick of the check.
 UNEXPLAINED_TRAVEL_M = 0.6e-3
-# the force rise that counts as one (besides five standard deviations of the measured force's noise)
+# Near the force ceiling the travel allowed is less: all of it may be force the array hides (a reading that
+# drifts down reads the same however deep the probe goes), so it is held to what the stiffest accepted tissue
+# turns into this much force over the ceiling at most, with the lift's own overshoot on top (the fault
+# campaign: a 15-19 kPa drift at 4 kN/m hid 2.4 N in the 0.6 mm).
+HIDDEN_FORCE_N = 0.2
+# the force rise that counts as one (besides five standard deviations of the measured force's noise) ...
 FORCE_RISE_N = 5e-3
+# ... and the least it rises by per metre the probe went deeper: softer tissue than this cannot be palpated at
+# all (at the 16 mm indentation ceiling it would push back 0.8 N, less than the 1 N first level; the paper's
+# phantom is 0.65 N/mm, a 20 kPa layer under a spring-bed face 0.19 N/mm)
+SOFTEST_TISSUE_N_M = 50.0
+# A force that falls by more than this from one frame to the next while the probe goes no higher is no
+# tissue's: it relaxes by millinewtons a frame, and lets go only when the probe lifts
+FORCE_DROP_N = 0.25
+# More total force than an array's creep and hysteresis leave after a press (3 % and 5 % of a 7 N press): the
+# probe presses tissue
+RESIDUAL_FORCE_N = 0.5
+# the frames the force floor takes the most force of (50 ms at 100 frames/s)
+RECENT_FRAMES = 5
+# The stiffest tissue the full approach speed is for; on stiffer tissue the probe approaches as much slower
+APPROACH_STIFFNESS_N_M = 5000.0
 # An array that reads no contact at all while the probe is this far below where it confirmed contact is not
 # reading the tissue
 DEAD_DEPTH_M = 0.5e-3
@@ -159,11 +179,19 @@ class ControlLoop:
         # until the array's own noise is measured, what a noisy element may read below zero is not known either
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
         self._repeats = RepeatWatch(sensor.shape)  # a frame that repeats the one before says nothing new
-        self._travel = TravelWatch(FORCE_RISE_N)  # the rise is set again from the array's noise at each area
+        # the rise is set again from the array's noise at each area
+        self._travel = TravelWatch(FORCE_RISE_N, SOFTEST_TISSUE_N_M)
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
+        self._previous_contact: tuple[float, float] | None = None  # (force N, face height m) of the last frame
+        self._recent_force_N: deque[float] = deque(maxlen=RECENT_FRAMES)  # the newest frames' total force
         self._stiffness = StiffnessWindow()
         self._too_stiff: str | None = None
         self._surface_top_m = math.nan  # the highest contact onset confirmed in this session
+        # The first frame read the probe pressing (None before it), and no frame since has read it let go: a probe
+        # that starts pressed into tissue is in by a depth no reading can tell, so it may not go deeper until it
+        # has been lifted (the fault campaign: started 1.7 mm in, the ceiling counted from there and the probe went
+        # 1.9 mm past it)
+        self._started_pressed: bool | None = None
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
                             np.full(sensor.shape, contact.confirm_threshold_pa))
@@ -436,12 +464,21 @@ class ControlLoop:
         """The lowest this tick's reference may go from ``z_before`` (never above it): near tissue (below the
         highest surface touched plus the retract height, or anywhere before any was touched) no faster than
         the approach speed, and never where the force would pass the ceiling (:meth:`_force_floor_m`)."""
+        if self._started_pressed:
+            return z_before  # started pressed: up, or nowhere, until lifted
         near = not z_before > self._surface_top_m + self.config.contact.retract_height_m
-        lowest = z_before - self.safety.limits.approach_speed_m_s * dt if near else -math.inf
+        lowest = z_before - self._approach_speed_m_s() * dt if near else -math.inf
         floor = self._force_floor_m()
         if floor > lowest:  # (NaN before the first frame: the stale sensor stops everything then)
             lowest = min(floor, z_before)
         return lowest
+
+    def _approach_speed_m_s(self) -> float:
+        """The approach speed, slower for tissue stiffer than APPROACH_STIFFNESS_N_M: a robot stopping short of
+        the force floor goes on by a distance that grows with its speed, and the stiffer the tissue the more
+        force that distance is (the fault campaign: 0.07 mm past the floor at 20 mm/s, 1.2 N on 16 kN/m)."""
+        lim = self.safety.limits
+        return lim.approach_speed_m_s * min(1.0, APPROACH_STIFFNESS_N_M / lim.tissue_stiffness_max_N_m)
 
     def _force_floor_m(self) -> float:
         """The lowest the reference may go now: where the newest frame's force, plus what the stiffest tissue
@@ -450,7 +487,10 @@ class ControlLoop:
         250 mm/s reached 27.9 N against a 12 N ceiling before one arrived. So the ceiling holds at every
         velocity limit, and near it the probe slows by itself (0.2 N from it on 5 kN/m: 40 um a frame)."""
         lim = self.safety.limits
-        force = self._force_N
+        # the most of the last few frames: a reading that falls to nothing (an array that died, a drift that
+        # stepped) would otherwise open the whole headroom to the force loop at once, which then dives towards a
+        # force it will never read (the fault campaign: 0.3 mm into 7 kN/m tissue in the 16 ms to the fault)
+        force = max(self._recent_force_N, default=math.nan)
         if not force >= 0.0:  # tissue never pulls; an unknown force leaves no headroom
             force = 0.0 if force < 0.0 else math.inf
         headroom = lim.force_ceiling_N - FORCE_RESERVE_N - force
@@ -494,6 +534,9 @@ class ControlLoop:
             self._seen[0] = frame.t_s
         area = self.sensor.element_area_m2
         self._force_N = float(p.sum()) * area
+        pressing = self._force_N > RESIDUAL_FORCE_N
+        self._started_pressed = pressing if self._started_pressed is None else self._started_pressed and pressing
+        self._recent_force_N.append(self._force_N if self._force_N == self._force_N else math.inf)
         self._max_pressure_pa = float(p.max())
         margin = p + self._negative_allowance_pa
         k = int(np.argmin(margin))  # a NaN element is the one: NaN is never plausible
@@ -520,8 +563,11 @@ class ControlLoop:
             # A sensor's residual reading after a hard press (creep) can hold an element above the threshold
             # in air for seconds: a probe moved to the next area would then carry the last area's onsets
             # over, and every thickness and indentation there would be another place's.
+            # But a probe slid sideways while it presses firmly is still in the tissue it was pressed into: tracked
+            # afresh, its onsets would start where it is, and the indentation ceiling would count from there (the
+            # fault campaign: an operator jogging down and sideways went 8.4 mm in while the loop counted 3).
             moved = (self._tracked_xy is None or math.dist(self._tracked_xy, pos[:2])
-                     > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m)
+                     > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m) and not self._force_N > RESIDUAL_FORCE_N
             if clear or moved:
                 tracker.reset(self._thresholds)  # the next contact is a new descent, tracked from here
                 self._tracked_xy = (pos[0], pos[1])
@@ -576,9 +622,20 @@ class ControlLoop:
         repeats a frame, or one whose reading drifts down all read less than the tissue pushes, and the force
         loop pushes on into the tissue."""
         sm = self.sm
+        previous, self._previous_contact = self._previous_contact, (self._force_N, z_m)
         if sm.phase != Phase.SETTLING:
             self._travel.reset()
             self._contradiction = None
+            self._previous_contact = None
+            return
+        if previous is not None and z_m <= previous[1] and previous[0] - self._force_N > max(
+                FORCE_DROP_N, 2.0 * self._travel.rise_N):
+            # (the fault campaign: an array that died while the ramp rose read 0 N for 16 ms before the depth
+            # check saw it, and the probe pressed 0.7 N past the ceiling into 7 kN/m tissue)
+            self._contradiction = (
+                f"Tactile force fell from {previous[0]:.2f} to {self._force_N:.2f} N in one frame while the probe went "
+                f"no higher: tissue does not let go so; the array is not reading it (dead, unplugged or drifting). "
+                f"The probe was lifted off the tissue.")
             return
         tracker = sm.tracker
         onsets = tracker.onset_height_m
@@ -615,7 +672,23 @@ class ControlLoop:
         """The robot, now, below where the array last read the force rise (between frames as well: a frame is
         10-20 ms late, and at 20 mm/s that is a third of a millimetre more)."""
         travel = self._travel.travel_m(self._x_s[Z])
-        if travel > UNEXPLAINED_TRAVEL_M and self._contradiction is None:
+        lim = self.safety.limits
+        headroom = lim.force_ceiling_N + HIDDEN_FORCE_N - self._travel.peak_N
+        allowed = min(UNEXPLAINED_TRAVEL_M, max(headroom, 0.0) / lim.tissue_stiffness_max_N_m)
+        settled = self.sm.settled
+        if settled is not None and self._contradiction is None:
+            # what the tissue, as stiff as its levels measured it, pushes back with now (it stiffens with depth,
+            # so this is the least): a reading that drifted down while the force rose hides the rest
+            force_N, z_m, stiffness = settled
+            predicted = force_N + stiffness * (z_m - self._x_s[Z])
+            if predicted > lim.force_ceiling_N + HIDDEN_FORCE_N and predicted > self._force_N + HIDDEN_FORCE_N:
+                self._contradiction = (
+                    f"Tactile force too low for the tissue: the probe went {(z_m - self._x_s[Z]) * 1e3:.2f} mm deeper "
+                    f"than at a level where the tissue pushed back {stiffness / 1e3:.1f} N per mm, so it now "
+                    f"presses about {predicted:.1f} N, over the {lim.force_ceiling_N:g} N ceiling, while the array "
+                    f"reads {self._force_N:.2f} N (drifting?). The probe was lifted off the tissue.")
+                return
+        if travel > allowed and self._contradiction is None:
             self._contradiction = (
                 f"Tactile force not rising: the probe went {travel * 1e3:.2f} mm deeper under force control while "
                 f"the array read no more than {self._travel.peak_N:.2f} N; it is not reading the tissue (dead, "

@@ -35,6 +35,9 @@ FRAME_BUFFER = 512  # frames held for the settle window: 5 s at 100 frames/s
 CAP_FRACTION = 0.95
 
 
+# A level this shallow says little about the tissue's stiffness (an onset a few noise steps off is a large share)
+MIN_SECANT_INDENTATION_M = 0.1e-3
+
 class PalpationStateMachine:
     def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float,
                  pressure_ceiling_pa: float = math.inf):
@@ -43,6 +46,11 @@ class PalpationStateMachine:
         self.area = element_area_m2
         self.pressure_ceiling_pa = pressure_ceiling_pa
         self._last_level: tuple[float, np.ndarray] | None = None  # (force, pressure) of this area's last level
+        # (force N, face height m, N per m of indentation) of the level of this area that measured the tissue
+        # stiffest (force over indentation): tissue stiffens with depth, so the force it pushes back with deeper
+        # is at least that level's and that stiffness times the travel since; a reading that drifts down makes
+        # later levels look softer, and leaves this one standing
+        self.settled: tuple[float, float, float] | None = None
         self.tracker = ContactTracker(contact, shape)
         self.phase = Phase.APPROACH
         self.region = -1
@@ -103,6 +111,7 @@ class PalpationStateMachine:
         self.force_desired_N = self.ramp.level_force_N(0)
         self.rmse_N = math.nan
         self._last_level = None
+        self.settled = None
         if not touching:
             self.tracker.reset(thresholds)
         self._t_start = now_s
@@ -224,6 +233,10 @@ class PalpationStateMachine:
             stiffness_pa=stiffness,
         )
         self._events.append(LevelRecorded(t_s, record))
+        if record.indentation_m > MIN_SECANT_INDENTATION_M and record.force_measured_N > 0.0:
+            secant = record.force_measured_N / record.indentation_m
+            if self.settled is None or secant >= self.settled[2]:
+                self.settled = (record.force_measured_N, z, secant)
         capped = self.level + 1 < self.n_levels and self._next_level_too_hard(record.force_measured_N, pressure)
         if self.level + 1 >= self.n_levels or capped:
             self.region_done = True

@@ -37,11 +37,15 @@ class RepeatWatch:
 
 
 class TravelWatch:
-    """How far the probe has gone below the height at which the force it reads last rose by ``rise_N``."""
+    """How far the probe has gone below the height at which the force it reads last rose as tissue would: by
+    ``rise_N`` and by at least ``softest_N_m`` times the travel since. (A reading that creeps up by a few mN
+    while the probe sinks a millimetre is not tissue pushing back: the fault campaign's drifting array did
+    that, and a watch content with any rise of 5 mN let the probe go on.)"""
 
-    def __init__(self, rise_N: float):
+    def __init__(self, rise_N: float, softest_N_m: float = 0.0):
         self.rise_N = rise_N
-        self.peak_N = math.nan  # the most force read since the watch began, and where it was read
+        self.softest_N_m = softest_N_m
+        self.peak_N = math.nan  # the force read where it last rose so, and where it was read
         self.peak_z_m = math.nan
 
     def reset(self) -> None:
@@ -49,7 +53,8 @@ class TravelWatch:
 
     def push(self, force_N: float, z_m: float) -> None:
         """A frame's force and the face's height when it was sampled."""
-        if not force_N <= self.peak_N + self.rise_N:  # (NaN before the first)
+        travel = max(self.peak_z_m - z_m, 0.0)
+        if not force_N <= self.peak_N + self.rise_N + self.softest_N_m * travel:  # (NaN before the first)
             self.peak_N, self.peak_z_m = force_N, z_m
 
     def travel_m(self, z_now_m: float) -> float:

@@ -123,17 +123,20 @@ def test_fuzzed_inputs_get_the_readers_own_errors_never_a_crash(tmp_path):
 # ---- each kind of trouble against the invariants -------------------------------------------------------------
 
 # Per kind: its first two runs with the exact robot and first two with the dynamic one in which the trouble came
-# to pass, and the run it did worst in (the most force over the ceiling), if not among them, of seeds 0-479.
+# to pass, and the run it did worst in (the most force over the ceiling), if not among them, of seeds 0-479;
+# and the runs of the 10,100-run campaign that broke a bound before the check each now meets: a drift during the
+# ramp (5451, 9135: the force predicted from the stiffest level; 7779: a reading rising by millinewtons a
+# millimetre), a dead array read as 0 N for 16 ms (9673), a stop from the approach speed on stiff tissue (3488).
 SEEDS = {
     "classic": [0, 12, 24, 36, 300],
-    "dead-array": [1, 13, 25, 73, 217],
+    "dead-array": [1, 13, 25, 73, 217, 9673],
     "frozen-array": [2, 14, 26, 38],
-    "drifting-array": [3, 15, 27, 39, 255],
+    "drifting-array": [3, 15, 27, 39, 255, 5451, 9135, 7779],
     "stuck-position": [4, 16, 28, 40, 208],
     "lying-position": [5, 17, 29, 41, 149],
     "future-stamp": [6, 18, 30, 42, 210],
     "panel-gains": [7, 19, 31, 43, 199],
-    "operator-push": [8, 20, 32, 44, 140],
+    "operator-push": [8, 20, 32, 44, 140, 3488],
     "estop-pressing": [21, 33, 45, 225, 393],
     "in-contact-start": [10, 22, 34, 46, 418],
     "high-fmax": [11, 23, 35, 47, 299],
