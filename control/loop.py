@@ -92,6 +92,9 @@ FORCE_RISE_N = 5e-3
 # all (at the 16 mm indentation ceiling it would push back 0.8 N, less than the 1 N first level; the paper's
 # phantom is 0.65 N/mm, a 20 kPa layer under a spring-bed face 0.19 N/mm)
 SOFTEST_TISSUE_N_M = 50.0
+# ... once the face bears on the tissue with this much: a first touch on a ridge, one element at a time, rises by
+# less (the paper's uneven phantom: 10 mN over 0.6 mm at a bump's edge)
+ENGAGED_FORCE_N = 0.25
 # A force that falls by more than this from one frame to the next while the probe goes no higher is no
 # tissue's: it relaxes by millinewtons a frame, and lets go only when the probe lifts
 FORCE_DROP_N = 0.25
@@ -180,7 +183,7 @@ class ControlLoop:
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
         self._repeats = RepeatWatch(sensor.shape)  # a frame that repeats the one before says nothing new
         # the rise is set again from the array's noise at each area
-        self._travel = TravelWatch(FORCE_RISE_N, SOFTEST_TISSUE_N_M)
+        self._travel = TravelWatch(FORCE_RISE_N, SOFTEST_TISSUE_N_M, ENGAGED_FORCE_N)
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
         self._previous_contact: tuple[float, float] | None = None  # (force N, face height m) of the last frame
         self._recent_force_N: deque[float] = deque(maxlen=RECENT_FRAMES)  # the newest frames' total force

@@ -38,13 +38,15 @@ class RepeatWatch:
 
 class TravelWatch:
     """How far the probe has gone below the height at which the force it reads last rose as tissue would: by
-    ``rise_N`` and by at least ``softest_N_m`` times the travel since. (A reading that creeps up by a few mN
-    while the probe sinks a millimetre is not tissue pushing back: the fault campaign's drifting array did
-    that, and a watch content with any rise of 5 mN let the probe go on.)"""
+    ``rise_N``, and once it reads ``engaged_N`` by at least ``softest_N_m`` times the travel since. (A reading
+    that creeps up by a few mN while the probe sinks a millimetre is not tissue pushing back: the fault
+    campaign's drifting array did that, and a watch content with any rise of 5 mN let the probe go on. Before
+    the face bears on the tissue, a first touch on a ridge rises by less: the paper's uneven phantom did.)"""
 
-    def __init__(self, rise_N: float, softest_N_m: float = 0.0):
+    def __init__(self, rise_N: float, softest_N_m: float = 0.0, engaged_N: float = 0.0):
         self.rise_N = rise_N
         self.softest_N_m = softest_N_m
+        self.engaged_N = engaged_N
         self.peak_N = math.nan  # the force read where it last rose so, and where it was read
         self.peak_z_m = math.nan
 
@@ -53,7 +55,7 @@ class TravelWatch:
 
     def push(self, force_N: float, z_m: float) -> None:
         """A frame's force and the face's height when it was sampled."""
-        travel = max(self.peak_z_m - z_m, 0.0)
+        travel = max(self.peak_z_m - z_m, 0.0) if self.peak_N >= self.engaged_N else 0.0
         if not force_N <= self.peak_N + self.rise_N + self.softest_N_m * travel:  # (NaN before the first)
             self.peak_N, self.peak_z_m = force_N, z_m
 
