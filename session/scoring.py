@@ -81,7 +81,8 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
             "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
             "false_positives_per_phantom": _false_positives_per_phantom(phantoms, source)}
     shallow = [m for _, m, t in truths if t["depth_m"] <= SHALLOW_M]
-    paper = {r["name"]: r for r in results if r["paper"]}
+    # by the phantom's name, whatever world's prefix the case has (app.study names them realistic-paper-flat)
+    paper = {r["name"].removeprefix("realistic-"): r for r in results if r["paper"]}
     return {
         "phantoms": len(drawn),
         "tumours": len(truths),

@@ -46,6 +46,9 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
     assert f["depth_bias_rule_median_mm"] == pytest.approx(-1.25)  # +0.5 and -3.0 mm
     assert f["depth_interval_coverage_pct"] == 50.0  # the second interval misses the truth
     assert f["paper_flat_found"] == 1 and f["paper_uneven_found"] is None and f["paper_false_positives"] == 2
+    # the realistic world's case of the same phantom (app.study: realistic-paper-flat) counts as the paper's too
+    results[-1] = {**results[-1], "name": "realistic-paper-flat"}
+    assert score(results)["paper_flat_found"] == 1
     # by surface, the paper's phantom apart: where the two maps part ways
     assert f["by_surface"] == {
         "flat": {"phantoms": 1, "tumours": 2, "found": 1, "sensitivity_pct": 50.0, "false_positives_per_phantom": 1.0},
