@@ -27,6 +27,9 @@ PHASES: dict[Phase, tuple[str, str, str]] = {
     Phase.DONE: ("DONE", "#5fd35f", "Switch S_z to POSITION and move to the next area"),
     Phase.HOLD: ("HOLD", "#ff6b6b", "A fault holds the robot: read the banner, clear it when safe"),
 }
+# what to do next when S_z is already back on POSITION (the controller hands z back when the ramp ends): the
+# hint "switch S_z to POSITION" stayed up while POSITION was on
+HINTS_IN_POSITION = {Phase.DONE: "S_z is on POSITION: move the TSI to the next area, then switch S_z to FORCE"}
 SETTLED_COLOUR = "#5fd35f"
 UNSETTLED_COLOUR = "#ffc37a"
 
@@ -203,6 +206,8 @@ class FlowchartPanel(QtWidgets.QWidget):
             self._set_text(self._hint, "the controller reported a phase this console does not know")
             return
         headline, colour, hint = PHASES[phase]
+        if int(tick["sz"]) == 1:
+            hint = HINTS_IN_POSITION.get(phase, hint)
         if self._texts.get(self._phase) != headline:
             self._phase.setStyleSheet(f"color: {colour};")
         self._set_text(self._phase, headline)

@@ -122,6 +122,9 @@ def test_a_region_runs_to_region_done_and_fills_the_tissue_view(qtbot, console):
     # while in contact the live figures were there; after the retract the phase says what to do next
     wait(qtbot, console, lambda: text(console, "phaseLabel") == "DONE")
     assert "next area" in text(console, "phaseHint")
+    # issue 50: the controller handed z back; the hint no longer asks for what is already so
+    wait(qtbot, console, lambda: find(console, SzSwitch, "szSwitch").state() is True)
+    wait(qtbot, console, lambda: text(console, "phaseHint").startswith("S_z is on POSITION: move the TSI"))
 
 
 def test_autopilot_palpates_areas_in_turn(qtbot, console):
