@@ -17,7 +17,9 @@ import numpy as np
 import pytest
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from tests.widgets.test_live_window import CONFIG, PLAN, FakeController
+from control.messages import FaultKind, FaultRaised
+from hardware.interfaces import Phase
+from tests.widgets.test_live_window import CONFIG, PLAN, FakeController, make_tick, push
 from widgets.live_window import LiveWindow
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
@@ -50,18 +52,8 @@ def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size):
     qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
     side = window.findChild(QtWidgets.QScrollArea, "sideScroll")  # settled: its contents as wide as its view
     qtbot.waitUntil(lambda: side.widget().width() == side.viewport().width())
-    inside = window.rect()
-    for name in ESSENTIAL:
-        widget = window.findChild(QtWidgets.QWidget, name)
-        assert widget is not None and widget.isVisible(), name
-        box = QtCore.QRect(widget.mapTo(window, QtCore.QPoint(0, 0)), widget.size())
-        assert inside.contains(box), f"{name} at {box} is cut off by the {width} x {height} window"
-        child = widget  # nor by anything it sits in (a dock, a scroll area's viewport)
-        while child is not window:
-            parent = child.parentWidget()
-            assert parent.rect().contains(QtCore.QRect(widget.mapTo(parent, QtCore.QPoint(0, 0)), widget.size())), (
-                f"{name} is cut off by {type(parent).__name__} {parent.objectName()!r}")
-            child = parent
+
+    _all_in_view(window, width, height)
 
     picture = _pixels(window.grab().toImage())
     reference = GOLDEN / f"console_{width}x{height}.png"
@@ -72,3 +64,55 @@ def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size):
     differing = np.any(np.abs(stored.astype(int) - picture.astype(int)) > CHANNEL_TOLERANCE, axis=2)
     assert differing.mean() * 100 <= MAX_DIFFERING_PCT, (
         f"{differing.mean() * 100:.2f} % of the pixels differ from {reference.name}")
+
+
+def _all_in_view(window, width: int, height: int, state: str = "idle", names=ESSENTIAL) -> None:
+    """Every part an operator needs lies within the window and within whatever it sits in (a dock, a scroll
+    area's viewport): not scrolled away, not cut off."""
+    inside = window.rect()
+    for name in names:
+        widget = window.findChild(QtWidgets.QWidget, name)
+        assert widget is not None and widget.isVisible(), name
+        box = QtCore.QRect(widget.mapTo(window, QtCore.QPoint(0, 0)), widget.size())
+        assert inside.contains(box), f"{name} at {box} is cut off by the {width} x {height} window ({state})"
+        child = widget
+        while child is not window:
+            parent = child.parentWidget()
+            assert parent.rect().contains(QtCore.QRect(widget.mapTo(parent, QtCore.QPoint(0, 0)), widget.size())), (
+                f"{name} is cut off by {type(parent).__name__} {parent.objectName()!r} ({state})")
+            child = parent
+
+
+# the TSI depth is what the operator must see most: the essential set less what a short screen may scroll
+ALWAYS = ("indentation", "estopButton", "healthChip", "pressureMap", "stiffnessMap", "szPosition", "szForce")
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
+def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_path, size):
+    """issue 50: at 1280 x 800 the depth figure was half cut during REGION DONE, at 1366 x 768 hidden, and a
+    fault banner scrolled it away; the fit test looked at the idle console only."""
+    width, height = size
+    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
+    controller = FakeController()
+    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
+    qtbot.addWidget(window)
+    window.resize(width, height)
+    window.show()
+    qtbot.waitExposed(window)
+    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
+    states = {
+        "palpating": (make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, force_desired_N=3.0,
+                                force_measured_N=2.9, indentation_m=0.006), ()),
+        "region done": (make_tick(phase=Phase.SETTLING, sz=0, level=6, n_levels=7, region_done=1,
+                                  indentation_m=0.009), ()),
+        "fault": (make_tick(phase=Phase.HOLD, fault=FaultKind.FORCE_CEILING, indentation_m=0.01),
+                  [FaultRaised(1.0, FaultKind.FORCE_CEILING, "Force ceiling: the tissue pushed back 12.4 N, more "
+                                                             "than the 12 N ceiling. The probe was lifted off.")]),
+    }
+    for state, (tick, events) in states.items():
+        push(controller, tick, events=events)
+        banner = window.findChild(QtWidgets.QFrame, "faultBanner")
+        qtbot.waitUntil(lambda: banner.isVisible() == (state == "fault"))  # noqa: B023 - waited on at once
+        QtWidgets.QApplication.processEvents()  # and the layout that follows it
+        _all_in_view(window, width, height, state, ALWAYS)
+        assert window.findChild(QtWidgets.QLabel, "indentation").text().endswith("mm"), state
