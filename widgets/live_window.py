@@ -109,7 +109,7 @@ QPushButton#estopButton:pressed { background: #8a0f18; }
 """
 _BANNER_STYLE = """
 QFrame#faultBanner { background: #c01c28; border-radius: 4px; }
-QLabel#faultText { color: white; font-size: 15pt; font-weight: bold; }
+QLabel#faultText { color: white; font-size: 13pt; font-weight: bold; }
 QPushButton#clearFault { font-size: 12pt; padding: 6px 12px; }
 """
 _HEALTH_STYLE = """
@@ -250,6 +250,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._clear_fault.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)  # a deliberate click, never a stray Space
         self._clear_fault.clicked.connect(lambda: self._send(ClearFault()))
         row = QtWidgets.QHBoxLayout(self._fault_banner)
+        row.setContentsMargins(10, 4, 10, 4)  # the maps below need the height more than the banner's border
         row.addWidget(self._fault_text, 1)
         row.addWidget(self._clear_fault)
         self._banner_bar.addWidget(self._fault_banner)
