@@ -39,7 +39,7 @@ def _pixels(image: QtGui.QImage) -> np.ndarray:
 
 
 @pytest.mark.parametrize("size", [(1280, 800), (1600, 1000)])
-def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size):
+def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size, laid_out_once):
     width, height = size
     settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
     window = LiveWindow(FakeController(), config=CONFIG, settings=settings, plan=PLAN)
@@ -64,6 +64,21 @@ def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size):
     differing = np.any(np.abs(stored.astype(int) - picture.astype(int)) > CHANNEL_TOLERANCE, axis=2)
     assert differing.mean() * 100 <= MAX_DIFFERING_PCT, (
         f"{differing.mean() * 100:.2f} % of the pixels differ from {reference.name}")
+
+
+@pytest.fixture(scope="module")
+def laid_out_once(qapp, tmp_path_factory):
+    """A console shown and closed first: the first window of a process lays itself out before its fonts are
+    loaded, and came out 15 px off the same window made later (1.7-2.4 % of the pixels, as the first test of a
+    pytest-xdist worker)."""
+    settings = QtCore.QSettings(str(tmp_path_factory.mktemp("warm") / "console.ini"), QtCore.QSettings.Format.IniFormat)
+    window = LiveWindow(FakeController(), config=CONFIG, settings=settings, plan=PLAN)
+    window.resize(1280, 800)
+    window.show()
+    QtWidgets.QApplication.processEvents()
+    window.grab()
+    window.close()
+    window.deleteLater()
 
 
 def _all_in_view(window, width: int, height: int, state: str = "idle", names=ESSENTIAL) -> None:
