@@ -22,6 +22,7 @@ from session.physics import PHYSICS, physics_for
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams
 from session.tables import TABLES, TableError, write_csv, write_parquet
+from tissue.mechanics.progress import Progress, TextProgressBar
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
 
@@ -86,15 +87,16 @@ def analysis_params(args) -> AnalysisParams:
     return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error, args.depth_scale_error))
 
 
-def analyse(session: Session, args) -> SessionAnalysis:
+def analyse(session: Session, args, progress: Progress | None = None) -> SessionAnalysis:
     """The session analysed as the options say; raises AnalysisInputError for physics or a reference that
-    cannot be had for it (a cache hit or a finite-element solve of the rebuilt block: seconds when new)."""
+    cannot be had for it (a cache hit or a finite-element solve of the rebuilt block: seconds when new, which
+    ``progress`` hears about)."""
     if not len(session.levels):
         # said before any option is tried, and with what the reader found (a truncated file loses its levels)
         why = f"{session.warnings[0].rstrip('.')}; " if session.recovered and session.warnings else ""
         raise AnalysisInputError(f"{why}the session holds no recorded level, so there is no palpated area to analyse")
     try:
-        physics = physics_for(session, args.physics)
+        physics = physics_for(session, args.physics, progress=progress)
     except ValueError as err:
         raise AnalysisInputError(f"--physics {args.physics}: {err}") from None
     reference = None
@@ -199,7 +201,8 @@ def stitch_main(argv: list[str] | None = None) -> int:
         return EXIT_INPUT
     with session:
         try:
-            analysis = analyse(session, args)
+            # the first analysis of a session rebuilds its tissue: tens of seconds that printed nothing
+            analysis = analyse(session, args, progress=TextProgressBar())
         except AnalysisInputError as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_INPUT

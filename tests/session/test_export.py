@@ -143,3 +143,15 @@ def test_part_of_a_tissue_is_analysed_with_where_it_ends_not_known(recorded, tmp
     assert stitch_main([str(recorded[0]), "--physics", "partial", "--no-depth-model", "--json", str(out)]) == 0
     flat_field = json.loads(out.read_text())["flat_field"]
     assert "rebuilt from the session" in flat_field and "where the tissue ends not known" in flat_field
+
+
+def test_stitch_shows_on_the_terminal_how_far_the_tissue_rebuild_is(recorded, capsys, monkeypatch):
+    """issue 50: the first stitch of a session printed nothing for about 30 s while its tissue was rebuilt."""
+    def rebuilt(session, name, progress=None):
+        progress(0.5, "condensing the rebuilt block")
+        progress(1.0, "tissue model ready")
+
+    monkeypatch.setattr("app.session_commands.physics_for", rebuilt)
+    assert stitch_main([str(recorded[0]), "--no-depth-model"]) == 0
+    err = capsys.readouterr().err
+    assert "100% tissue model ready" in err and "[" + "#" * 30 + "]" in err
