@@ -156,6 +156,15 @@ def stitch_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _opened(path: Path) -> Session | None:
+    """The session file at ``path``, or None once the reader's one line saying why not is printed."""
+    try:
+        return open_session(path)
+    except SessionFileError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return None
+
+
 def _print_summary(analysis: SessionAnalysis, out) -> None:
     session, stitched, tumours = analysis.session, analysis.stitched, analysis.tumours
     forces = ", ".join(f"{f:g}" for f in stitched.level_forces_N()) or "none"
@@ -194,10 +203,8 @@ def stitch_main(argv: list[str] | None = None) -> int:
     if problem:  # before the analysis, not after it
         print(f"error: {problem}", file=sys.stderr)
         return EXIT_OUTPUT
-    try:
-        session = open_session(args.file)
-    except SessionFileError as err:
-        print(f"error: {err}", file=sys.stderr)
+    session = _opened(args.file)
+    if session is None:
         return EXIT_INPUT
     with session:
         try:
@@ -368,10 +375,8 @@ def export_main(argv: list[str] | None = None) -> int:
     if not folder.is_dir():
         print(f"error: {folder}: no such folder", file=sys.stderr)
         return EXIT_OUTPUT
-    try:
-        session = open_session(args.file)
-    except SessionFileError as err:
-        print(f"error: {err}", file=sys.stderr)
+    session = _opened(args.file)
+    if session is None:
         return EXIT_INPUT
     with session:
         for warning in session.warnings:
