@@ -29,9 +29,13 @@ def console_rig(config: AppConfig):
     return config.rig
 
 
+# how a finding told to the surgeon begins among the session's notes
+FINDINGS_TOLD = "Console told the surgeon:"
+
+
 def wire_recording(window, recording: SessionRecording) -> None:
     """Show ``recording`` in the console ``window`` (a :class:`widgets.live_window.LiveWindow`) and let its
-    operator notes reach the session file."""
+    operator notes, and the findings it tells the surgeon, reach the session file."""
     from widgets.messages import Severity
 
     panel = window.session_panel()
@@ -63,6 +67,8 @@ def wire_recording(window, recording: SessionRecording) -> None:
     recording.recording_stopped.connect(stopped)
     recording.problem.connect(problem)
     panel.note_submitted.connect(note)
+    # what the surgeon was told, and when, so the reviewer can show it beside its own analysis (issue 50)
+    window.findings_told.connect(lambda text: recording.add_note(f"{FINDINGS_TOLD} {text}"))
 
 
 def prepare_in_console(prepare: Callable[[Progress], None], title: str, terminal: Progress | None = None) -> None:

@@ -151,7 +151,12 @@ class LiveWindow(QtWidgets.QMainWindow):
 
     Recorded sessions are opened read-only, each in a :class:`~widgets.review.ReviewWindow` of its own;
     ``sessions_folder`` is where the Open dialog starts, ``recent`` the shared recent-sessions list.
+
+    ``findings_told(text)`` says each finding as the surgeon was told it (an area's at "region done", and
+    tumours that show later), for the composition root to record in the session.
     """
+
+    findings_told = QtCore.Signal(str)
 
     def __init__(self, controller, *, config: ControlConfig | None = None, sensor: TactileConstraints | None = None,
                  plan: AutopilotPlan | None = None, settings: QtCore.QSettings | None = None,
@@ -864,6 +869,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         if findings is not None:
             self._told_areas.add(region)
             self._told += findings
+            self.findings_told.emit(text)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
 
@@ -873,8 +879,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         for region in sorted(self._told_areas):
             for tumour in self._tissue.findings_in(region, self._told) or []:
                 self._told.append(tumour)
-                self._messages.add(f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}",
-                                   Severity.WARNING)
+                text = f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}"
+                self._messages.add(text, Severity.WARNING)
+                self.findings_told.emit(text)
 
     def _show_settings(self) -> None:
         """The S_z switch, ramp and gains as the controller has them, with what is pending or refused."""

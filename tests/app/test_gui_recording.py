@@ -86,6 +86,8 @@ def test_a_region_run_in_the_console_is_recorded_with_its_levels_and_a_note(qtbo
     qtbot.keyClicks(note, "stiff spot near the lower edge")
     qtbot.mouseClick(window.findChild(QtWidgets.QPushButton, "addNoteButton"), QtCore.Qt.MouseButton.LeftButton)
     assert note.text() == "" and logged(window, "Note: stiff spot near the lower edge")
+    # issue 50: what the console tells the surgeon is in the session too, stamped when it was told
+    window.findings_told.emit("Area 1: stiffness map: tumour at x 12.0 mm, y 15.0 mm, first at 1 N")
 
     qtbot.mouseClick(window.findChild(QtWidgets.QPushButton, "szForce"), QtCore.Qt.MouseButton.LeftButton)
     done = window.findChild(QtWidgets.QLabel, "regionDone")
@@ -108,7 +110,9 @@ def test_a_region_run_in_the_console_is_recorded_with_its_levels_and_a_note(qtbo
         assert kinds.count(EventKind.LEVEL) == 4 and EventKind.REGION_DONE in kinds
         assert kinds[-1] == EventKind.CLOSED
         notes = [e for e in session.event_dicts() if e["kind"] == EventKind.NOTE]
-        assert [n["text"] for n in notes] == ["stiff spot near the lower edge"]
+        assert [n["text"] for n in notes] == [
+            "stiff spot near the lower edge",
+            "Console told the surgeon: Area 1: stiffness map: tumour at x 12.0 mm, y 15.0 mm, first at 1 N"]
         t0, t1 = session.time_span_s()
         assert t0 <= notes[0]["t_s"] <= t1  # stamped with the loop's clock
         ticks = session.tick_rows(0, 10**9, ["tick"])

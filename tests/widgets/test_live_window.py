@@ -624,8 +624,11 @@ def test_region_done_says_what_the_area_showed(window, controller):
             return 3.1e-3, 2.25e-3, 4.4e-3
 
     window.set_depth_model(DepthModel())
+    told = []
+    window.findings_told.connect(told.append)
     push(controller, make_tick(t_s=4.0), events=area(3, 0.036, tumour=True))
     text = label(window, "regionFindings").text()
+    assert told == [text]  # for the session: what the surgeon was told (issue 50)
     found = re.match(r"Area 4: stiffness map: tumour at x ([\d.]+) mm, y ([\d.]+) mm, first at 1 N, depth [\d.]+ mm "
                      r"\(paper's rule\), 3\.1 \[2\.2, 4\.4\] mm \(model, 90 % interval\), z [\d.]+", text)
     assert found and math.hypot(float(found[1]) - 36.0, float(found[2]) - 15.0) < 1.0
@@ -636,6 +639,7 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert tissue.spot_count() == 1
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
+    assert told == [text, "Area 5: nothing significant up to 7 N"]
 
 
 class Physics(QtCore.QObject):
