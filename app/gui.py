@@ -17,6 +17,7 @@ from pathlib import Path
 from app.config import AppConfig
 from app.recording import SessionRecording, session_info
 from session.depth import LIBRARY_PATH, DepthModel, DepthModelError
+from session.format import FINDINGS_TOLD
 from session.info import sessions_dir
 from tissue.mechanics.progress import Progress
 
@@ -27,10 +28,6 @@ def console_rig(config: AppConfig):
     if config.rig.backend == "sim":
         return dataclasses.replace(config.rig, master="none")
     return config.rig
-
-
-# how a finding told to the surgeon begins among the session's notes
-FINDINGS_TOLD = "Console told the surgeon:"
 
 
 def wire_recording(window, recording: SessionRecording) -> None:

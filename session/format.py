@@ -144,6 +144,10 @@ TICK_NOTES = {
              "-1 outside the ramp",
 }
 
+# How a finding the console told the surgeon begins, among the session's notes (what was told, and when)
+FINDINGS_TOLD = "Console told the surgeon:"
+
+
 class EventKind:
     """Values of the ``kind`` column of /events."""
 
@@ -158,7 +162,7 @@ class EventKind:
     APPLIED = "applied"  # text = "<command>: <what changed>"
     REFUSED = "refused"  # text = "<command>: <reason>"
     NOTICE = "notice"  # code = 0 info / 1 warning, text
-    NOTE = "note"  # text = the operator's note
+    NOTE = "note"  # text = the operator's note, or a finding the console told the surgeon (FINDINGS_TOLD ...)
     ROWS_LOST = "rows_lost"  # value = rows missing from the stream before this point, text = "ticks"
     RECORDER = "recorder"  # text = what the recorder did (stopped on a full disk, ...)
     CONTROLLER_LOST = "controller_lost"  # the controller stopped on its own (killed, crashed); text = how

@@ -122,6 +122,9 @@ def test_a_region_run_in_the_console_is_recorded_with_its_levels_and_a_note(qtbo
 
     review = window.open_session(path)
     assert isinstance(review, ReviewWindow) and review.session is not None
+    told = review.findChild(QtWidgets.QLabel, "findingsTold").text()  # beside the reviewer's own analysis
+    assert told.startswith("What the console told the surgeon:\nt = ")
+    assert told.endswith("s: Area 1: stiffness map: tumour at x 12.0 mm, y 15.0 mm, first at 1 N")
     assert window.review_windows() == [review]
     review.close()
     qtbot.waitUntil(lambda: window.review_windows() == [], timeout=WAIT_MS)

@@ -27,6 +27,7 @@ from session.analysis import CONTRAST_MAPS, AnalysisParams, DepthModel, SessionA
 from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumour, widths_from_mm, widths_text_mm
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Reference
+from session.format import FINDINGS_TOLD, EventKind
 from session.physics import HomogeneousTissue
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
@@ -242,6 +243,9 @@ class ReviewWindow(QtWidgets.QMainWindow):
         analysis = QtWidgets.QGroupBox("Analysis (the recording is not changed)", objectName="analysis")
         analysis.setLayout(form)
         self._summary = QtWidgets.QLabel("", objectName="analysisSummary", wordWrap=True)
+        # beside this analysis, what the console told the surgeon while palpating (its notes in the session)
+        self._told = QtWidgets.QLabel("", objectName="findingsTold", wordWrap=True)
+        self._told.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
         self._tumour_table = QtWidgets.QTableWidget(objectName="tumourTable")
         self._tumour_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self._tumour_table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
@@ -257,6 +261,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         side_layout.setContentsMargins(0, 0, 0, 0)
         side_layout.addWidget(analysis)
         side_layout.addWidget(self._summary)
+        side_layout.addWidget(self._told)
         side_layout.addStretch(1)
         # no wider than the form needs: the long summary wraps instead of taking the table's width
         side.setMaximumWidth(analysis.minimumSizeHint().width() + 2 * self.fontMetrics().height())
@@ -371,12 +376,20 @@ class ReviewWindow(QtWidgets.QMainWindow):
         else:
             self._record_info.setText("No force level was recorded in this session.")
         self._timeline.set_session(session)
+        self._show_told(session)
         self.reanalyse()
         # The raw maps' brightest elements are the face's own edge rows; what a reviewer looks for is what
         # differs from healthy tissue, so a session opens on the contrast wherever there is one.
         for record_map in (self._pressure_map, self._stiffness_map):
             record_map.set_contrast_view(self._analysis is not None)
         self._set_exports_enabled(True)
+
+    def _show_told(self, session: Session) -> None:
+        told = [(float(e["t_s"]), str(e["text"])[len(FINDINGS_TOLD):].strip()) for e in session.event_dicts()
+                if e["kind"] == EventKind.NOTE and str(e["text"]).startswith(FINDINGS_TOLD)]
+        self._told.setVisible(bool(told))
+        self._told.setText("What the console told the surgeon:\n" + "\n".join(f"t = {t:.0f} s: {text}"
+                                                                           for t, text in told))
 
     def close_session(self) -> None:
         self._analysis_timer.stop()
