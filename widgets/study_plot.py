@@ -14,10 +14,14 @@ _SIZE = (1200, 520)
 
 
 def render_study_png(path: str | Path, doc: dict) -> None:
-    """Paint ``doc`` (:func:`app.study.study_document`) into a PNG at ``path``; raises OSError if it
-    cannot be written."""
+    """Paint ``doc`` (:func:`app.study.study_document`) into a PNG at ``path``, a row per world the study
+    palpated in (ideal, and realistic when it ran both); raises OSError if it cannot be written."""
     ensure_gui_application()
-    image = QtGui.QImage(*_SIZE, QtGui.QImage.Format.Format_RGB32)
+    worlds = [("", doc["maps"])]
+    if doc.get("realistic_maps"):
+        worlds = [("ideal world: ", doc["maps"]), ("realistic world: ", doc["realistic_maps"])]
+    row_height = _SIZE[1] - 40
+    image = QtGui.QImage(_SIZE[0], 40 + row_height * len(worlds), QtGui.QImage.Format.Format_RGB32)
     image.fill(QtGui.QColor("white"))
     painter = QtGui.QPainter(image)
     painter.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing)
@@ -25,19 +29,21 @@ def render_study_png(path: str | Path, doc: dict) -> None:
     font.setPixelSize(14)
     painter.setFont(font)
     try:
-        maps = doc["maps"]
         half = _SIZE[0] / 2
-        _sensitivity_by_depth(painter, QtCore.QRectF(70, 50, half - 110, _SIZE[1] - 130), maps)
-        _froc(painter, QtCore.QRectF(half + 70, 50, half - 110, _SIZE[1] - 130), maps)
-        painter.setPen(QtGui.QColor("black"))
-        stiffness = maps["stiffness"]
         origin = (f"re-analysed from {doc['reanalysed']}" if doc.get("reanalysed") else f"seed {doc.get('seed')}")
-        painter.drawText(QtCore.QPointF(20, 24), f"Validation study: {stiffness['phantoms']} phantoms, "
-                                                 f"{stiffness['tumours']} palpated tumours, {origin}")
+        for row, (world, maps) in enumerate(worlds):
+            top = row * row_height
+            _sensitivity_by_depth(painter, QtCore.QRectF(70, top + 50, half - 110, row_height - 90), maps, world)
+            _froc(painter, QtCore.QRectF(half + 70, top + 50, half - 110, row_height - 90), maps, world)
+            painter.setPen(QtGui.QColor("black"))
+            stiffness = maps["stiffness"]
+            title = (f"Validation study, {world}{stiffness['phantoms']} phantoms, {stiffness['tumours']} palpated "
+                     f"tumours, {origin}")
+            painter.drawText(QtCore.QPointF(20, top + 24), title)
         x = 20.0
         for source, colour in _COLOURS.items():
-            painter.fillRect(QtCore.QRectF(x, _SIZE[1] - 30, 14, 14), colour)
-            painter.drawText(QtCore.QPointF(x + 20, _SIZE[1] - 18), f"{source} map")
+            painter.fillRect(QtCore.QRectF(x, image.height() - 30, 14, 14), colour)
+            painter.drawText(QtCore.QPointF(x + 20, image.height() - 18), f"{source} map")
             x += 160
     finally:
         painter.end()
@@ -66,8 +72,8 @@ def _axes(painter, rect: QtCore.QRectF, title: str, x_label: str, y_label: str) 
         painter.drawText(QtCore.QRectF(rect.left() - 40, y - 9, 34, 18), QtCore.Qt.AlignmentFlag.AlignRight, f"{pct}")
 
 
-def _sensitivity_by_depth(painter, rect: QtCore.QRectF, maps: dict) -> None:
-    _axes(painter, rect, "Sensitivity by depth (surface to the tumour's top)", "depth band (mm)",
+def _sensitivity_by_depth(painter, rect: QtCore.QRectF, maps: dict, world: str = "") -> None:
+    _axes(painter, rect, f"{world.capitalize()}sensitivity by depth (surface to the tumour's top)", "depth band (mm)",
           "tumours found (%)")
     bands = list(maps["stiffness"]["by_depth"])
     slot = rect.width() / max(1, len(bands))
@@ -86,11 +92,12 @@ def _sensitivity_by_depth(painter, rect: QtCore.QRectF, maps: dict) -> None:
                          QtCore.Qt.AlignmentFlag.AlignHCenter, f"{band.removesuffix('mm')} (n={n})")
 
 
-def _froc(painter, rect: QtCore.QRectF, maps: dict) -> None:
+def _froc(painter, rect: QtCore.QRectF, maps: dict, world: str = "") -> None:
     points = {s: [p for p in maps[s]["froc"] if p["sensitivity_pct"] is not None
                   and p["false_positives_per_phantom"] is not None] for s in _COLOURS}
     x_max = max([1.0] + [p["false_positives_per_phantom"] for ps in points.values() for p in ps]) * 1.1
-    _axes(painter, rect, "FROC (stricter scores to the left)", "false positives per phantom", "tumours found (%)")
+    _axes(painter, rect, f"{world.capitalize()}FROC (stricter scores to the left)", "false positives per phantom",
+          "tumours found (%)")
     for k in range(5):
         value = x_max * k / 4
         x = rect.left() + k / 4 * rect.width()

@@ -237,6 +237,15 @@ def test_a_study_of_both_worlds_reports_each_under_its_own_keys(tmp_path, capsys
     assert doc["realistic_sensitivity_pct"] == doc["realistic_maps"]["stiffness"]["sensitivity_pct"]
     assert doc["realistic_conditions"]["mould_odds"] == 0.3
     assert sorted(p.name for p in out.glob("*.h5")) == ["realistic-s2-0000.h5", "s2-0000.h5"]
+    from PySide6 import QtGui
+
+    one, both = QtGui.QImage(), QtGui.QImage(str(out / "study.png"))
+    doc.pop("realistic_maps")
+    from widgets.study_plot import render_study_png
+
+    render_study_png(out / "ideal.png", doc)
+    one.load(str(out / "ideal.png"))
+    assert both.height() > 1.8 * one.height()  # a row of plots per world
 
 
 def test_a_kept_study_is_analysed_again_with_other_options_without_palpating(tmp_path, capsys, monkeypatch, qapp):
