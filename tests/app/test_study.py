@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PySide6 import QtGui
 
 from app.study import (
     ACCURACY_KEYS,
@@ -34,6 +35,7 @@ from session.writer import SessionRecorder
 from tests.session.test_recorder import INFO
 from tissue.generator import StudyDistribution
 from tissue.phantom import parse_phantom
+from widgets.study_plot import render_study_png
 
 # small, soft-tissue-free-of-surprises phantoms on the fast spring-bed tissue: what is tested here is the
 # harness (draws, executors, scoring), not the detector, which `make study` measures
@@ -237,12 +239,8 @@ def test_a_study_of_both_worlds_reports_each_under_its_own_keys(tmp_path, capsys
     assert doc["realistic_sensitivity_pct"] == doc["realistic_maps"]["stiffness"]["sensitivity_pct"]
     assert doc["realistic_conditions"]["mould_odds"] == 0.3
     assert sorted(p.name for p in out.glob("*.h5")) == ["realistic-s2-0000.h5", "s2-0000.h5"]
-    from PySide6 import QtGui
-
     one, both = QtGui.QImage(), QtGui.QImage(str(out / "study.png"))
     doc.pop("realistic_maps")
-    from widgets.study_plot import render_study_png
-
     render_study_png(out / "ideal.png", doc)
     one.load(str(out / "ideal.png"))
     assert both.height() > 1.8 * one.height()  # a row of plots per world
