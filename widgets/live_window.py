@@ -869,6 +869,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         if findings is not None:
             self._told_areas.add(region)
             self._told += findings
+            self._tissue.set_told(self._told)
             self.findings_told.emit(text)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
@@ -879,6 +880,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         for region in sorted(self._told_areas):
             for tumour in self._tissue.findings_in(region, self._told) or []:
                 self._told.append(tumour)
+                self._tissue.set_told(self._told)
                 text = f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}"
                 self._messages.add(text, Severity.WARNING)
                 self.findings_told.emit(text)

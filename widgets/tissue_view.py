@@ -108,12 +108,13 @@ class WholeTissueView(QtWidgets.QWidget):
         self._view = map_view(self._plot, "y (mm)", "x (mm)")
         self._view.setMouseEnabled(x=False, y=False)
         self._no_data, self._image = add_map_layers(self._view, "tissueImage")
+        sx, sy = self._sensor.size_m
         for k, (x, y) in enumerate(areas):
-            label = pg.TextItem(str(k + 1), color=(255, 255, 255, 150), anchor=(0.5, 0.5))
-            label.setPos(y * 1e3, x * 1e3)
+            # beside the area, left of the TSI's footprint: over its middle a tumour's circle hid the number
+            label = pg.TextItem(str(k + 1), color=(255, 255, 255, 200), anchor=(1.0, 0.5))
+            label.setPos((y - sy / 2) * 1e3 - 1.0, x * 1e3)
             label.setZValue(4)
             self._view.addItem(label)
-        sx, sy = self._sensor.size_m
         self._footprint = QtWidgets.QGraphicsRectItem(-sy * 500, -sx * 500, sy * 1e3, sx * 1e3)
         self._footprint.setPen(pg.mkPen((255, 255, 255), width=2.5))
         self._footprint.setBrush(QtGui.QBrush(QtCore.Qt.BrushStyle.NoBrush))
@@ -125,6 +126,8 @@ class WholeTissueView(QtWidgets.QWidget):
         self._spots.setObjectName("tissueSpots")
         self._spots.setZValue(9)
         self._view.addItem(self._spots)
+        self._depth_labels: list[pg.TextItem] = []  # each circle's depth, beside it
+        self._told: list = []  # the tumours as the surgeon was told of them (their depths)
         self._bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=CONTOUR_COLORMAP, label="kPa", interactive=False,
                                     colorMapMenu=False, width=16)
         self._bar.setObjectName("tissueColorBar")
@@ -202,6 +205,34 @@ class WholeTissueView(QtWidgets.QWidget):
         """The physics of the first ``records`` levels (:meth:`session.live.LiveMaps.set_physics`)."""
         self._maps.set_physics(records, patterns, description)
         self.refresh()
+
+    def set_told(self, tumours) -> None:
+        """The tumours as the surgeon was told of them: each circle on the map carries the depth told."""
+        self._told = list(tumours)
+        if self._result is not None:
+            self._show()
+
+    def depth_labels(self) -> list[str]:
+        return [label.toPlainText() for label in self._depth_labels]
+
+    def _show_depths(self, found) -> None:
+        for label in self._depth_labels:
+            self._view.removeItem(label)
+        self._depth_labels = []
+        for tumour in found:
+            told = [t for t in self._told if t.source == tumour.source
+                    and math.hypot(t.x_m - tumour.x_m, t.y_m - tumour.y_m) <= self._maps.detect_params.merge_radius_m]
+            if not told:
+                continue
+            depth = told[0].depth_model_m if math.isfinite(told[0].depth_model_m) else told[0].depth_m
+            if not math.isfinite(depth):
+                continue
+            label = pg.TextItem(f"{depth * 1e3:.1f} mm", color=(255, 255, 255), anchor=(-0.25, 0.5),
+                                fill=pg.mkBrush(0, 0, 0, 150))
+            label.setPos(tumour.y_m * 1e3, tumour.x_m * 1e3)
+            label.setZValue(10)
+            self._view.addItem(label)
+            self._depth_labels.append(label)
 
     def findings_pending(self, region: int) -> bool:
         """Whether area ``region`` waits for its physics before its findings can be told."""
@@ -325,6 +356,7 @@ class WholeTissueView(QtWidgets.QWidget):
         found = [t for t in self._maps.tumours()
                  if t.source == _SOURCE[self._quantity] and level.force_N >= t.first_level_N - 1e-9]
         self._spots.setData([t.y_m * 1e3 for t in found], [t.x_m * 1e3 for t in found])
+        self._show_depths(found)
         self._summary.setText(self._describe(level))
 
     def _describe(self, level) -> str:

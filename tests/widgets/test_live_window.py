@@ -637,6 +637,7 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert tissue.quantity() == "stiffness_contrast"  # turned to once it could be had, nobody having chosen
     assert np.nanmax(tissue.shown_values()) > 0.3  # over homogeneous tissue, over the tumour
     assert tissue.spot_count() == 1
+    assert tissue.depth_labels() == ["3.1 mm"]  # the depth told, beside its circle (issue 50)
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
     assert told == [text, "Area 5: nothing significant up to 7 N"]
