@@ -247,6 +247,28 @@ def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window
     assert window.session.recovered and window.session.n_ticks == 3000 and len(window.session.levels) == 1
 
 
+def test_what_the_file_said_stays_in_the_banner_beside_what_the_analysis_could_not_have(qtbot, settings, tmp_path):
+    """issue 50: the reviewer showed a file's warning and replaced it at once with the flat field's."""
+    def unavailable(session):
+        raise ValueError("no model for this tissue")
+
+    live = tmp_path / "live.h5"
+    rec = SessionRecorder(live, INFO)
+    rec.add_ticks(tick_rows(0, 3000))
+    rec.add_events([LevelRecorded(1.0, level_record(0, 0, 1.0, (0.01, 0.015)))])
+    assert rec.flush()
+    crashed = tmp_path / "crashed.h5"
+    shutil.copy(live, crashed)
+    rec.close()
+    w = ReviewWindow(settings=settings, physics={"model": unavailable})
+    qtbot.addWidget(w)
+    with qtbot.waitSignal(w.analysis_done, timeout=10000):
+        assert w.open_file(crashed)
+    text = child(w, QtWidgets.QLabel, "banner").text()
+    assert "did not end cleanly" in text and "Flat-field physics 'model' unavailable" in text
+    assert text.index("did not end cleanly") < text.index("unavailable")
+
+
 def test_times_are_told_from_the_session_start_not_the_loop_clock(qtbot, window, tmp_path):
     """issue 13: a session recorded after the loop ran for 500 s reads from t = 0 on the timeline and in the
     record's description."""

@@ -481,8 +481,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         except StitchError as err:  # the cell size is too fine for this session's extent
             self._summary.setText(f"<b>Not applied:</b> {err}")
             return
-        if problem:
-            self._show_banner(problem, "warning")
+        if problem:  # after what the file itself said (truncated, did not end cleanly), not in its place
+            self._show_banner("  ".join([*session.warnings, problem]), "warning")
         stitched = self._analysis.stitched
         keep = self._level_combo.currentIndex()
         blocked = self._level_combo.blockSignals(True)
