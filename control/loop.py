@@ -671,6 +671,23 @@ class ControlLoop:
                 f"{stiffest / 1e3:.1f} N/mm force control is made stable for (safety.tissue_stiffness_max_N_m; raise "
                 f"it with control.gains.damping_N_s_m[2]). The probe was lifted off the tissue.")
 
+    def _check_hidden_force(self) -> None:
+        """What the tissue, as stiff as this area's levels measured it, pushes back with now (it stiffens with
+        depth, so this is the least), against the ceiling: a reading that drifted down while the force rose
+        hides the rest."""
+        settled = self.sm.settled
+        if settled is None or self._contradiction is not None:
+            return
+        lim = self.safety.limits
+        force_N, z_m, stiffness = settled
+        predicted = force_N + stiffness * (z_m - self._x_s[Z])
+        if predicted > lim.force_ceiling_N + HIDDEN_FORCE_N and predicted > self._force_N + HIDDEN_FORCE_N:
+            self._contradiction = (
+                f"Tactile force too low for the tissue: the probe went {(z_m - self._x_s[Z]) * 1e3:.2f} mm deeper "
+                f"than at a level where the tissue pushed back {stiffness / 1e3:.1f} N per mm, so it now "
+                f"presses about {predicted:.1f} N, over the {lim.force_ceiling_N:g} N ceiling, while the array "
+                f"reads {self._force_N:.2f} N (drifting?). The probe was lifted off the tissue.")
+
     def _check_travel(self) -> None:
         """The robot, now, below where the array last read the force rise (between frames as well: a frame is
         10-20 ms late, and at 20 mm/s that is a third of a millimetre more)."""
@@ -678,19 +695,6 @@ class ControlLoop:
         lim = self.safety.limits
         headroom = lim.force_ceiling_N + HIDDEN_FORCE_N - self._travel.peak_N
         allowed = min(UNEXPLAINED_TRAVEL_M, max(headroom, 0.0) / lim.tissue_stiffness_max_N_m)
-        settled = self.sm.settled
-        if settled is not None and self._contradiction is None:
-            # what the tissue, as stiff as its levels measured it, pushes back with now (it stiffens with depth,
-            # so this is the least): a reading that drifted down while the force rose hides the rest
-            force_N, z_m, stiffness = settled
-            predicted = force_N + stiffness * (z_m - self._x_s[Z])
-            if predicted > lim.force_ceiling_N + HIDDEN_FORCE_N and predicted > self._force_N + HIDDEN_FORCE_N:
-                self._contradiction = (
-                    f"Tactile force too low for the tissue: the probe went {(z_m - self._x_s[Z]) * 1e3:.2f} mm deeper "
-                    f"than at a level where the tissue pushed back {stiffness / 1e3:.1f} N per mm, so it now "
-                    f"presses about {predicted:.1f} N, over the {lim.force_ceiling_N:g} N ceiling, while the array "
-                    f"reads {self._force_N:.2f} N (drifting?). The probe was lifted off the tissue.")
-                return
         if travel > allowed and self._contradiction is None:
             self._contradiction = (
                 f"Tactile force not rising: the probe went {travel * 1e3:.2f} mm deeper under force control while "
@@ -746,6 +750,7 @@ class ControlLoop:
         sm = self.sm
         if sm.force_control:
             sm.on_tick(now_s, self._x_s[Z])
+            self._check_hidden_force()
             self._check_travel()
         events.extend(sm.take_events())
 

@@ -38,6 +38,7 @@ CAP_FRACTION = 0.95
 # A level this shallow says little about the tissue's stiffness (an onset a few noise steps off is a large share)
 MIN_SECANT_INDENTATION_M = 0.1e-3
 
+
 class PalpationStateMachine:
     def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float,
                  pressure_ceiling_pa: float = math.inf):
