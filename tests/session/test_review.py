@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -157,11 +158,12 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded, referenc
     assert sha256(path) == before
 
 
-def test_a_flat_field_physics_that_cannot_be_had_is_said_and_the_analysis_runs_without(qtbot, settings, recorded):
-    def unavailable(session):
-        raise ValueError("no model for this tissue")
+def _unavailable(session):
+    raise ValueError("no model for this tissue")
 
-    w = ReviewWindow(settings=settings, physics={"model": unavailable})
+
+def test_a_flat_field_physics_that_cannot_be_had_is_said_and_the_analysis_runs_without(qtbot, settings, recorded):
+    w = ReviewWindow(settings=settings, physics={"model": _unavailable})
     qtbot.addWidget(w)
     with qtbot.waitSignal(w.analysis_done, timeout=10000):
         assert w.open_file(recorded[0])
@@ -232,7 +234,8 @@ def test_a_file_claiming_more_than_a_session_holds_or_reaching_into_another_is_e
         assert window.session is not None and window.session.path == recorded[0]
 
 
-def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window, tmp_path):
+def _crashed(tmp_path) -> Path:
+    """A recording of 3000 ticks and one level, as a kill -9 while recording would leave its file."""
     live = tmp_path / "live.h5"
     rec = SessionRecorder(live, INFO)
     rec.add_ticks(tick_rows(0, 3000))
@@ -241,6 +244,11 @@ def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window
     crashed = tmp_path / "crashed.h5"
     shutil.copy(live, crashed)  # the file as a kill -9 at this instant would leave it
     rec.close()
+    return crashed
+
+
+def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window, tmp_path):
+    crashed = _crashed(tmp_path)
     open_in(qtbot, window, crashed)
     banner = child(window, QtWidgets.QLabel, "banner")
     assert banner.isVisible() and "did not end cleanly" in banner.text()
@@ -249,18 +257,8 @@ def test_a_recording_that_did_not_end_cleanly_opens_with_a_warning(qtbot, window
 
 def test_what_the_file_said_stays_in_the_banner_beside_what_the_analysis_could_not_have(qtbot, settings, tmp_path):
     """issue 50: the reviewer showed a file's warning and replaced it at once with the flat field's."""
-    def unavailable(session):
-        raise ValueError("no model for this tissue")
-
-    live = tmp_path / "live.h5"
-    rec = SessionRecorder(live, INFO)
-    rec.add_ticks(tick_rows(0, 3000))
-    rec.add_events([LevelRecorded(1.0, level_record(0, 0, 1.0, (0.01, 0.015)))])
-    assert rec.flush()
-    crashed = tmp_path / "crashed.h5"
-    shutil.copy(live, crashed)
-    rec.close()
-    w = ReviewWindow(settings=settings, physics={"model": unavailable})
+    crashed = _crashed(tmp_path)
+    w = ReviewWindow(settings=settings, physics={"model": _unavailable})
     qtbot.addWidget(w)
     with qtbot.waitSignal(w.analysis_done, timeout=10000):
         assert w.open_file(crashed)
