@@ -21,6 +21,8 @@ PACKAGES = ("app", "widgets", "session", "control", "hardware", "tissue")
 BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
+CALIBRATION_HELP = ("the tactile array's calibration file (palpation-console calibrate), taken out of every frame "
+                    "and recorded in the session; overrides [rig] calibration")
 
 
 def slave_address(text: str) -> dict:
@@ -68,6 +70,8 @@ def config_overrides(args) -> dict:
         overrides.setdefault("rig", {})["phantom"] = args.phantom
     if getattr(args, "seed", None) is not None:
         overrides.setdefault("rig", {})["seed"] = args.seed
+    if getattr(args, "calibration", None) is not None:
+        overrides.setdefault("rig", {})["calibration"] = str(args.calibration.resolve())
     hardware = {name: value for name, value in (("slave", getattr(args, "slave", None)),
                                                 ("sensor", getattr(args, "sensor", None))) if value is not None}
     backend = getattr(args, "backend", None)
@@ -192,6 +196,12 @@ def _devices(argv: list[str]) -> int:
     return devices_main(argv)
 
 
+def _calibrate(argv: list[str]) -> int:
+    from app.calibrate import calibrate_main
+
+    return calibrate_main(argv)
+
+
 def _study(argv: list[str]) -> int:
     from app.study import study_main
 
@@ -207,6 +217,8 @@ DELEGATED = {
     "slave": (_slave, "run the slave side of the UDP master/slave link", "its simulated robot's [sim] table"),
     "devices": (_devices, "list the tactile sensors, masters and links this machine can see",
                 "also probe the [hardware] devices it names"),
+    "calibrate": (_calibrate, "measure the tactile array's element sensitivities on a uniform reference",
+                  "the [sim] settings of the simulated array it presses"),
     "study": (_study, "validate tumour detection and depth on seeded simulated phantoms",
               "the [control] and [sim] settings every phantom is palpated with"),
 }
@@ -233,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--sensor", metavar="KIND", type=sensor_choice,
                       help=f"the tactile array: {SENSOR_FLAG}; udp (default) is forwarded by the slave; "
                       "other [hardware.sensor] keys of the config (calibration, baud, ...) are kept")
+    run.add_argument("--calibration", metavar="FILE", type=Path, help=CALIBRATION_HELP)
     run.add_argument("--screenshot", metavar="PNG", help="save the window to PNG after --screenshot-after-s, then quit")
     run.add_argument("--screenshot-after-s", type=seconds, default=10.0, metavar="SECONDS",
                      help="how long after the window opens --screenshot is taken (default 10)")
@@ -242,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "the session", parents=[config_after])
     sim.add_argument("--phantom", help="a shipped phantom's name (flat, uneven) or a TOML file")
     sim.add_argument("--seed", type=int, help="random seed of the simulated sensor")
+    sim.add_argument("--calibration", metavar="FILE", type=Path, help=CALIBRATION_HELP)
     sim.add_argument("--max-time-s", type=seconds, default=600.0, help="give up after this much simulated time")
     sim.add_argument("-v", "--verbose", action="store_true", help="also print notices and refused commands")
     sim.add_argument("--no-record", action="store_true",

@@ -7,7 +7,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from app.rigs import BACKENDS, RigSpec
+from app.rigs import BACKENDS, RigSpec, load_calibration
 from control.config import ControlConfig
 from hardware.settings import ConfigError, read_toml
 
@@ -55,9 +55,9 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
         rig = data.get("rig", {})
         if not isinstance(rig, dict):
             raise ConfigError("rig", "must be a table")
-        extra = set(rig) - {"backend", "phantom", "seed"}
+        extra = set(rig) - {"backend", "phantom", "seed", "calibration"}
         if extra:
-            raise ConfigError(f"rig.{sorted(extra)[0]}", "unknown key (known: backend, phantom, seed)")
+            raise ConfigError(f"rig.{sorted(extra)[0]}", "unknown key (known: backend, phantom, seed, calibration)")
         backend = rig.get("backend", "sim")
         if backend not in BACKENDS:
             raise ConfigError("rig.backend", f"unknown backend {backend!r} (known: {', '.join(sorted(BACKENDS))})")
@@ -68,8 +68,17 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
         SimSettings.from_mapping(sim, "sim.")
         hardware = data.get("hardware", {})
         HardwareSettings.from_mapping(hardware, "hardware.")
+        calibration = rig.get("calibration", "")
+        if not isinstance(calibration, str):
+            raise ConfigError("rig.calibration", f"must be the path of a calibration file, got {calibration!r}")
+        if calibration:
+            # a relative path is the config file's neighbour, wherever the console is started from (the
+            # command line's is made absolute where it is read)
+            files = [source for source in sources if source != COMMAND_LINE]
+            calibration = str(Path(files[-1]).parent / calibration) if files else calibration
+            load_calibration(calibration)  # a bad file is told now, not when the controller starts
         spec = RigSpec(backend=backend, phantom=str(rig.get("phantom", "flat")), sim=dict(sim), seed=seed,
-                       hardware=dict(hardware))
+                       hardware=dict(hardware), calibration=calibration)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err.key}", err.problem) from None
     return AppConfig(control=control, rig=spec, sources=sources, raw=data)

@@ -15,6 +15,7 @@ from app.config import AppConfig
 from app.fastforward import FastForward, FastForwardTimeout
 from app.rigs import RigSpec, build_rig
 from control.messages import ClearFault, FaultCleared, FaultRaised
+from hardware.array_calibration import CalibratedSensor
 from hardware.rig import Rig
 from hardware.settings import ConfigError
 from session.info import SessionInfo, calibration_of, new_session_path, sessions_dir, software_version
@@ -38,9 +39,12 @@ def session_info(config: AppConfig, rig: Rig | None = None, spec: RigSpec | None
         "sim": dict(spec.sim),
         "sources": list(config.sources),
     }
+    calibration = calibration_of(rig.sensor.constraints, config.control.contact.table_height_m)
+    if isinstance(rig.sensor, CalibratedSensor):
+        calibration["elements"] = rig.sensor.calibration.to_mapping()
     return SessionInfo(
         config=full_config,
-        calibration=calibration_of(rig.sensor.constraints, config.control.contact.table_height_m),
+        calibration=calibration,
         rig=dict(rig.description),
         phantom=phantom,
         ground_truth=list(rig.ground_truth),

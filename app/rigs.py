@@ -13,6 +13,7 @@ from typing import Any
 
 from control.autopilot import AutopilotError, AutopilotPlan, plan_from_surface
 from control.config import ControlConfig
+from hardware.array_calibration import ArrayCalibration, ArrayCalibrationError, CalibratedSensor
 from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
 from hardware.settings import ConfigError
@@ -32,6 +33,7 @@ class RigSpec:
     seed: int = 0
     master: str = "scripted"  # simulated rigs: one of SIM_MASTERS
     hardware: dict[str, Any] = field(default_factory=dict)  # real rigs: the config's [hardware] table
+    calibration: str = ""  # the tactile array's calibration file (hardware/array_calibration.py), if any
 
     def __post_init__(self):
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**63:
@@ -75,7 +77,20 @@ def build_rig(spec: RigSpec, progress: Progress | None = None) -> Rig:
     builder = BACKENDS.get(spec.backend)
     if builder is None:
         raise ConfigError("rig.backend", f"unknown backend {spec.backend!r} (known: {', '.join(sorted(BACKENDS))})")
-    return builder(spec, progress=progress)
+    rig = builder(spec, progress=progress)
+    if spec.calibration:
+        calibration = load_calibration(spec.calibration)
+        rig.sensor = CalibratedSensor(rig.sensor, calibration)
+        rig.description["calibration"] = {"file": spec.calibration, "summary": calibration.summary()}
+    return rig
+
+
+def load_calibration(path: str) -> ArrayCalibration:
+    """The calibration file ``[rig] calibration`` names, or a ConfigError saying why it cannot serve."""
+    try:
+        return ArrayCalibration.load(path)
+    except ArrayCalibrationError as err:
+        raise ConfigError("rig.calibration", str(err)) from None
 
 
 def plan_for_rig(spec: RigSpec, config: ControlConfig,

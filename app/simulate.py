@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -40,11 +41,13 @@ def _level_line(r) -> str:
 HEADER = ("  level  F_d [N] F_ts [N] depth[mm] contact E_med[kPa] E_max[kPa] p_max[kPa] RMSE[N] settle[s]")
 
 
-def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False, record: bool = True) -> int:
+def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False, record: bool = True,
+             path: Path | None = None) -> int:
     """Palpate the phantom end to end on a virtual clock with the scripted operator, as in Section IV-A;
     prints every recorded level and, unless ``record`` is False, records the session to a new file in the
-    sessions folder, as the console does (so that ``stitch`` and ``review`` work without the GUI). Returns
-    the exit code: 0 if every area was done without a problem, 2 if the session could not be recorded."""
+    sessions folder (or to ``path``), as the console does (so that ``stitch`` and ``review`` work without the
+    GUI). Returns the exit code: 0 if every area was done without a problem, 2 if the session could not be
+    recorded."""
     if config.rig.backend != "sim":
         raise ConfigError("rig.backend", f"simulate palpates the simulated rig, not {config.rig.backend!r}"
                                          " (use `run` for real hardware)")
@@ -56,7 +59,7 @@ def simulate(config: AppConfig, max_time_s: float = 600.0, verbose: bool = False
     if record:
         from app.recording import recording_summary, session_info
 
-        path = new_session_path()
+        path = path if path is not None else new_session_path()
         try:
             recorder = SessionRecorder(path, session_info(config, rig))
         except RecorderError as err:

@@ -9,7 +9,9 @@ it for readers outside Python; :mod:`session.writer` writes it, :mod:`session.re
     /meta                   group; each attr is JSON text, SI units, key names carry units:
         config_json         the full configuration the controller ran with: {"control": ..., "rig": ..., "sim": ...}
         calibration_json    sensor geometry {rows, cols, pitch_m, element_area_m2, full_scale_pa,
-                            frame_rate_hz} and table_height_m, the height the L0 values are measured from
+                            frame_rate_hz} and table_height_m, the height the L0 values are measured from;
+                            ``elements``: the array's calibration its frames were corrected by, if one was
+                            loaded (hardware.array_calibration.ArrayCalibration.to_mapping: gain, gain_sigma)
         rig_json            what was built (hardware.rig.Rig.description)
         phantom_json        simulated sessions: the phantom definition (its TOML as a table); null otherwise
         ground_truth_json   simulated sessions: the phantom's tumours [{x_m, y_m, z_m, depth_m, diameter_m,

@@ -41,6 +41,7 @@ import numpy as np
 
 from control.config import RATE_HZ_RANGE
 from control.telemetry import TICK_DTYPE
+from hardware.array_calibration import ArrayCalibration, ArrayCalibrationError
 from session.format import (
     ADDED_COLUMNS,
     FORMAT_NAME,
@@ -231,6 +232,15 @@ class Session:
                        f"x_m and y_m within {MAX_COORDINATE_M:g} m of the origin")
         self.config: dict[str, Any] = values["config_json"]
         self.calibration: dict[str, Any] = values["calibration_json"]
+        # the tactile array's calibration the console took out of every frame (hardware/array_calibration.py)
+        self.array_calibration: ArrayCalibration | None = None
+        if "elements" in self.calibration:
+            try:
+                self.array_calibration = ArrayCalibration.from_mapping(self.calibration["elements"],
+                                                                       "the array's calibration")
+            except ArrayCalibrationError as err:
+                self.warnings.append(f"{err}: its frames were corrected by a calibration this file does not "
+                                     f"hold intact")
         self.rig: dict[str, Any] = values["rig_json"]
         self.phantom: dict[str, Any] | None = values["phantom_json"]
         self.ground_truth: list[dict[str, Any]] = truth

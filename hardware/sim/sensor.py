@@ -47,6 +47,11 @@ from tissue.face import cover_operators, cover_weight
 
 LOADED_PA = 10.0  # an element under less than this carries no press (a fraction of the array's noise)
 PRESS_STEP_M = 0.1e-3  # how much deeper the tissue is asked, to read its stiffness under each element
+# A press's offset was measured from 2 mm deep on (docs/phantoms.md, section 2, item 12), and at rest the real
+# array reads within 0.02 % of full scale: an element touched 0.05 mm deep cannot read as if 0.7 mm deeper (on
+# a stiff cushion that was 1 N out of nothing, and the loop rightly took the collapse that followed for a dead
+# array). The offset grows in over this much of the element's own depth.
+PRESS_ONSET_M = 1e-3
 
 
 class SimTactileSensor(SimDevice, TactileSensor):
@@ -89,6 +94,11 @@ class SimTactileSensor(SimDevice, TactileSensor):
         self._latest: TactileFrame | None = None
         self._latest_raw: np.ndarray | None = None
         self.tare_refused = ""  # why the first frame was not taken as zero on connection
+
+    @property
+    def gain_pattern(self) -> np.ndarray:
+        """Each element's sensitivity as the array was made (what a calibration should find)."""
+        return self._gain.copy()
 
     def _on_open(self) -> None:
         self._in_flight.clear()
@@ -189,7 +199,8 @@ class SimTactileSensor(SimDevice, TactileSensor):
         press's offset. A press begins when an unloaded element is loaded; its offset is drawn then: the
         face's (when it was unloaded throughout), the element's own, and the first-press excess, which grows
         back while the element rests unloaded. The reading moves by the element's own stiffness times the
-        offset (the tissue's response to a little more depth), never below zero."""
+        offset (the tissue's response to a little more depth), in full from ``PRESS_ONSET_M`` deep, never below
+        zero."""
         s = self.settings
         loaded = p > LOADED_PA
         if loaded.any() and not self._pressed.any():
@@ -208,7 +219,9 @@ class SimTactileSensor(SimDevice, TactileSensor):
         deeper = self._through_cover(np.asarray(self.world.tissue.element_forces_N(x, y, z - PRESS_STEP_M),
                                                 dtype=float) / self._area_m2)
         stiffness = (deeper - p) / PRESS_STEP_M  # Pa per m of depth
-        return np.where(loaded, np.maximum(p + stiffness * self._press_m, 0.0), p)
+        # the offset fades in over the element's first PRESS_ONSET_M of depth (p / stiffness, its secant depth)
+        gained = self._press_m * np.minimum(stiffness, p / PRESS_ONSET_M)
+        return np.where(loaded, np.maximum(p + gained, 0.0), p)
 
     def _hysteresis(self, p: np.ndarray) -> None:
         """Move each element's hysteresis memory by its load's relative change since the last frame."""

@@ -128,6 +128,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         layout.addWidget(self._banner)
         layout.addWidget(split, 1)
         self.setCentralWidget(central)
+        # which file, and whether its array was calibrated, stay in view while the analysis says what it does
+        self._file_info = QtWidgets.QLabel(objectName="fileInfo")
+        self._file_info.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
+        self.statusBar().addPermanentWidget(self._file_info, 1)
         self.statusBar().showMessage("File > Open a session (.h5)")
 
     def _build_browser(self) -> QtWidgets.QWidget:
@@ -364,8 +368,16 @@ class ReviewWindow(QtWidgets.QMainWindow):
         session = self._session
         self.recent.add(session.path)
         self.setWindowTitle(f"{session.path.name} — session review")
-        self.statusBar().showMessage(f"{session.path}  ·  {session.created_utc}  ·  format v{session.format_version}"
-                                     f"  ·  Palpation Console {session.software_version}")
+        cal = session.array_calibration
+        # whether the frames had the array's element pattern taken out says how far a small contrast can be
+        # trusted: the reviewer sees it beside the file
+        calibrated = (f"array calibrated {cal.created_utc[:10]} ({cal.presses} presses)" if cal is not None
+                      else "array not calibrated")
+        self.statusBar().clearMessage()
+        self._file_info.setText(f"{session.path.name}  ·  {session.created_utc}  ·  {calibrated}")
+        self._file_info.setToolTip(f"{session.path}\nformat v{session.format_version}, Palpation Console "
+                                   f"{session.software_version}" + (f"\nArray calibration: {cal.summary()}"
+                                                                    if cal is not None else ""))
         if session.warnings:
             self._show_banner("  ".join(session.warnings), "warning")
         else:
@@ -417,6 +429,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._banner.hide()
         self._set_exports_enabled(False)
         self.setWindowTitle("Palpation Console — session review")
+        self._file_info.setText("")
+        self._file_info.setToolTip("")
         self.statusBar().showMessage("File > Open a session (.h5)")
 
     def analysis_params(self) -> AnalysisParams:

@@ -1,0 +1,134 @@
+"""``palpation-console calibrate``: measure the tactile array's element sensitivities on a uniform reference
+(hardware/array_calibration.py) and save them as the calibration file the console loads.
+
+Two ways, one fit:
+
+* ``calibrate --session FILE``: from a recorded session of presses on the reference. On a real rig: lay the
+  calibration cushion (a fluid cushion or a thin pad on a rigid plate, larger than the face) on the table,
+  palpate the same spot of it six times in the console, each press a whole force ramp, and give that session.
+* ``calibrate`` alone, on the simulated rig: the scripted operator presses the simulated cushion
+  (``tissue/phantoms/cushion.toml``) with the configured simulated array, the session is recorded, fitted, and
+  the fit is checked against the pattern the simulated array was made with.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app.cli import seconds
+from app.config import load_config
+from app.rigs import build_rig
+from app.simulate import simulate
+from hardware.array_calibration import ArrayCalibration, ArrayCalibrationError, fit_gains, gain_error
+from hardware.settings import ConfigError
+from session.info import new_session_path
+from session.reader import SessionFileError, open_session
+from tissue.phantom import PhantomError
+
+CUSHION = "cushion"
+# The simulator's columns press every element alike; its continuum tissue reads high at the face's edges.
+UNIFORM_TISSUE = "WinklerTissue"
+
+
+def calibration_from_session(path: Path) -> ArrayCalibration:
+    """The fit of a recorded session of presses on a uniform reference; ArrayCalibrationError says why not."""
+    try:
+        session = open_session(path)
+    except SessionFileError as err:
+        raise ArrayCalibrationError(str(err)) from None
+    try:
+        tissue = session.rig.get("tissue_model")
+        if session.simulated and tissue != UNIFORM_TISSUE:
+            raise ArrayCalibrationError(f"{path}: simulated on {session.phantom_name or 'a phantom'} modelled as "
+                                        f"{tissue}, which does not press every element alike: calibrate on the "
+                                        f"simulated cushion (palpation-console calibrate, without --session)")
+        levels = session.levels
+        readings = np.asarray(levels["pressure_pa"], dtype=float)
+        applied = session.array_calibration
+        if applied is not None:
+            # the frames were divided by the calibration the console then had: fit what the array itself read
+            readings = readings * applied.gain
+        return fit_gains(readings, levels["region"], array=describe_array(session.rig), source=path.name)
+    finally:
+        session.close()
+
+
+def describe_array(rig: dict) -> str:
+    """Which array a session's rig description names, in a few words."""
+    settings = rig.get("settings")
+    sensor = settings.get("sensor") if isinstance(settings, dict) else rig.get("sensor")
+    if not isinstance(sensor, dict):
+        return str(rig.get("backend", ""))
+    if rig.get("backend") == "sim":
+        return f"simulated array (seed {sensor.get('seed')}, {sensor.get('model')} model)"
+    return " ".join(str(sensor[k]) for k in ("kind", "port", "vid_pid") if sensor.get(k))
+
+
+def print_calibration(cal: ArrayCalibration) -> None:
+    print(f"Element sensitivities over the array's mean, in % ({cal.shape[0]} rows along x, {cal.shape[1]} columns "
+          f"along y):")
+    for row in cal.gain:
+        print("  " + " ".join(f"{(g - 1) * 100:+5.1f}" for g in row))
+    print(cal.summary())
+
+
+def calibrate_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="palpation-console calibrate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--session", type=Path, metavar="FILE",
+                        help="fit a recorded session of presses on the reference (else: press the simulated "
+                             "cushion with the simulated rig)")
+    parser.add_argument("--out", type=Path, metavar="FILE", required=True, help="the calibration file to write")
+    parser.add_argument("--config", type=Path, help="simulated: the [sim] settings of the array to calibrate")
+    parser.add_argument("--seed", type=int, help="simulated: random seed of the session (not of the array)")
+    parser.add_argument("--max-time-s", type=seconds, default=600.0, help="simulated: give up after this long")
+    args = parser.parse_args(argv)
+    if args.session is not None and (args.config is not None or args.seed is not None):
+        print("error: --session fits a recorded session: --config and --seed belong to the simulated presses",
+              file=sys.stderr)
+        return 2
+    if not args.out.resolve().parent.is_dir():
+        print(f"error: --out {args.out}: the folder {args.out.resolve().parent} does not exist", file=sys.stderr)
+        return 2
+    try:
+        if args.session is not None:
+            cal = calibration_from_session(args.session)
+            truth = None
+        else:
+            cal, truth = _simulated(args)
+            if cal is None:
+                return 1
+    except (ArrayCalibrationError, ConfigError, PhantomError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print_calibration(cal)
+    if truth is not None:
+        print(f"Against the pattern the simulated array was made with: {gain_error(cal, truth):.2%} at worst "
+              f"(the pattern itself departs up to {np.max(np.abs(truth / truth.mean() - 1)):.1%})")
+    try:
+        cal.save(args.out)
+    except ArrayCalibrationError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"Calibration written to {args.out}: use it with `palpation-console run --calibration {args.out}` or "
+          f"[rig] calibration in the config")
+    return 0
+
+
+def _simulated(args) -> tuple[ArrayCalibration | None, np.ndarray | None]:
+    overrides = {"rig": {"backend": "sim", "phantom": CUSHION, "calibration": ""}, "sim": {"tissue": "winkler"}}
+    if args.seed is not None:
+        overrides["rig"]["seed"] = args.seed
+    config = load_config(args.config, overrides)
+    path = new_session_path()
+    print("Pressing the calibration cushion six times with the simulated rig")
+    if simulate(config, max_time_s=args.max_time_s, path=path) != 0:
+        print(f"error: the presses did not all complete: nothing was calibrated (the session is {path})",
+              file=sys.stderr)
+        return None, None
+    truth = build_rig(config.rig).sensor.gain_pattern
+    return calibration_from_session(path), truth
