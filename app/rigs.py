@@ -58,7 +58,29 @@ def _build_udp(spec: RigSpec, progress: Progress | None = None) -> Rig:
     return build_hardware_rig(spec)
 
 
-BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp}  # (spec, progress=None) -> Rig
+def _build_crtk(spec: RigSpec, progress: Progress | None = None) -> Rig:
+    # The arm is enabled and homed when the rig opens, in the controller process: nothing to report here.
+    from hardware.crtk.rig import build_rig as build_crtk_rig
+
+    return build_crtk_rig(spec)
+
+
+BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp,  # (spec, progress=None) -> Rig
+                                           "crtk": _build_crtk}
+
+
+def check_hardware(backend: str, table: dict[str, Any], prefix: str = "hardware.") -> None:
+    """ConfigError naming the key when ``table`` (the config's [hardware]) is not one ``backend`` could build from;
+    a rig other than the CRTK one is checked against the UDP rig's tables, so a typo there is found whichever
+    backend runs."""
+    if backend == "crtk":
+        from hardware.crtk.rig import CrtkHardwareSettings
+
+        CrtkHardwareSettings.from_mapping(table, prefix)
+    else:
+        from hardware.udp.rig import HardwareSettings
+
+        HardwareSettings.from_mapping(table, prefix)
 
 
 def prepare_rig(spec: RigSpec, progress: Progress | None = None) -> None:

@@ -82,7 +82,7 @@ def test_a_config_with_hardware_tables_drives_the_slave_and_a_serial_sensor(tmp_
     ("[sim.robot]\nbandwidth_hz = 1e300\n", "sim.robot.bandwidth_hz", "between 0.5 and 200"),
     ("[sim]\nsubstep_s = 1e-300\n", "sim.substep_s", "between 1e-05 and 0.001"),
     ("[sim.sensor]\nmodel = \"perfect\"\n", "sim.sensor.model", "one of ideal, realistic"),
-    ("[rig]\nbackend = \"ethercat\"\n", "rig.backend", "unknown backend 'ethercat' (known: sim, udp)"),
+    ("[rig]\nbackend = \"ethercat\"\n", "rig.backend", "unknown backend 'ethercat' (known: crtk, sim, udp)"),
 ])
 def test_bad_hardware_and_sim_keys_are_refused_at_load_time_naming_file_and_key(tmp_path, text, key, problem):
     """Even with the simulated rig, so a typo in a table not used today is found before anything starts."""

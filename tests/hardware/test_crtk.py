@@ -12,6 +12,9 @@ from pathlib import Path
 import psutil
 import pytest
 
+from app.cli import build_parser, config_overrides
+from app.config import load_config
+from app.rigs import BACKENDS
 from hardware.crtk import dds
 from hardware.crtk import messages as M
 from hardware.crtk.rig import CrtkHardwareSettings
@@ -240,3 +243,16 @@ def test_config_errors_are_one_line_naming_the_key(table, message):
     with pytest.raises(ConfigError, match=message) as err:
         CrtkHardwareSettings.from_mapping(table)
     assert "\n" not in str(err.value)
+
+
+def test_the_command_line_drives_the_crtk_rig(tmp_path):
+    args = build_parser().parse_args(["run", "--backend", "crtk", "--arm", "PSM2"])
+    overrides = config_overrides(args)
+    assert overrides == {"rig": {"backend": "crtk"}, "hardware": {"slave": {"arm": "PSM2"}}}
+    config_file = tmp_path / "rig.toml"
+    config_file.write_text('[hardware.sensor]\nkind = "serial"\nport = "/dev/ttyACM0"\n')
+    config = load_config(config_file, overrides)
+    rig = BACKENDS["crtk"](config.rig)
+    assert rig.slave.settings.arm == "PSM2" and rig.description["backend"] == "crtk"
+    with pytest.raises(ConfigError, match="--arm: names the arm of the CRTK rig"):
+        config_overrides(build_parser().parse_args(["run", "--arm", "PSM1"]))
