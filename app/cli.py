@@ -18,7 +18,7 @@ DISTRIBUTION = "palpation-console"
 # The top-level packages the distribution installs, the floors of docs/architecture.md.
 PACKAGES = ("app", "widgets", "session", "control", "hardware", "tissue")
 
-BACKEND_NAMES = ("sim", "udp")  # app.rigs.BACKENDS, named without importing the backends
+BACKEND_NAMES = ("sim", "udp", "crtk")  # app.rigs.BACKENDS, named without importing the backends
 
 SENSOR_FLAG = "udp | serial:PORT | usb[:VID:PID]"
 CALIBRATION_HELP = ("the tactile array's calibration file (palpation-console calibrate), taken out of every frame "
@@ -75,12 +75,20 @@ def config_overrides(args) -> dict:
     hardware = {name: value for name, value in (("slave", getattr(args, "slave", None)),
                                                 ("sensor", getattr(args, "sensor", None))) if value is not None}
     backend = getattr(args, "backend", None)
+    arm = getattr(args, "arm", None)
+    if arm is not None:
+        if backend != "crtk":
+            raise ConfigError("--arm", "names the arm of the CRTK rig: give --backend crtk with it")
+        if "slave" in hardware:
+            raise ConfigError("--slave", "is the UDP link's; the CRTK rig's arm is named by --arm")
+        hardware["slave"] = {"arm": arm}
     if hardware:
         if backend == "sim":
             flags = " and ".join(f"--{name}" for name in hardware)
             raise ConfigError(flags, "only the real rig (--backend udp) has these devices")
         overrides["hardware"] = hardware
-        backend = "udp"  # naming a device means driving it
+        if backend != "crtk":
+            backend = "udp"  # naming a device means driving it
     if backend is not None:
         overrides.setdefault("rig", {})["backend"] = backend
     return overrides
@@ -239,7 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     real = run.add_argument_group("real hardware", "override [rig] backend and the [hardware] tables of the "
                                   "config (see docs/hardware.md); --slave or --sensor imply --backend udp")
     real.add_argument("--backend", choices=BACKEND_NAMES, help="sim: the simulated rig (default); "
-                      "udp: the robot behind `palpation-console slave`")
+                      "udp: the robot behind `palpation-console slave`; crtk: a CRTK / ROS 2 arm (dVRK) over DDS")
+    real.add_argument("--arm", metavar="NAME", help="crtk: the arm's ROS namespace (e.g. PSM1; default: "
+                      "[hardware.slave] arm)")
     real.add_argument("--slave", metavar="HOST:PORT", type=slave_address,
                       help="where `palpation-console slave` listens (default 127.0.0.1:47600)")
     real.add_argument("--sensor", metavar="KIND", type=sensor_choice,

@@ -7,7 +7,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from app.rigs import BACKENDS, RigSpec, load_calibration
+from app.rigs import BACKENDS, RigSpec, check_hardware, load_calibration
 from control.config import ControlConfig
 from hardware.settings import ConfigError, read_toml
 
@@ -44,7 +44,6 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
     """Validate every section, whichever backend is chosen, so a typo is reported before anything starts."""
     # Imported here: the hardware settings pull in the device drivers, which nothing needs before a config is read.
     from hardware.sim.settings import SimSettings
-    from hardware.udp.rig import HardwareSettings
 
     where = sources[-1] if sources else "<config>"
     unknown = set(data) - set(SECTIONS)
@@ -67,7 +66,7 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
         sim = data.get("sim", {})
         SimSettings.from_mapping(sim, "sim.")
         hardware = data.get("hardware", {})
-        HardwareSettings.from_mapping(hardware, "hardware.")
+        check_hardware(backend, hardware)
         calibration = rig.get("calibration", "")
         if not isinstance(calibration, str):
             raise ConfigError("rig.calibration", f"must be the path of a calibration file, got {calibration!r}")

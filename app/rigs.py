@@ -60,7 +60,37 @@ def _build_udp(spec: RigSpec, progress: Progress | None = None) -> Rig:
     return build_hardware_rig(spec)
 
 
-BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp}  # (spec, progress=None) -> Rig
+def _crtk_rig():
+    """hardware.crtk.rig, or a ConfigError saying how to get what it needs (Cyclone DDS is an extra)."""
+    try:
+        from hardware.crtk import rig
+    except ModuleNotFoundError as err:
+        if not (err.name or "").startswith("cyclonedds"):
+            raise
+        raise ConfigError("rig.backend", "the CRTK backend speaks DDS through Cyclone DDS, which is not installed: "
+                                         "pip install 'palpation-console[crtk]'") from None
+    return rig
+
+
+def _build_crtk(spec: RigSpec, progress: Progress | None = None) -> Rig:
+    # The arm is enabled and homed when the rig opens, in the controller process: nothing to report here.
+    return _crtk_rig().build_rig(spec)
+
+
+BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp,  # (spec, progress=None) -> Rig
+                                           "crtk": _build_crtk}
+
+
+def check_hardware(backend: str, table: dict[str, Any], prefix: str = "hardware.") -> None:
+    """ConfigError naming the key when ``table`` (the config's [hardware]) is not one ``backend`` could build from;
+    a rig other than the CRTK one is checked against the UDP rig's tables, so a typo there is found whichever
+    backend runs."""
+    if backend == "crtk":
+        _crtk_rig().CrtkHardwareSettings.from_mapping(table, prefix)
+    else:
+        from hardware.udp.rig import HardwareSettings
+
+        HardwareSettings.from_mapping(table, prefix)
 
 
 def prepare_rig(spec: RigSpec, progress: Progress | None = None) -> None:

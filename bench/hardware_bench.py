@@ -21,7 +21,11 @@ Writes ``hardware.json``:
 * ``link_round_trip_p99_us``: during the run, a command out to the state echoing it back, as the loop
   sees it (the slave answers at its next 1 kHz step and the console reads at its next tick, so up to
   two periods on top of the network);
-* the devices' fault counters (all zero on a healthy machine) and what the palpation achieved.
+* the devices' fault counters (all zero on a healthy machine) and what the palpation achieved;
+* ``crtk_round_trip_p50_us``, ``crtk_round_trip_p99_us``: a ``servo_cp`` out through the CRTK slave to the
+  fake dVRK arm (its own process, on the loopback, its loop at the dVRK's 1.5 kHz, reaching each goal at its
+  next tick) until the slave reads a ``measured_cp`` at that goal: DDS both ways plus up to one of the arm's
+  periods. None, with ``crtk_skipped`` saying why, where cyclonedds is not installed (the ``crtk`` extra).
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ import os
 import secrets
 import select
 import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -54,6 +60,8 @@ NAME = "hardware"
 SPIN_S = 2e-4  # the last stretch before a deadline is spun, not slept (sleep overshoots by ~60 µs)
 PINGS = 5000
 SZ_OFF_AT_S = 1.0
+CRTK_ROUND_TRIPS = 2000
+CRTK_DOMAIN = 231  # the tests take theirs from 150 up
 
 
 def _pin(cpu: int) -> bool:
@@ -196,6 +204,40 @@ def _ping_round_trips(address: tuple[str, int], count: int) -> tuple[np.ndarray,
     return rtts[np.isfinite(rtts)], lost
 
 
+def _crtk_round_trips(count: int) -> dict:
+    """The CRTK slave's round trips to the fake arm: ``count`` goals 10 µm apart, each awaited before the next."""
+    try:
+        from hardware.crtk.slave import CrtkSettings, CrtkSlave
+    except ImportError as err:
+        return {"crtk_round_trip_p50_us": None, "crtk_round_trip_p99_us": None,
+                "crtk_skipped": f"{err} (pip install 'palpation-console[crtk]')"}
+    arm = subprocess.Popen([sys.executable, "-m", "hardware.crtk.fake_arm", "--domain", str(CRTK_DOMAIN),
+                            "--rate-hz", "1500", "--ideal"], stdout=subprocess.DEVNULL)
+    slave = CrtkSlave(CrtkSettings(domain=CRTK_DOMAIN, open_timeout_s=30.0))
+    rtts = np.full(count, np.nan)
+    try:
+        slave.open()
+        x, y, z = slave.latest().position_m
+        for i in range(count):
+            goal = (x, y, z + 1e-5 * (i % 100 + 1))
+            sent = time.perf_counter()
+            slave.command(goal, (0.0, 0.0, 0.0), time.monotonic())
+            deadline = sent + 0.5
+            while time.perf_counter() < deadline:
+                slave.poll(time.monotonic())
+                if abs(slave.latest().position_m[2] - goal[2]) < 1e-9:
+                    rtts[i] = time.perf_counter() - sent
+                    break
+    finally:
+        slave.close()
+        arm.terminate()
+        arm.wait(10)
+    done = rtts[np.isfinite(rtts)]
+    return {"crtk_round_trip_p50_us": float(np.percentile(done, 50) * 1e6),
+            "crtk_round_trip_p99_us": float(np.percentile(done, 99) * 1e6),
+            "crtk_round_trips": int(len(done)), "crtk_round_trips_lost": int(count - len(done))}
+
+
 def run(out_dir: Path) -> dict:
     seconds = duration_s(20.0, 2 * WARMUP_S + SZ_OFF_AT_S)
     base = ControlConfig()
@@ -228,6 +270,7 @@ def run(out_dir: Path) -> dict:
         rig.close()
         rig = None
         ping_rtts, ping_lost = _ping_round_trips(address, PINGS)
+        crtk = _crtk_round_trips(CRTK_ROUND_TRIPS)
         claim.release()
         claim = None
         answering.clear()
@@ -270,6 +313,7 @@ def run(out_dir: Path) -> dict:
         **{f"link_{k}": v for k, v in link_stats.items()
            if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("round_trip")},
         **slave_stats,
+        **crtk,
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}

@@ -104,7 +104,7 @@ def test_sigterm_makes_the_child_hold_and_exit_cleanly(controller, qtbot):
     "spec, message",
     [
         (RigSpec(phantom="no_such_phantom"), "no_such_phantom"),
-        (RigSpec(backend="ethercat"), r"unknown backend 'ethercat' \(known: sim, udp\)"),
+        (RigSpec(backend="ethercat"), r"unknown backend 'ethercat' \(known: crtk, sim, udp\)"),
         (RigSpec(sim={"sensor": {"noise_std_pa": -1}}), "noise_std_pa"),
     ],
 )

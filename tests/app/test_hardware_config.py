@@ -82,7 +82,7 @@ def test_a_config_with_hardware_tables_drives_the_slave_and_a_serial_sensor(tmp_
     ("[sim.robot]\nbandwidth_hz = 1e300\n", "sim.robot.bandwidth_hz", "between 0.5 and 200"),
     ("[sim]\nsubstep_s = 1e-300\n", "sim.substep_s", "between 1e-05 and 0.001"),
     ("[sim.sensor]\nmodel = \"perfect\"\n", "sim.sensor.model", "one of ideal, realistic"),
-    ("[rig]\nbackend = \"ethercat\"\n", "rig.backend", "unknown backend 'ethercat' (known: sim, udp)"),
+    ("[rig]\nbackend = \"ethercat\"\n", "rig.backend", "unknown backend 'ethercat' (known: crtk, sim, udp)"),
 ])
 def test_bad_hardware_and_sim_keys_are_refused_at_load_time_naming_file_and_key(tmp_path, text, key, problem):
     """Even with the simulated rig, so a typo in a table not used today is found before anything starts."""
@@ -157,3 +157,14 @@ def test_inconsistent_or_out_of_range_flags_are_reported_before_anything_starts(
     f = _write(tmp_path, '[rig]\nbackend = "udp"\n')
     assert main(["--config", str(f), "simulate"]) == 2
     assert "simulate palpates the simulated rig, not 'udp'" in capsys.readouterr().err
+
+
+def test_the_crtk_backend_without_cyclone_dds_says_how_to_get_it(monkeypatch, capsys):
+    import sys
+
+    for name in [m for m in sys.modules if m == "cyclonedds" or m.startswith(("cyclonedds.", "hardware.crtk"))]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "cyclonedds", None)  # what an install without the crtk extra finds
+    assert main(["run", "--backend", "crtk", "--arm", "PSM1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "pip install 'palpation-console[crtk]'" in err and err.count("\n") == 1
