@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from app.cli import seconds
 from app.config import load_config
 from app.rigs import build_rig
 from app.simulate import simulate
@@ -30,6 +29,7 @@ from session.reader import SessionFileError, open_session
 from tissue.phantom import PhantomError
 
 CUSHION = "cushion"
+MAX_TIME_S = 600.0  # simulated: six presses take 80 s of simulated time
 # The simulator's columns press every element alike; its continuum tissue reads high at the face's edges.
 UNIFORM_TISSUE = "WinklerTissue"
 
@@ -85,7 +85,6 @@ def calibrate_main(argv: list[str]) -> int:
     parser.add_argument("--out", type=Path, metavar="FILE", required=True, help="the calibration file to write")
     parser.add_argument("--config", type=Path, help="simulated: the [sim] settings of the array to calibrate")
     parser.add_argument("--seed", type=int, help="simulated: random seed of the session (not of the array)")
-    parser.add_argument("--max-time-s", type=seconds, default=600.0, help="simulated: give up after this long")
     args = parser.parse_args(argv)
     if args.session is not None and (args.config is not None or args.seed is not None):
         print("error: --session fits a recorded session: --config and --seed belong to the simulated presses",
@@ -126,7 +125,7 @@ def _simulated(args) -> tuple[ArrayCalibration | None, np.ndarray | None]:
     config = load_config(args.config, overrides)
     path = new_session_path()
     print("Pressing the calibration cushion six times with the simulated rig")
-    if simulate(config, max_time_s=args.max_time_s, path=path) != 0:
+    if simulate(config, max_time_s=MAX_TIME_S, path=path) != 0:
         print(f"error: the presses did not all complete: nothing was calibrated (the session is {path})",
               file=sys.stderr)
         return None, None
