@@ -118,11 +118,26 @@ def calibrate_main(argv: list[str]) -> int:
     return 0
 
 
+def calibrate_simulated(settings: dict, path: Path, seed: int = 0) -> ArrayCalibration:
+    """The simulated procedure without a word on the terminal (the study calibrates every case's array):
+    the cushion pressed with the array ``settings`` (a configuration's tables) describe, recorded to ``path``
+    and fitted."""
+    from app.config import merge_tables
+    from app.recording import record_simulation
+
+    config = load_config(None, merge_tables(settings, _cushion(seed)))
+    record_simulation(path, config, max_time_s=MAX_TIME_S)
+    return calibration_from_session(path)
+
+
+def _cushion(seed: int | None) -> dict:
+    """What turns a configuration into the calibration's: the cushion, as columns, with no calibration."""
+    rig = {"backend": "sim", "phantom": CUSHION, "calibration": ""}
+    return {"rig": rig if seed is None else {**rig, "seed": seed}, "sim": {"tissue": "winkler"}}
+
+
 def _simulated(args) -> tuple[ArrayCalibration | None, np.ndarray | None]:
-    overrides = {"rig": {"backend": "sim", "phantom": CUSHION, "calibration": ""}, "sim": {"tissue": "winkler"}}
-    if args.seed is not None:
-        overrides["rig"]["seed"] = args.seed
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, _cushion(args.seed))
     path = new_session_path()
     print("Pressing the calibration cushion six times with the simulated rig")
     if simulate(config, max_time_s=MAX_TIME_S, path=path) != 0:

@@ -61,6 +61,7 @@ class StudyCase:
     tissue: str = "continuum"  # the simulator's tissue model (hardware.sim.settings.TISSUE_MODELS)
     world: str = "ideal"  # WORLDS
     conditions: dict[str, Any] = field(default_factory=dict)  # what the realistic world drew for this case
+    calibrated: bool = False  # its array calibrated on the cushion first, as a lab does (app/calibrate.py)
 
 
 def ramp_for(phantom: dict[str, Any]) -> float:
@@ -149,8 +150,10 @@ def run_case(case: StudyCase, out_dir: str, keep_session: bool = True,
 
 def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[str, Any],
               analysis: dict[str, Any]) -> dict[str, Any]:
+    from app.calibrate import calibrate_simulated
     from app.config import load_config, merge_tables
     from app.recording import record_simulation
+    from hardware.array_calibration import CalibratedSensor, gain_error
     from hardware.sim.rig import build_sim_rig, build_tissue
     from tissue.phantom import load_phantom
 
@@ -167,6 +170,17 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     tissue = build_tissue(phantom, config.rig.sim, workers=1)  # the study's own processes fill the cores
     prepared = time.perf_counter()
     rig = build_sim_rig(phantom, config.rig.sim, tissue=tissue, seed=case.rig_seed)
+    calibration_error = None
+    if case.calibrated:
+        cushion = folder / f"{case.name}-cushion.h5"
+        try:
+            calibration = calibrate_simulated({"sim": config.rig.sim, "control": settings.get("control", {})},
+                                              cushion, seed=case.rig_seed + 1)
+        finally:
+            if not keep_session:
+                cushion.unlink(missing_ok=True)
+        calibration_error = gain_error(calibration, rig.sensor.gain_pattern)
+        rig.sensor = CalibratedSensor(rig.sensor, calibration)
     session_path = folder / f"{case.name}.h5" if keep_session else Path(tempfile.mkstemp(suffix=".h5")[1])
     session_path.unlink(missing_ok=True)
     try:
@@ -176,8 +190,8 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     finally:
         if not keep_session:
             session_path.unlink(missing_ok=True)
-    result.update(prepare_s=prepared - started, palpate_s=palpated - prepared,
-                  analyse_s=time.perf_counter() - palpated,
+    result.update(calibration_error_max=calibration_error, prepare_s=prepared - started,
+                  palpate_s=palpated - prepared, analyse_s=time.perf_counter() - palpated,
                   session=str(session_path) if keep_session else None)
     return result
 
@@ -205,6 +219,7 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
             "false_positives": analysis.false_positives,
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
             "conditions": conditions, "world": "realistic" if conditions else "ideal",
+            "calibrated": session.array_calibration is not None,
         }
 
 
@@ -441,7 +456,7 @@ def _figures(results: list[dict]) -> dict[str, dict]:
 
 # what only palpating a study takes; re-analysing kept cases refuses them
 _PALPATION_OPTIONS = {"phantoms": "-n/--phantoms", "seed": "--seed", "paper": "--paper", "config": "--config",
-                      "no_sessions": "--no-sessions", "world": "--world"}
+                      "no_sessions": "--no-sessions", "world": "--world", "calibrated": "--calibrated"}
 
 
 def study_parser():
@@ -477,6 +492,9 @@ def study_parser():
                              "error is white noise; realistic: the errors a real capacitive array has and "
                              "conditions drawn for each phantom (law, sides, micro-relief, probe tilt), none of "
                              "which the analysis knows of; both: the same phantoms in each (default ideal)")
+    parser.add_argument("--calibrated", action="store_true",
+                        help="calibrate every case's array on the simulated cushion before palpating with it, as "
+                             "a lab calibrates its array (palpation-console calibrate); its session is kept")
     parser.add_argument("--config", type=Path, help="a TOML configuration whose [control] and [sim] settings "
                         "(ramp steps, gains, contact, safety; sensor noise, tissue model) every phantom is "
                         "palpated with; each case keeps its own phantom, seeds and top force")
@@ -545,7 +563,8 @@ def study_main(argv: list[str] | None = None) -> int:
     plot_path = args.plot or folder / f"{stem}.png"
     try:
         cases = (kept_cases(args.reanalyse) if args.reanalyse
-                 else study_cases(args.phantoms, args.seed, args.paper, world=args.world or "ideal"))
+                 else study_cases(args.phantoms, args.seed, args.paper, world=args.world or "ideal",
+                                  calibrated=args.calibrated))
         if not args.reanalyse:
             args.out.mkdir(parents=True, exist_ok=True)
         executor = DaskExecutor(args.scheduler) if args.scheduler else LocalExecutor(args.workers)
@@ -590,6 +609,7 @@ def study_main(argv: list[str] | None = None) -> int:
                          "dask" if args.scheduler else "local", analysis)
     doc["config"] = str(args.config) if args.config is not None else None  # what the phantoms were palpated with
     doc["world"] = None if args.reanalyse else args.world or "ideal"
+    doc["calibrated"] = None if args.reanalyse else args.calibrated
     if args.reanalyse:
         doc["reanalysed"] = str(args.reanalyse)
     if "realistic_maps" in doc:

@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +49,8 @@ NO_PHYSICS = analysis_options(physics="none")
 DETECTION_ONLY = analysis_options(physics="none", no_depth_model=True)
 
 
-def tiny_cases(n: int, seed: int, world: str = "ideal"):
-    return study_cases(n, seed, dist=TINY, tissue="winkler", force_max_N=2.0, world=world)
+def tiny_cases(n: int, seed: int, world: str = "ideal", calibrated: bool = False):
+    return study_cases(n, seed, dist=TINY, tissue="winkler", force_max_N=2.0, world=world, calibrated=calibrated)
 
 
 def test_the_same_seed_gives_the_same_study_and_another_seed_another():
@@ -88,9 +89,11 @@ def test_the_realistic_world_palpates_the_same_phantoms_under_conditions_drawn_f
 
 
 def _without_timings(results) -> str:
-    """The results as comparable text (NaN included), without what depends on the machine or the folder."""
-    return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s") and k not in ("session", "session_here")}
-                       for r in results], sort_keys=True)
+    """The results as comparable text (NaN included), without what depends on the machine or the folder, or
+    on the palpation's truth (how far a calibration was from the array's pattern)."""
+    return json.dumps([{k: v for k, v in r.items() if not k.endswith("_s")
+                        and k not in ("session", "session_here", "calibration_error_max")} for r in results],
+                      sort_keys=True)
 
 
 def test_local_processes_and_a_dask_cluster_run_the_same_study(tmp_path, monkeypatch):
@@ -173,7 +176,7 @@ def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys,
     assert "nothing to run" in capsys.readouterr().err
     assert study_main(["--phantoms", "-3"]) == 2
     assert "--phantoms must be within" in capsys.readouterr().err
-    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, **options: tiny_cases(n, seed, **options))
     out = tmp_path / "s"
     assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--no-sessions",
                        "--physics", "none"]) == 0
@@ -192,7 +195,7 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
     from app.cli import main
     from session.reader import open_session
 
-    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, **options: tiny_cases(n, seed, **options))
     config = tmp_path / "fine-ramp.toml"
     config.write_text("[control.ramp]\nforce_min_N = 0.5\nforce_step_N = 0.5\n")
     out = tmp_path / "s"
@@ -223,7 +226,7 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
 def test_a_study_of_both_worlds_reports_each_under_its_own_keys(tmp_path, capsys, monkeypatch, qapp):
     """issue 48: `make study` runs both worlds on the same phantoms; the realistic world's figures are today's
     keys prefixed realistic_."""
-    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, world: tiny_cases(n, seed, world))
+    monkeypatch.setattr("app.study.study_cases", lambda n, seed, paper, **options: tiny_cases(n, seed, **options))
     out = tmp_path / "both"
     assert study_main(["-n", "1", "--seed", "2", "--workers", "1", "--out", str(out), "--physics", "none",
                        "--no-depth-model", "--world", "both"]) == 0
@@ -313,3 +316,19 @@ def test_a_study_killed_outright_leaves_no_worker_running(qtbot, tmp_path):
         study.stdin.close()
         study.stdout.close()
     qtbot.waitUntil(lambda: not any(_alive(pid) for pid in workers), timeout=10000)
+
+
+def test_a_calibrated_study_calibrates_each_case_s_own_array_before_palpating_with_it(tmp_path):
+    case = tiny_cases(1, seed=5, world="realistic")[0]
+    local = LocalExecutor(workers=1)
+    try:
+        results, _ = run_study([replace(case, calibrated=True)], local, tmp_path, analysis=DETECTION_ONLY)
+    finally:
+        local.close()
+    result = results[0]
+    assert "error" not in result, result.get("error")
+    # the realistic array's own 7 % pattern, recovered from its six presses on the cushion
+    assert result["calibrated"] and result["calibration_error_max"] < 0.01
+    with open_session(tmp_path / f"{case.name}.h5") as session:
+        assert session.array_calibration is not None and session.array_calibration.presses == 6
+    assert (tmp_path / f"{case.name}-cushion.h5").is_file()
