@@ -58,8 +58,10 @@ from control.messages import (
     Tare,
 )
 from control.telemetry import LiveSnapshot, LoopHealth
+from hardware.array_calibration import ArrayCalibrationError
 from hardware.interfaces import Phase, TactileConstraints
 from hardware.settings import ConfigError
+from session.array_calibration import calibration_from_session
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
@@ -438,7 +440,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         for name, label, slot in (("loadReferenceAction", "&Load reference palpation…", self._load_reference_dialog),
                                   ("saveReferenceAction", "Save these levels as a &reference palpation…",
                                    self._save_reference_dialog),
-                                  ("clearReferenceAction", "Clear the reference palpation", self.clear_reference)):
+                                  ("clearReferenceAction", "Clear the reference palpation", self.clear_reference),
+                                  ("calibrateArrayAction", "&Calibrate the array from presses on a cushion…",
+                                   self._calibrate_dialog)):
             action = file.addAction(label)
             action.setObjectName(name)
             action.triggered.connect(slot)
@@ -844,6 +848,32 @@ class LiveWindow(QtWidgets.QMainWindow):
                                                         "Reference palpation (*.json)")
         if path:
             self.save_reference(path)
+
+    def calibrate_array(self, session_path: str | Path, out_path: str | Path) -> bool:
+        """Fit the array's calibration from a recorded session of presses on a uniform cushion and save it to
+        ``out_path`` (docs/hardware.md, "The array's element pattern"); says in the messages what came of it."""
+        try:
+            calibration = calibration_from_session(session_path)
+            calibration.save(out_path)
+        except ArrayCalibrationError as err:
+            self._messages.add(f"Array not calibrated: {err}", Severity.WARNING)
+            return False
+        # the running rig was built with the calibration it started with: this one serves the next run
+        self._messages.add(f"Array calibration saved to {out_path} ({calibration.summary()}). The next run takes "
+                           f"it out of every frame with `run --calibration {out_path}` or [rig] calibration.")
+        return True
+
+    def _calibrate_dialog(self) -> None:
+        session, _ = QtWidgets.QFileDialog.getOpenFileName(
+            self, "The session of presses on the calibration cushion", str(self._sessions_folder),
+            "Palpation sessions (*.h5)")
+        if not session:
+            return
+        out, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Save the array's calibration",
+                                                       str(self._sessions_folder.parent / "tsi-calibration.toml"),
+                                                       "Array calibration (*.toml)")
+        if out:
+            self.calibrate_array(session, out)
 
     def _tell_findings(self, region: int) -> None:
         """At "region done": what that area showed, in the messages and under the flowchart's flag."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.calibrate import calibrate_main, calibration_from_session
+from app.calibrate import calibrate_main
 from app.config import load_config
 from app.fastforward import FastForwardTimeout
 from app.recording import record_simulation
@@ -21,6 +21,7 @@ from hardware.array_calibration import (
 )
 from hardware.interfaces import TactileFrame
 from hardware.settings import ConfigError
+from session.array_calibration import calibration_from_session
 from session.reader import open_session
 
 REALISTIC = '[sim.sensor]\nmodel = "realistic"\n'

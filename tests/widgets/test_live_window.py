@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.autopilot import Area, AutopilotPlan
 from control.config import ControlConfig, RampSettings, SafetyLimits
@@ -819,3 +819,28 @@ def test_the_live_maps_show_the_frame_flat_fielded_with_its_significant_spot_cir
     assert pressure.contrast_spots() == () and label(pressure, "maxLabel").text().endswith("kPa")
     assert pressure.findChild(QtWidgets.QCheckBox, "lockRange").isEnabled()
     assert not pressure.findChild(QtWidgets.QDoubleSpinBox, "levelMax").isHidden()
+
+
+def test_the_file_menu_calibrates_the_array_from_a_session_of_presses_on_a_cushion(window, tmp_path, monkeypatch):
+    from control.messages import LevelRecorded
+    from hardware.array_calibration import ArrayCalibration
+    from session.synthetic import level_record
+    from session.writer import SessionRecorder
+    from tests.session.test_recorder import INFO
+
+    # three presses of five levels on a uniform layer, read through one fixed 5 % pattern of sensitivities
+    recorder = SessionRecorder(tmp_path / "cushion.h5", INFO)
+    records = [level_record(press, level, 1.0 + level, (0.02, 0.015), noise=0.05, seed=7)
+               for press in range(3) for level in range(5)]
+    recorder.add_events([LevelRecorded(float(k), r) for k, r in enumerate(records)])
+    recorder.close()
+    out = tmp_path / "tsi.toml"
+    monkeypatch.setattr(QtWidgets.QFileDialog, "getOpenFileName", lambda *a, **k: (str(tmp_path / "cushion.h5"), ""))
+    monkeypatch.setattr(QtWidgets.QFileDialog, "getSaveFileName", lambda *a, **k: (str(out), ""))
+    window.findChild(QtGui.QAction, "calibrateArrayAction").trigger()
+    pattern = records[0].pressure_pa / records[0].pressure_pa.mean()
+    np.testing.assert_allclose(ArrayCalibration.load(out).gain, pattern, rtol=1e-6)
+    assert f"Array calibration saved to {out} (3 presses" in window.messages().lines()[-1]
+    # a session that cannot give one is said in one line, and nothing is written
+    assert not window.calibrate_array(tmp_path / "missing.h5", tmp_path / "other.toml")
+    assert "Array not calibrated: " in window.messages().lines()[-1] and not (tmp_path / "other.toml").exists()
