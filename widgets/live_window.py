@@ -65,6 +65,7 @@ from session.array_calibration import calibration_from_session
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
+from widgets.findings_table import FindingsTable
 from widgets.flowchart import FlowchartPanel
 from widgets.health import VERDICT, HealthPanel, health_summary
 from widgets.history_plots import HistoryPlots
@@ -182,6 +183,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._findings_pending: set[int] = set()  # areas done whose findings wait for that physics
         self._told_areas: set[int] = set()  # areas whose findings were told
         self._told: list = []  # the tumours told of, in any area
+        self._told_rows: list = []  # (area, tumour) of each, as the findings table lists them
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
 
@@ -415,13 +417,18 @@ class LiveWindow(QtWidgets.QMainWindow):
         health_dock = self._dock("Loop health", "healthDock", self._health_panel, bottom)
         self._session_panel = SessionPanel()
         session_dock = self._dock("Session recording", "sessionDock", self._session_panel, bottom)
+        self._findings = FindingsTable()
+        self._findings.move_requested.connect(self._move_to)
+        findings_dock = self._dock("Findings", "findingsDock", self._findings, bottom)
 
         self.tabifyDockWidget(jog_dock, settings_dock)
         jog_dock.raise_()
         self.splitDockWidget(history_dock, messages_dock, QtCore.Qt.Orientation.Horizontal)
         self.tabifyDockWidget(messages_dock, health_dock)
         self.tabifyDockWidget(messages_dock, session_dock)
+        self.tabifyDockWidget(history_dock, findings_dock)
         messages_dock.raise_()
+        history_dock.raise_()
         self.resizeDocks([tissue_dock, jog_dock], [470, 360], QtCore.Qt.Orientation.Vertical)
         self.resizeDocks([tissue_dock], [380], QtCore.Qt.Orientation.Horizontal)
         self.resizeDocks([history_dock, messages_dock], [560, 420], QtCore.Qt.Orientation.Horizontal)
@@ -899,7 +906,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         if findings is not None:
             self._told_areas.add(region)
             self._told += findings
+            self._told_rows += [(region, t) for t in findings]
             self._tissue.set_told(self._told)
+            self._findings.set_findings(self._told_rows)
             self.findings_told.emit(text)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
@@ -910,7 +919,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         for region in sorted(self._told_areas):
             for tumour in self._tissue.findings_in(region, self._told) or []:
                 self._told.append(tumour)
+                self._told_rows.append((region, tumour))
                 self._tissue.set_told(self._told)
+                self._findings.set_findings(self._told_rows)
                 text = f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}"
                 self._messages.add(text, Severity.WARNING)
                 self.findings_told.emit(text)

@@ -31,6 +31,7 @@ from control.messages import (
 )
 from control.telemetry import LiveSnapshot, LoopHealth, empty_frame, empty_tick
 from hardware.interfaces import Phase, TactileConstraints
+from widgets.findings_table import FindingsTable
 from widgets.flowchart import LevelLadder
 from widgets.health import HealthPanel
 from widgets.history_plots import HistoryPlots
@@ -638,6 +639,14 @@ def test_region_done_says_what_the_area_showed(window, controller):
     assert np.nanmax(tissue.shown_values()) > 0.3  # over homogeneous tissue, over the tumour
     assert tissue.spot_count() == 1
     assert tissue.depth_labels() == ["3.1 mm"]  # the depth told, beside its circle (issue 50)
+    table = window.findChild(FindingsTable)  # and a row of the findings table, a double-click from the TSI
+    cells = [table.item(0, c).text() for c in range(table.columnCount())]
+    assert table.rowCount() == text.count(" map: tumour at") and cells[:2] == ["4", "stiffness"]
+    assert cells[6] == "3.1 [2.2, 4.4]"
+    moved = []
+    table.move_requested.connect(lambda x, y: moved.append((x, y)))
+    table.cellDoubleClicked.emit(0, 3)
+    assert len(moved) == 1 and math.hypot(moved[0][0] - 0.036, moved[0][1] - 0.015) < 1e-3
     push(controller, make_tick(t_s=5.0), events=area(4, 0.044))
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
     assert told == [text, "Area 5: nothing significant up to 7 N"]

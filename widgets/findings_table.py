@@ -1,0 +1,58 @@
+"""The tumours the console has told the surgeon of, one row each; a double-click sends the TSI over one."""
+
+from __future__ import annotations
+
+import math
+
+from PySide6 import QtCore, QtWidgets
+
+from session.export import depth_model_text
+
+COLUMNS = ("Area", "Map", "x (mm)", "y (mm)", "First at (N)", "Depth, paper's rule (mm)",
+           "Depth, model (mm, 90 %)", "Score (z)")
+TOOLTIPS = (
+    "The palpation area whose findings told of it, numbered as on the whole-tissue map and in Messages",
+    "Which map showed it: stiffness (Eq. 1, the paper's better detector) or force",
+    "Along the tissue's length, from its start",
+    "Across the tissue, along the TSI's 15 elements",
+    "The lowest force level of the ramp at which it showed",
+    "The TSI indentation at that level: the paper's depth rule (reads deep tumours shallow)",
+    "The model-based depth: the sphere that best explains what the tumour did to the elements, with the range "
+    "that holds the true depth 9 times in 10",
+    "How many standard deviations of healthy tissue its strongest spot stood out by",
+)
+
+
+class FindingsTable(QtWidgets.QTableWidget):
+    """Rows of :class:`session.detect.Tumour`, in the order told; ``move_requested(x_m, y_m)`` on a double-click."""
+
+    move_requested = QtCore.Signal(float, float)
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None):
+        super().__init__(0, len(COLUMNS), parent, objectName="findingsTable")
+        self.setHorizontalHeaderLabels(COLUMNS)
+        for column, tip in enumerate(TOOLTIPS):
+            self.horizontalHeaderItem(column).setToolTip(tip)
+        self.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
+        self.verticalHeader().setVisible(False)
+        self.horizontalHeader().setStretchLastSection(True)
+        self.setToolTip("Double-click a tumour to move the TSI over it (lift the probe off the tissue first)")
+        self._positions: list[tuple[float, float]] = []
+        self.cellDoubleClicked.connect(lambda row, _: self.move_requested.emit(*self._positions[row]))
+
+    def set_findings(self, told: list[tuple[int, object]]) -> None:
+        """``told``: (area index from 0, tumour) for every tumour told, oldest first."""
+        self.setRowCount(len(told))
+        self._positions = [(t.x_m, t.y_m) for _, t in told]
+        for row, (area, t) in enumerate(told):
+            rule = f"{t.depth_m * 1e3:.1f}" if math.isfinite(t.depth_m) else "—"
+            model = depth_model_text(t) if math.isfinite(t.depth_model_m) else "—"
+            cells = (str(area + 1), t.source, f"{t.x_m * 1e3:.1f}", f"{t.y_m * 1e3:.1f}", f"{t.first_level_N:g}",
+                     rule, model, f"{t.score:.1f}")
+            for column, text in enumerate(cells):
+                item = QtWidgets.QTableWidgetItem(text)
+                if column != 1:
+                    item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
+                self.setItem(row, column, item)
+        self.resizeColumnsToContents()
