@@ -164,9 +164,11 @@ class FlowchartPanel(QtWidgets.QWidget):
         self._recorded = 0  # levels recorded in the current (or last) area
         self._region_done: bool | None = None
 
-        self._phase = QtWidgets.QLabel("—", objectName="phaseLabel")
+        # every text here wraps: one that did not ("SEEKING CONTACT", "seeking contact at F_min, 7 levels to
+        # record") widened the side panel past its view at 1280 x 800 and pushed the FORCE button off the screen
+        self._phase = QtWidgets.QLabel("—", objectName="phaseLabel", wordWrap=True)
         self._hint = QtWidgets.QLabel("waiting for the controller", objectName="phaseHint", wordWrap=True)
-        self._level = QtWidgets.QLabel("", objectName="levelLabel")
+        self._level = QtWidgets.QLabel("", objectName="levelLabel", wordWrap=True)
         self._ladder = LevelLadder()
         self._ladder.set_ramp(ramp)
         self._rmse = QtWidgets.QLabel("", objectName="rmseLabel")

@@ -116,6 +116,8 @@ def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_p
     qtbot.waitExposed(window)
     qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
     states = {
+        # the longest phase and ladder texts: they widened the side panel past its view, cutting FORCE off
+        "seeking contact": (make_tick(phase=Phase.SEEK_CONTACT, sz=0, level=0, n_levels=7), ()),
         "palpating": (make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, force_desired_N=3.0,
                                 force_measured_N=2.9, indentation_m=0.006), ()),
         "region done": (make_tick(phase=Phase.SETTLING, sz=0, level=6, n_levels=7, region_done=1,
@@ -130,4 +132,5 @@ def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_p
         qtbot.waitUntil(lambda: banner.isVisible() == (state == "fault"))  # noqa: B023 - waited on at once
         QtWidgets.QApplication.processEvents()  # and the layout that follows it
         _all_in_view(window, width, height, state, ALWAYS)
-        assert window.findChild(QtWidgets.QLabel, "indentation").text().endswith("mm"), state
+        depth = window.findChild(QtWidgets.QLabel, "indentation").text()
+        assert depth.endswith("mm") or (state == "seeking contact" and depth == "no contact"), state
