@@ -8,13 +8,12 @@ from PySide6 import QtCore, QtWidgets
 
 from session.export import depth_model_text
 
-COLUMNS = ("Area", "Map", "x (mm)", "y (mm)", "First at (N)", "Depth, paper's rule (mm)",
-           "Depth, model (mm, 90 %)", "Score (z)")
+# headings on two lines: the table shares a laptop's left column with the jog, about 380 px
+COLUMNS = ("Area", "Map", "x, y\n(mm)", "First\nat (N)", "Depth,\nrule (mm)", "Depth, model\n(mm, 90 %)", "z")
 TOOLTIPS = (
     "The palpation area whose findings told of it, numbered as on the whole-tissue map and in Messages",
     "Which map showed it: stiffness (Eq. 1, the paper's better detector) or force",
-    "Along the tissue's length, from its start",
-    "Across the tissue, along the TSI's 15 elements",
+    "Where it lies: x along the tissue's length from its start, y across it (along the TSI's 15 elements)",
     "The lowest force level of the ramp at which it showed",
     "The TSI indentation at that level: the paper's depth rule (reads deep tumours shallow)",
     "The model-based depth: the sphere that best explains what the tumour did to the elements, with the range "
@@ -48,7 +47,7 @@ class FindingsTable(QtWidgets.QTableWidget):
         for row, (area, t) in enumerate(told):
             rule = f"{t.depth_m * 1e3:.1f}" if math.isfinite(t.depth_m) else "—"
             model = depth_model_text(t) if math.isfinite(t.depth_model_m) else "—"
-            cells = (str(area + 1), t.source, f"{t.x_m * 1e3:.1f}", f"{t.y_m * 1e3:.1f}", f"{t.first_level_N:g}",
+            cells = (str(area + 1), t.source, f"{t.x_m * 1e3:.1f}, {t.y_m * 1e3:.1f}", f"{t.first_level_N:g}",
                      rule, model, f"{t.score:.1f}")
             for column, text in enumerate(cells):
                 item = QtWidgets.QTableWidgetItem(text)

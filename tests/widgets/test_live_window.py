@@ -642,7 +642,7 @@ def test_region_done_says_what_the_area_showed(window, controller):
     table = window.findChild(FindingsTable)  # and a row of the findings table, a double-click from the TSI
     cells = [table.item(0, c).text() for c in range(table.columnCount())]
     assert table.rowCount() == text.count(" map: tumour at") and cells[:2] == ["4", "stiffness"]
-    assert cells[6] == "3.1 [2.2, 4.4]"
+    assert cells[5] == "3.1 [2.2, 4.4]"
     moved = []
     table.move_requested.connect(lambda x, y: moved.append((x, y)))
     table.cellDoubleClicked.emit(0, 3)
