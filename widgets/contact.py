@@ -17,6 +17,7 @@ import numpy as np
 from PySide6 import QtCore, QtWidgets
 
 from hardware.interfaces import TactileConstraints
+from widgets.glossary import GLOSSARY
 
 
 @dataclass(frozen=True)
@@ -59,17 +60,18 @@ class ContactPanel(QtWidgets.QWidget):
         grid.setContentsMargins(0, 0, 0, 0)
         grid.setVerticalSpacing(2)
         grid.setColumnStretch(1, 1)
-        self._area = self._row(grid, 0, "Contact area", "contactArea")
-        self._peak = self._row(grid, 1, "Peak pressure", "peakPressure")
-        self._centre = self._row(grid, 2, "Centre of pressure", "centreOfPressure", below=True)
+        self._area = self._row(grid, 0, "Contact area", "contactArea", GLOSSARY["contact_area"])
+        self._peak = self._row(grid, 1, "Peak pressure", "peakPressure", GLOSSARY["peak_pressure"])
+        self._centre = self._row(grid, 2, "Centre of pressure", "centreOfPressure", GLOSSARY["centre_of_pressure"],
+                                 below=True)
 
     @staticmethod
-    def _row(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str, below: bool = False
+    def _row(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str, meaning: str, below: bool = False
              ) -> QtWidgets.QLabel:
-        cap = QtWidgets.QLabel(caption)
+        cap = QtWidgets.QLabel(caption, toolTip=meaning)
         cap.setProperty("class", "caption")
         cap.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
-        value = QtWidgets.QLabel("—", objectName=name)
+        value = QtWidgets.QLabel("—", objectName=name, toolTip=meaning)
         value.setProperty("class", "metric")
         value.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         value.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignTop)

@@ -17,6 +17,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.config import RampSettings
 from hardware.interfaces import Phase
+from widgets.glossary import GLOSSARY
 
 # Phase -> (headline, colour, what the operator should do now)
 PHASES: dict[Phase, tuple[str, str, str]] = {
@@ -166,14 +167,16 @@ class FlowchartPanel(QtWidgets.QWidget):
 
         # every text here wraps: one that did not ("SEEKING CONTACT", "seeking contact at F_min, 7 levels to
         # record") widened the side panel past its view at 1280 x 800 and pushed the FORCE button off the screen
-        self._phase = QtWidgets.QLabel("—", objectName="phaseLabel", wordWrap=True)
+        self._phase = QtWidgets.QLabel("—", objectName="phaseLabel", wordWrap=True, toolTip=GLOSSARY["phase"])
         self._hint = QtWidgets.QLabel("waiting for the controller", objectName="phaseHint", wordWrap=True)
         self._level = QtWidgets.QLabel("", objectName="levelLabel", wordWrap=True)
         self._ladder = LevelLadder()
         self._ladder.set_ramp(ramp)
-        self._rmse = QtWidgets.QLabel("", objectName="rmseLabel")
+        self._ladder.setToolTip(GLOSSARY["ladder"])
+        self._rmse = QtWidgets.QLabel("", objectName="rmseLabel", toolTip=f"{GLOSSARY['epsilon']}. {GLOSSARY['rmse']}")
         self._gauge = RmseGauge()
-        self._done = QtWidgets.QLabel("region not done", objectName="regionDone")
+        self._gauge.setToolTip(self._rmse.toolTip())
+        self._done = QtWidgets.QLabel("region not done", objectName="regionDone", toolTip=GLOSSARY["region_done"])
         self._done.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
         self._done.setProperty("done", False)
         self._findings = QtWidgets.QLabel("", objectName="regionFindings", wordWrap=True)

@@ -67,6 +67,7 @@ from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
 from widgets.findings_table import FindingsTable
 from widgets.flowchart import FlowchartPanel
+from widgets.glossary import GLOSSARY
 from widgets.health import VERDICT, HealthPanel, health_summary
 from widgets.history_plots import HistoryPlots
 from widgets.jog import AutopilotPanel, JogPanel
@@ -295,8 +296,8 @@ class LiveWindow(QtWidgets.QMainWindow):
 
         grid = QtWidgets.QGridLayout()
         grid.setVerticalSpacing(2)
-        self._force_desired = self._readout(grid, 0, "F_d (desired)", "forceDesired")
-        self._force_measured = self._readout(grid, 1, "F_ts (measured)", "forceMeasured")
+        self._force_desired = self._readout(grid, 0, "F_d (desired)", "forceDesired", GLOSSARY["F_d"])
+        self._force_measured = self._readout(grid, 1, "F_ts (measured)", "forceMeasured", GLOSSARY["F_ts"])
         col.addLayout(grid)
         col.addSpacing(6)
         self._contact = ContactPanel()
@@ -309,9 +310,9 @@ class LiveWindow(QtWidgets.QMainWindow):
         # The depth stays in view whatever the readouts above need on a short screen (at 1280 x 800 a fault
         # banner scrolled it away): caption and figure on one line, beside the loop's health and STOP
         depth = QtWidgets.QHBoxLayout()
-        caption = QtWidgets.QLabel("TSI indentation\ndepth")
+        caption = QtWidgets.QLabel("TSI indentation\ndepth", toolTip=GLOSSARY["indentation"])
         caption.setProperty("class", "caption")
-        self._indentation = QtWidgets.QLabel("—", objectName="indentation")
+        self._indentation = QtWidgets.QLabel("—", objectName="indentation", toolTip=GLOSSARY["indentation"])
         self._indentation.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
         depth.addWidget(caption)
         depth.addWidget(self._indentation, 1)
@@ -342,10 +343,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.addDockWidget(QtCore.Qt.DockWidgetArea.RightDockWidgetArea, dock)
 
     @staticmethod
-    def _readout(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str) -> QtWidgets.QLabel:
-        cap = QtWidgets.QLabel(caption)
+    def _readout(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str, meaning: str) -> QtWidgets.QLabel:
+        cap = QtWidgets.QLabel(caption, toolTip=meaning)
         cap.setProperty("class", "caption")
-        value = QtWidgets.QLabel("—", objectName=name)
+        value = QtWidgets.QLabel("—", objectName=name, toolTip=meaning)
         value.setProperty("class", "readout")
         value.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
         grid.addWidget(cap, row, 0)

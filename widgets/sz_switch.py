@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from widgets.glossary import GLOSSARY
+
 _STYLE = """
 QPushButton { font-size: 17pt; font-weight: bold; padding: 10px 16px; border: 2px solid #5a5a5a;
               border-radius: 6px; color: #9a9a9a; background: #2b2b2b; }
@@ -41,7 +43,7 @@ class SzSwitch(QtWidgets.QFrame):
         self._state: bool | None = None
         self._pending: bool | None = None
 
-        title = QtWidgets.QLabel("S_z", objectName="szTitle")
+        title = QtWidgets.QLabel("S_z", objectName="szTitle", toolTip=GLOSSARY["S_z"])
         self._position = QtWidgets.QPushButton("POSITION", objectName="szPosition")
         self._force = QtWidgets.QPushButton("FORCE", objectName="szForce")
         self._position.setProperty("mode", "position")

@@ -853,3 +853,14 @@ def test_the_file_menu_calibrates_the_array_from_a_session_of_presses_on_a_cushi
     # a session that cannot give one is said in one line, and nothing is written
     assert not window.calibrate_array(tmp_path / "missing.h5", tmp_path / "other.toml")
     assert "Array not calibrated: " in window.messages().lines()[-1] and not (tmp_path / "other.toml").exists()
+
+
+def test_every_term_of_the_console_explains_itself_in_a_tooltip(window):
+    """issue 50: S_z, F_ts, ε, RMSE and the rest were on the screen with nothing to explain them."""
+    from widgets.glossary import GLOSSARY
+
+    for name in ("szTitle", "forceDesired", "forceMeasured", "rmseLabel", "indentation", "contactArea",
+                 "peakPressure", "centreOfPressure", "regionDone", "phaseLabel"):
+        tip = window.findChild(QtWidgets.QWidget, name).toolTip()
+        assert tip and any(meaning in tip for meaning in GLOSSARY.values()), name
+    assert window.findChild(LevelLadder).toolTip() == GLOSSARY["ladder"]
