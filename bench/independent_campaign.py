@@ -123,7 +123,8 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
 class Layer:
     """A wide layer of thickness ``surface_m`` on a table at z = 0, under a level face. Its elastic force in
     the indentation d is ``k0/beta (exp(beta d) - 1)`` (exponential) or ``c d^p`` (power law), its tangent
-    stiffness capped at STIFFNESS_CAP_N_M; a viscous part ``eta`` times the indentation rate pushes only."""
+    stiffness capped at STIFFNESS_CAP_N_M; a viscous part ``eta`` times the indentation rate adds to it (taking
+    off at most half of it while the face withdraws: the layer never pulls)."""
 
     def __init__(self, surface_m: float, law: str, stiffness_at_ceiling_N_m: float, ceiling_N: float,
                  shape: float, eta_N_s_m: float):
@@ -500,7 +501,9 @@ class Checker:
         down = max(-plant.v[2], 0.0)
         depth = plant.depth_m + down * down / (2.0 * plant.servo.brake_m_s2)
         self.depth_allowed = max(self.depth_allowed, depth + INDENTATION_MARGIN_M)
-        self.force_allowed = max(self.force_allowed, self.layer.elastic_N(depth) + FORCE_MARGIN_N)
+        # the layer's viscosity pushes hardest as the brake takes hold, its elasticity once the robot has stopped
+        braking_N = max(self.layer.elastic_N(plant.depth_m) + self.layer.eta * down, self.layer.elastic_N(depth))
+        self.force_allowed = max(self.force_allowed, braking_N + FORCE_MARGIN_N)
         self.rest_since = None
 
     def reference(self, step, period_s: float) -> None:
