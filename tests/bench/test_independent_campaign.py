@@ -1,0 +1,92 @@
+"""Issue 49's independent campaign (bench/independent_campaign.py): runs of kinds that must end safely end safely
+on its own plant, and its checker fails a loop that is kept from seeing what it presses."""
+
+import ast
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+
+from bench import independent_campaign as campaign
+from control import safety
+from control.loop import ControlLoop
+
+
+def test_it_imports_no_physics_of_the_simulated_rig_or_our_campaign():
+    # the point of an independent plant: a mistake shared with hardware/sim would pass both campaigns
+    tree = ast.parse(Path(campaign.__file__).read_text(encoding="utf-8"))
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert not any(name.startswith(("hardware.sim", "bench.safety_campaign")) for name in imported), imported
+
+
+# Drawn so (checked below): the array reads exact zeros from the moment force control starts
+DEAD_FROM_THE_START = [49, 109]
+# an e-stop while the ramp presses at a level (31), and while the operator drives the probe down at speed (7)
+ESTOP_PRESSING = [31, 7]
+
+
+@pytest.mark.parametrize("seed", DEAD_FROM_THE_START)
+def test_an_array_dead_from_the_start_of_force_control_ends_safely(seed):
+    run = campaign.Run(seed)
+    assert run.r.kind == "dead-array" and run.trigger == ("ramp", -1) and run.trouble["fault"] == "zeros"
+    result = run.run()
+    assert result.injected
+    assert result.violations == []
+    assert result.faults, "the loop must notice a dead array"
+    assert result.max_force_over_ceiling_N <= campaign.FORCE_MARGIN_N
+    assert result.max_indentation_over_ceiling_mm <= campaign.INDENTATION_MARGIN_M * 1e3
+
+
+@pytest.mark.parametrize("seed", ESTOP_PRESSING)
+def test_an_estop_while_pressing_ends_safely(seed):
+    result = campaign.run(seed)
+    assert result.kind == "estop-pressing" and result.injected
+    assert result.faults[0][1] == "ESTOP"
+    assert result.violations == []
+
+
+def test_a_run_is_its_seed_and_replays_as_the_campaign_ran_it(capsys):
+    first = asdict(campaign.run(31))
+    assert asdict(campaign.run(31)) == first
+    assert campaign.main(["--replay", "31"]) == 0
+    out = capsys.readouterr().out
+    assert '"seed": 31' in out and "ESTOP" in out
+
+
+def test_the_campaign_summary_has_the_figures_issue_49_asks_for(tmp_path):
+    results = [asdict(campaign.run(seed)) for seed in (49, 31)]
+    results[1]["violations"] = [{"type": "force", "t_s": 1.0, "true_force_N": 13.0}]  # as a violation is kept
+    summary = campaign.summarise(results)
+    assert summary["runs"] == 2 and summary["violating_runs"] == 1
+    assert summary["violations"][0]["seed"] == 31 and summary["violations"][0]["kind"] == "estop-pressing"
+    assert set(summary["by_kind"]) == {"dead-array", "estop-pressing"}
+    for key in ("max_force_over_ceiling_N", "max_indentation_over_ceiling_mm"):
+        assert isinstance(summary[key], float)
+    json.dumps(summary)
+
+
+# ---- negative controls: the checker can fail --------------------------------------------------------------
+
+def test_an_array_reading_a_third_of_the_force_takes_the_probe_over_the_ceiling():
+    # a miscalibration no loop can tell by design: the force rises with depth as tissue's does, only too little;
+    # the ramp to 3 N presses 10 N against a 7.8 N ceiling
+    result = campaign.run(12, kind="plain", array_fault=("gain", 0.3))
+    assert any(v["type"] == "force" for v in result.violations), result.violations
+    assert result.max_force_over_ceiling_N > campaign.FORCE_MARGIN_N
+
+
+def test_a_loop_blind_to_its_ceilings_is_caught(monkeypatch):
+    seed = 32  # the operator pushes the master down: today's loop stops the probe short of every ceiling
+    assert campaign.run(seed).violations == []
+    check = safety.SafetySupervisor.check
+
+    def blind(self, **readings):
+        readings.update(force_N=0.0, max_pressure_pa=0.0, saturated_elements=0, indentation_m=float("nan"))
+        return check(self, **readings)
+
+    monkeypatch.setattr(safety.SafetySupervisor, "check", blind)
+    monkeypatch.setattr(ControlLoop, "_descent_limit_m", lambda self, z, dt: -float("inf"))
+    found = campaign.run(seed).violations
+    assert {v["type"] for v in found} & {"force", "indentation"}, found
