@@ -25,8 +25,10 @@ class SlowPhysics:
     def __init__(self):
         self.entered = threading.Event()
         self.release = threading.Event()
+        self.builds = 0
 
     def __call__(self, session, progress):
+        self.builds += 1
         progress(0.25, "condensing the tissue onto its surface")
         self.entered.set()
         assert self.release.wait(WAIT_MS / 1000)
@@ -150,25 +152,54 @@ def test_a_session_opened_while_another_is_analysed_shows_only_its_own(qtbot, tm
     assert len(shown) == 1 and w.analysis.session is w.session and w.session.path == reference_recorded
 
 
-def test_closing_while_the_physics_is_built_stops_it_and_leaves_no_thread(qtbot, tmp_path, recorded):
-    stopped = threading.Event()
+def test_new_options_for_the_same_physics_wait_for_its_build_rather_than_start_again(qtbot, tmp_path, recorded,
+                                                                                     slow):
+    w = reviewer(qtbot, tmp_path, {"slow model": slow})
+    shown = counted(w.analysis_done)
+    assert w.open_file(recorded[0])
+    qtbot.waitUntil(slow.entered.is_set, timeout=WAIT_MS)
+    child(w, QtWidgets.QDoubleSpinBox, "accuracySpin").setValue(50.0)
+    w.reanalyse()
+    with qtbot.waitSignal(w.analysis_done, timeout=WAIT_MS):
+        slow.release.set()
+    assert slow.builds == 1 and len(shown) == 1 and w.analysis.params.detect.accuracy == pytest.approx(0.5)
 
-    def endless(session, progress):
-        """A build that reports progress as it works, and would never end by itself."""
+
+class EndlessPhysics:
+    """A build that reports progress as it works, and would never end by itself."""
+
+    def __init__(self):
+        self.stopped = threading.Event()
+
+    def __call__(self, session, progress):
         rng = np.random.default_rng(0)
         try:
             while True:
                 progress(0.5, "condensing the tissue onto its surface")
                 np.linalg.inv(rng.random((60, 60)) + 60 * np.eye(60))
         finally:
-            stopped.set()
+            self.stopped.set()
 
+
+def test_choosing_other_physics_stops_the_build_no_request_needs(qtbot, tmp_path, recorded):
+    endless = EndlessPhysics()
+    w = reviewer(qtbot, tmp_path, {"endless": endless})
+    assert w.open_file(recorded[0])
+    qtbot.waitUntil(lambda: child(w, QtWidgets.QProgressBar, "analysisProgress").value() == 50, timeout=WAIT_MS)
+    combo = child(w, QtWidgets.QComboBox, "physicsCombo")
+    with qtbot.waitSignal(w.analysis_done, timeout=WAIT_MS):
+        combo.setCurrentText("none (session baseline only)")
+    assert endless.stopped.is_set() and "no physics" in w.analysis.flat_field
+
+
+def test_closing_while_the_physics_is_built_stops_it_and_leaves_no_thread(qtbot, tmp_path, recorded):
+    endless = EndlessPhysics()
     w = reviewer(qtbot, tmp_path, {"endless": endless})
     shown = counted(w.analysis_done)
     assert w.open_file(recorded[0])
     qtbot.waitUntil(lambda: child(w, QtWidgets.QProgressBar, "analysisProgress").value() == 50, timeout=WAIT_MS)
     w.close()
-    qtbot.waitUntil(lambda: stopped.is_set() and not worker_threads(), timeout=WAIT_MS)
+    qtbot.waitUntil(lambda: endless.stopped.is_set() and not worker_threads(), timeout=WAIT_MS)
     assert shown == [] and w.analysis is None
 
 
