@@ -77,8 +77,8 @@ def test_the_window_answers_while_the_physics_is_built_and_lands_on_the_findings
     state = child(w, QtWidgets.QLabel, "analysisState")
     progress = child(w, QtWidgets.QProgressBar, "analysisProgress")
     qtbot.waitUntil(lambda: progress.maximum() == 100 and progress.value() == 25)
-    assert state.isVisible() and state.text() == ("Analysing… (modelling homogeneous tissue for the flat field "
-                                                  "(slow model): condensing the tissue onto its surface)")
+    assert state.isVisible() and state.text() == ("Analysing… (the flat field's tissue model: condensing the "
+                                                  "tissue onto its surface)")
     tabs = child(w, QtWidgets.QTabWidget, "tabs")
     assert tabs.currentIndex() == 0 and tabs.tabText(1) == "Whole tissue (analysing…)"
     assert w.analysing and w.analysis is None and child(w, QtWidgets.QTableWidget, "tumourTable").rowCount() == 0

@@ -113,8 +113,8 @@ class AnalysisRequest:
         physics = None
         if self.physics_label is not None:
             label = self.physics_label
-            step = ("reading the flat field's physics" if models.has_physics(label)
-                    else f"modelling homogeneous tissue for the flat field ({label})")
+            # short: the status bar holds it beside the file's name, and the physics combo names the option
+            step = "the flat field" if models.has_physics(label) else "the flat field's tissue model"
             self.progress = (step, None)
 
             def report(fraction: float, message: str) -> None:
@@ -126,12 +126,12 @@ class AnalysisRequest:
             problems.append(problem)
         if self.superseded.is_set():
             return None
-        self.progress = ("loading the depth model", None)
+        self.progress = ("the depth model", None)
         depth_model, problem = models.depth_model()
         problems.append(problem)
         if self.superseded.is_set():
             return None
-        self.progress = ("finding the tumours and stitching the maps", None)
+        self.progress = ("tumours and maps", None)
         session = models.session
         try:
             try:
