@@ -288,11 +288,12 @@ def review_parser() -> argparse.ArgumentParser:
 
 
 def physics_options() -> dict:
-    """The reviewer's flat-field physics choices (label -> factory), the default first."""
-    return {"rebuilt from the session": lambda session: physics_for(session, "rebuilt"),
+    """The reviewer's flat-field physics choices (label -> factory(session, progress)), the default first."""
+    return {"rebuilt from the session": lambda session, progress: physics_for(session, "rebuilt", progress=progress),
             "rebuilt, part of the tissue palpated (its ends not known)":
-                lambda session: physics_for(session, "partial"),
-            "simulated phantom (simulated sessions)": lambda session: physics_for(session, "phantom")}
+                lambda session, progress: physics_for(session, "partial", progress=progress),
+            "simulated phantom (simulated sessions)":
+                lambda session, progress: physics_for(session, "phantom", progress=progress)}
 
 
 def review_main(argv: list[str] | None = None) -> int:
@@ -328,6 +329,10 @@ def review_main(argv: list[str] | None = None) -> int:
     if args.file is not None:
         window.open_file(args.file)
     if args.screenshot:  # for documentation and headless checks: lay the window out, save it, close it
+        if window.analysing:  # the window as it lands, on the findings
+            done = QtCore.QEventLoop()
+            window.analysing_changed.connect(lambda busy: busy or done.quit())
+            done.exec()
         app.processEvents()
         saved = window.grab().save(str(args.screenshot))
         window.close()

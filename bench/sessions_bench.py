@@ -9,7 +9,11 @@ pipeline loses rows, how fast the reviewer shows a 1-hour session, how fast 9 re
   process, its ring, the bridge's worker thread, snapshots to the GUI thread, the recorder. Rows missing from
   the file (gaps in the tick index, rows the recorder dropped). Goal 0.
 * ``review_open_1h_s``: from ``ReviewWindow.open_file`` on that hour to its first map painted (median of 3;
-  the first, with cold imports and caches, is ``review_open_1h_first_s``). Goal <= 1 s.
+  the first, with cold imports and caches, is ``review_open_1h_first_s``). Goal <= 1 s. The analysis runs in the
+  reviewer's worker meanwhile; ``review_findings_1h_s`` is from ``open_file`` to its findings shown (median).
+* ``review_open_first_s``: a session never analysed (``BASE_S`` seconds of the simulated session, with a cold
+  tissue-model cache, so its flat-field physics is a finite-element solve), from constructing the reviewer with
+  the ``review`` command's physics and depth model to its first map painted. Goal <= 3 s.
 * ``stitch_9x7_s``: the paper's protocol, 9 areas x 7 levels (1-7 N) over the flat phantom: open the file,
   stitch at 1 mm, detect in both maps (median of 5). Goal <= 0.5 s.
 """
@@ -20,6 +24,7 @@ import dataclasses
 import json
 import os
 import statistics
+import threading
 import time
 from pathlib import Path
 
@@ -65,11 +70,11 @@ def record_base() -> tuple[np.ndarray, np.ndarray, list, SessionInfo]:
         return ff.ticks.copy(), ff.frames.copy(), list(ff.events), info
 
 
-def write_hour(path: Path, base: tuple) -> dict:
+def write_hour(path: Path, base: tuple, seconds: float = HOUR_S) -> dict:
     ticks, frames, events, info = base
     n_ticks, period = len(ticks), 1e-3
     regions = 1 + max((e.record.region for e in events if isinstance(e, LevelRecorded)), default=0)
-    copies = int(np.ceil(HOUR_S / (n_ticks * period)))
+    copies = int(np.ceil(seconds / (n_ticks * period)))
     started = time.perf_counter()
     recorder = SessionRecorder(path, info)
     for k in range(copies):
@@ -110,24 +115,75 @@ def time_review_open(path: Path, repeats: int = 3) -> dict:
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
     settings = QtCore.QSettings(str(path.with_suffix(".ini")), QtCore.QSettings.Format.IniFormat)
-    times = []
+    times, findings = [], []
     for _ in range(repeats):
         window = ReviewWindow(settings=settings)
         window.resize(1400, 900)
         window.show()
         app.processEvents()
+        done = QtCore.QEventLoop()
+        window.analysing_changed.connect(lambda busy, done=done: busy or done.quit())
         started = time.perf_counter()
         if not window.open_file(path):
             raise RuntimeError(f"the reviewer could not open {path}")
         window.findChild(TactileMapWidget, "pressureMap").grab()  # painted, not merely scheduled
         app.processEvents()
         times.append(time.perf_counter() - started)
+        if window.analysing:
+            done.exec()  # the next repeat's first map is not timed against this one's analysis
+        if window.analysis is None:
+            raise RuntimeError(f"the reviewer could not analyse {path}")
+        findings.append(time.perf_counter() - started)
         regions = len(window.session.regions())
         window.close()
         window.deleteLater()
         app.processEvents()
     return {"review_open_1h_s": statistics.median(times), "review_open_1h_first_s": times[0],
-            "review_1h_regions": regions}
+            "review_findings_1h_s": statistics.median(findings), "review_1h_regions": regions}
+
+
+def time_review_first(path: Path) -> dict:
+    """The reviewer on a session it has never analysed, its tissue model not in the cache: the physics the
+    ``review`` command offers is a finite-element solve, which no longer stands between the window and its map."""
+    import tempfile
+
+    from PySide6 import QtCore, QtWidgets
+
+    from app.session_commands import physics_options
+    from session.depth import DepthModel
+    from tissue.mechanics.cache import ENV_VAR
+    from widgets.review import ReviewWindow
+    from widgets.review.analysis_worker import THREAD_NAME
+    from widgets.tactile_map import TactileMapWidget
+
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
+    settings = QtCore.QSettings(str(path.with_suffix(".ini")), QtCore.QSettings.Format.IniFormat)
+    before = os.environ.get(ENV_VAR)
+    with tempfile.TemporaryDirectory(prefix="palpation-cold-cache-") as cold:
+        os.environ[ENV_VAR] = cold
+        try:
+            started = time.perf_counter()
+            window = ReviewWindow(path, settings=settings, physics=physics_options(),
+                                  depth_model=DepthModel.for_session)
+            window.resize(1400, 900)
+            window.show()
+            window.findChild(TactileMapWidget, "pressureMap").grab()
+            app.processEvents()
+            elapsed = time.perf_counter() - started
+            if window.session is None:
+                raise RuntimeError(f"the reviewer could not open {path}")
+            window.close()  # stops the solve at its next progress report
+            window.deleteLater()
+            app.processEvents()
+            for thread in threading.enumerate():
+                if thread.name == THREAD_NAME:
+                    thread.join()
+        finally:
+            if before is None:
+                os.environ.pop(ENV_VAR)
+            else:
+                os.environ[ENV_VAR] = before
+    return {"review_open_first_s": elapsed}
 
 
 def write_9x7(path: Path) -> None:
@@ -218,6 +274,10 @@ def run(out_dir: Path) -> dict:
     results.update(write_hour(hour, base))
     print("sessions: opening it in the reviewer ...", flush=True)
     results.update(time_review_open(hour))
+    print("sessions: opening a session never analysed in the reviewer ...", flush=True)
+    first = work / "first.h5"
+    write_hour(first, base, BASE_S)
+    results.update(time_review_first(first))
     print("sessions: stitching 9 x 7 ...", flush=True)
     nine = work / "nine_by_seven.h5"
     write_9x7(nine)

@@ -61,7 +61,7 @@ def test_presses_on_the_cushion_recover_a_seven_percent_pattern_within_one_perce
     assert "realistic" in cal.array and cal.source.endswith(".h5")
 
 
-def _no_physics(session):
+def _no_physics(session, progress):
     raise ValueError("not needed here")
 
 
@@ -92,7 +92,8 @@ def test_the_config_loads_it_the_frames_lose_the_pattern_and_the_session_records
     window = ReviewWindow(settings=QtCore.QSettings(str(tmp_path / "review.ini"), QtCore.QSettings.Format.IniFormat),
                           physics={"model": _no_physics})
     qtbot.addWidget(window)
-    assert window.open_file(path)
+    with qtbot.waitSignal(window.analysis_done, timeout=60000):  # the reviewer's worker is done before the test ends
+        assert window.open_file(path)
     info = window.findChild(QtWidgets.QLabel, "fileInfo")
     assert "array calibrated 20" in info.text() and "6 presses, 12." in info.toolTip()
 

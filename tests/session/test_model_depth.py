@@ -115,6 +115,7 @@ def test_the_reviewer_re_analyses_with_the_detectors_and_the_depth_models_parame
         window.findChild(QtWidgets.QLabel, "analysisSummary").text()
     assert window.analysis is analysed  # the last analysis stands
 
-    window.set_analysis(analysed.params.stitch, DetectParams(), DepthParams())
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):  # analysed in the reviewer's worker
+        window.set_analysis(analysed.params.stitch, DetectParams(), DepthParams())
     assert widths.text() == "2, 4" and window.analysis.params == AnalysisParams(analysed.params.stitch)
     window.close_session()

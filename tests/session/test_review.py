@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import threading
 from pathlib import Path
 
 import h5py
@@ -22,7 +23,19 @@ from tests.session.test_hostile_files import claiming, small_session
 from tests.session.test_reader import sha256
 from tests.session.test_recorder import INFO
 from widgets.review import RecentSessions, ReviewWindow
+from widgets.review.analysis_worker import THREAD_NAME
 from widgets.tactile_map import TactileMapWidget
+
+
+@pytest.fixture(autouse=True)
+def _analysis_worker_ended():
+    """A closed reviewer stops waiting at once, and its worker ends after the step it is in (the analysis itself
+    cannot be interrupted): each test ends once it has, before the suite checks that nothing is left running."""
+    yield
+    for thread in threading.enumerate():
+        if thread.name == THREAD_NAME:
+            thread.join(60.0)
+            assert not thread.is_alive(), "the reviewer's analysis worker did not end"
 
 
 @pytest.fixture
@@ -47,6 +60,12 @@ def child(w, cls, name):
 
 def open_in(qtbot, w, path):
     with qtbot.waitSignal(w.session_opened, timeout=10000):
+        assert w.open_file(path)
+
+
+def analysed(qtbot, w, path):
+    """Open ``path`` and wait for its analysis to be shown."""
+    with qtbot.waitSignal(w.analysis_done, timeout=20000):
         assert w.open_file(path)
 
 
@@ -152,13 +171,14 @@ def test_stitched_maps_tumours_and_re_analysis(qtbot, window, recorded, referenc
         fixed.setValue(50.0)
     ratio = window.stitched.stiffness_pa / stiffness_element
     assert np.nanmin(ratio) > 1.8 and np.nanmax(ratio) < 2.3  # L0 doubled from about 25 mm to 50 mm
-    window.set_analysis(StitchParams(cell_m=1e-3, l0_source=L0Source.ELEMENT), DetectParams())
+    with qtbot.waitSignal(window.analysis_done, timeout=5000):
+        window.set_analysis(StitchParams(cell_m=1e-3, l0_source=L0Source.ELEMENT), DetectParams())
     assert len(window.tumours) == 4 and child(window, QtWidgets.QComboBox, "l0Combo").currentData() == "element"
     window.close_session()
     assert sha256(path) == before
 
 
-def _unavailable(session):
+def _unavailable(session, progress):
     raise ValueError("no model for this tissue")
 
 
@@ -305,7 +325,7 @@ def test_recent_files(qtbot, window, recorded, settings, tmp_path):
 
 
 def test_exports_from_the_window(qtbot, window, recorded, tmp_path):
-    open_in(qtbot, window, recorded[0])
+    analysed(qtbot, window, recorded[0])
     window.export_maps(tmp_path / "maps.png")
     window.export_report(tmp_path / "report.pdf")
     assert not QtGui.QImage(str(tmp_path / "maps.png")).isNull()

@@ -11,6 +11,10 @@ Top, the timeline over the whole stream. Below, two tabs:
   model's error), applied as they are edited, without touching the
   recording; the tumour table with each tumour's score and both depths.
 
+The analysis runs in a worker (:mod:`widgets.review.analysis_worker`): the timeline, the table and the record
+maps show as soon as the file is read, the status bar says what the analysis is doing, and the window turns to
+the whole tissue's findings when they arrive, unless the reviewer has gone somewhere else meanwhile.
+
 Read-only: the file is opened read-only and never written (exports go to other files).
 """
 
@@ -28,13 +32,13 @@ from session.detect import SOURCES, DepthParams, DetectError, DetectParams, Tumo
 from session.export import ExportError, depth_model_text
 from session.flatfield import FlatFieldError, Reference
 from session.format import FINDINGS_TOLD, EventKind
-from session.physics import HomogeneousTissue
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams, StitchResult, level_groups
 from tissue.face import element_offsets_m
 from widgets.colormaps import colour_range
 from widgets.map_painting import render_maps_png, write_report
 from widgets.plot_style import dark_palette
+from widgets.review.analysis_worker import AnalysisRequest, AnalysisWorker, PhysicsFactory, SessionModels
 from widgets.review.map_view import GridMapView
 from widgets.review.recent import RecentSessions
 from widgets.review.timeline import TimelineWidget
@@ -58,33 +62,43 @@ def _mm(value: float, decimals: int = 1) -> str:
 
 
 class ReviewWindow(QtWidgets.QMainWindow):
-    """Signals: ``session_opened(path)``, ``open_failed(message)``, ``analysis_done()``.
+    """Signals: ``session_opened(path)``, ``open_failed(message)``, ``analysis_done()`` (a new analysis is
+    shown), ``analysing_changed(busy)``.
 
     Child objectNames: ``banner``, ``timeline``, ``tabs``, ``regionTable``, ``recordInfo``, ``pressureMap``,
     ``stiffnessMap``, ``indentationMap``, ``levelCombo``, ``quantityCombo``, ``stitchedMap``, ``cellSpin``,
     ``contrastMap``, ``falseAlarmSpin``, ``accuracySpin``, ``physicsCombo``, ``referenceButton``,
-    ``referenceLabel``, ``l0Combo``, ``l0FixedSpin``, ``analysisSummary``, ``tumourTable``.
+    ``referenceLabel``, ``l0Combo``, ``l0FixedSpin``, ``analysisSummary``, ``tumourTable``, and in the status
+    bar ``analysisState`` and ``analysisProgress``.
 
     ``physics`` names the ways of knowing the probe's pattern on homogeneous tissue the composition root
-    offers (label -> factory for a session; the first is the default); without any, the flat field is the
-    session's own baseline alone. ``depth_model`` makes the model-based depth estimator for a session
-    (without it, or if it cannot be had, only the paper's rule gives depths).
+    offers (label -> ``factory(session, progress)``, ``progress(fraction, message)`` as in
+    :mod:`tissue.mechanics.progress`; the first is the default); without any, the flat field is the session's own
+    baseline alone. ``depth_model`` makes the model-based depth estimator for a session (without it, or if it
+    cannot be had, only the paper's rule gives depths). Both are called in the analysis worker's thread.
     """
 
     session_opened = QtCore.Signal(str)
     open_failed = QtCore.Signal(str)
     analysis_done = QtCore.Signal()
+    analysing_changed = QtCore.Signal(bool)
 
     def __init__(self, path: str | Path | None = None, *, start_folder: str | Path | None = None,
                  settings: QtCore.QSettings | None = None,
-                 physics: Mapping[str, Callable[[Session], HomogeneousTissue | None]] | None = None,
+                 physics: Mapping[str, PhysicsFactory] | None = None,
                  depth_model: Callable[[Session], DepthModel] | None = None,
                  parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._physics_factories = dict(physics or {})
-        self._physics: dict[str, HomogeneousTissue | None] = {}  # per option, for the open session (a solve when new)
         self._depth_factory = depth_model
-        self._depth_model: tuple[DepthModel | None, str] | None = None  # for the open session, and any problem
+        self._models: SessionModels | None = None  # the open session's physics and depth model, made once
+        self._worker = AnalysisWorker()
+        self._generation = 0  # of the newest request: an older one's result is never shown
+        self._analysing = False
+        # whether the first analysis of the open session may still turn the window to its findings and the
+        # record maps to their contrast: not once the reviewer has chosen where to look
+        self._land_on_findings = False
+        self._contrast_chosen = False
         self._reference: Reference | None = None
         self.setWindowTitle("Palpation Console — session review")
         self.setPalette(dark_palette())  # the console's scheme: a trace reads as the operator saw it
@@ -97,6 +111,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._analysis_timer.setSingleShot(True)
         self._analysis_timer.setInterval(150)
         self._analysis_timer.timeout.connect(self.reanalyse)
+        # a session's first analysis starts from the event loop, once its maps have had the chance to paint
+        self._open_timer = QtCore.QTimer(self)
+        self._open_timer.setSingleShot(True)
+        self._open_timer.setInterval(0)
+        self._open_timer.timeout.connect(self.reanalyse)
+        self._poll = QtCore.QTimer(self)  # the worker's progress and results, read at a rate the eye follows
+        self._poll.setInterval(100)
+        self._poll.timeout.connect(self._poll_analysis)
         self._build()
         self._build_menu()
         if path is not None:
@@ -110,11 +132,13 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._timeline = TimelineWidget()
         self._timeline.setObjectName("timeline")
         self._timeline.setMinimumHeight(200)
+        self._timeline.level_clicked.connect(self._looked_elsewhere)
         self._timeline.level_clicked.connect(self.select_record)
 
         self._tabs = QtWidgets.QTabWidget(objectName="tabs")
         self._tabs.addTab(self._build_browser(), "Regions × levels")
         self._tabs.addTab(self._build_stitched(), "Whole tissue")
+        self._tabs.tabBarClicked.connect(self._looked_elsewhere)
 
         split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         split.addWidget(self._timeline)
@@ -132,6 +156,12 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._file_info = QtWidgets.QLabel(objectName="fileInfo")
         self._file_info.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
         self.statusBar().addPermanentWidget(self._file_info, 1)
+        self._analysis_state = QtWidgets.QLabel(objectName="analysisState")
+        self._analysis_progress = QtWidgets.QProgressBar(objectName="analysisProgress")
+        self._analysis_progress.setMaximumWidth(160)
+        for widget in (self._analysis_state, self._analysis_progress):
+            widget.hide()
+            self.statusBar().addPermanentWidget(widget)
         self.statusBar().showMessage("File > Open a session (.h5)")
 
     def _build_browser(self) -> QtWidgets.QWidget:
@@ -139,6 +169,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._region_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self._region_table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
         self._region_table.currentCellChanged.connect(lambda r, c, *_: self._cell_selected(r, c))
+        self._region_table.cellPressed.connect(self._looked_elsewhere)
         self._record_info = QtWidgets.QLabel("", objectName="recordInfo", wordWrap=True)
         self._pressure_map = TactileMapWidget("Pressure", auto_floor_pa=1e3)
         self._pressure_map.setObjectName("pressureMap")
@@ -147,6 +178,8 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, x_horizontal=False,
                                             on_tsi=True)
         self._indentation_map.setObjectName("indentationMap")
+        for record_map in (self._pressure_map, self._stiffness_map):
+            record_map.findChild(QtWidgets.QCheckBox, "contrastView").clicked.connect(self._contrast_was_chosen)
 
         maps = QtWidgets.QWidget()
         grid = QtWidgets.QVBoxLayout(maps)
@@ -345,6 +378,11 @@ class ReviewWindow(QtWidgets.QMainWindow):
     def tumours(self) -> list[Tumour]:
         return list(self._analysis.tumours) if self._analysis is not None else []
 
+    @property
+    def analysing(self) -> bool:
+        """Whether an analysis of the open session is on its way."""
+        return self._analysing
+
     def open_file(self, path: str | Path) -> bool:
         """Open a session (closing the one shown); on a bad file, say why and keep the current one."""
         try:
@@ -389,12 +427,13 @@ class ReviewWindow(QtWidgets.QMainWindow):
             self._record_info.setText("No force level was recorded in this session.")
         self._timeline.set_session(session)
         self._show_told(session)
-        self.reanalyse()
-        # The raw maps' brightest elements are the face's own edge rows; what a reviewer looks for is what
-        # differs from healthy tissue, so a session opens on the contrast wherever there is one.
-        for record_map in (self._pressure_map, self._stiffness_map):
-            record_map.set_contrast_view(self._analysis is not None)
-        self._set_exports_enabled(True)
+        for record_map in (self._pressure_map, self._stiffness_map):  # the readings, until there is a contrast
+            record_map.set_contrast_view(False)
+        self._models = SessionModels(session, self._physics_factories, self._depth_factory)
+        self._land_on_findings, self._contrast_chosen = True, False
+        self._summary.setText("")
+        self._set_analysing(True, "starting", None)
+        self._open_timer.start()
 
     def _show_told(self, session: Session) -> None:
         told = [(float(e["t_s"]), str(e["text"])[len(FINDINGS_TOLD):].strip()) for e in session.event_dicts()
@@ -405,11 +444,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
 
     def close_session(self) -> None:
         self._analysis_timer.stop()
+        self._open_timer.stop()
+        self._worker.cancel()
+        self._generation += 1  # whatever the worker still finishes is for this session: never shown
+        self._set_analysing(False)
         if self._session is not None:
-            self._session.close()
+            self._session.close()  # the worker uses only what the reader loaded into memory
         self._session = None
-        self._physics = {}
-        self._depth_model = None
+        self._models = None
         self._analysis = None
         self._record = None
         self._timeline.clear()
@@ -451,7 +493,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
                                                           self._depth_scale_spin.value() / 100.0))
 
     def set_analysis(self, stitch: StitchParams, detect: DetectParams, depth: DepthParams = DepthParams()) -> None:
-        """Put parameters into the panel and re-analyse now."""
+        """Put parameters into the panel and ask for their analysis now (``analysis_done`` when it is shown)."""
         widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin,
                    self._widths_edit, self._merge_spin, self._fit_spin, self._depth_error_spin,
                    self._depth_scale_spin)
@@ -473,30 +515,48 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self.reanalyse()
 
     def reanalyse(self) -> None:
-        """Stitch and detect again with the panel's parameters (the file is only read)."""
+        """Ask for the analysis with the panel's parameters (the file is only read); it replaces any still on its
+        way, and ``analysis_done`` says when it is shown."""
         self._analysis_timer.stop()
-        session = self._session
-        if session is None:
+        self._open_timer.stop()
+        if self._session is None:
             return
         try:
             params = self.analysis_params()
         except (StitchError, DetectError) as err:
             self._summary.setText(f"<b>Not applied:</b> {err}")
             return
-        physics, problem = self._current_physics()
-        depth_model, depth_problem = self._current_depth_model()
-        problem = " ".join(p for p in (problem, depth_problem) if p)
-        try:
-            try:
-                self._analysis = SessionAnalysis.run(session, params, physics, self._reference, depth_model)
-            except FlatFieldError as err:
-                problem = " ".join(p for p in (problem, f"Reference palpation not used: {err}.") if p)
-                self._analysis = SessionAnalysis.run(session, params, physics, None, depth_model)
-        except StitchError as err:  # the cell size is too fine for this session's extent
-            self._summary.setText(f"<b>Not applied:</b> {err}")
+        label = self._physics_combo.currentText()
+        self._generation += 1
+        self._worker.submit(AnalysisRequest(self._generation, self._models,
+                                            label if label in self._physics_factories else None, params,
+                                            self._reference))
+        self._set_analysing(True, "waiting for the previous analysis", None)
+
+    def _poll_analysis(self) -> None:
+        for request in self._worker.take_finished():
+            if request.generation == self._generation:
+                self._finish(request)
+        request = self._worker.running()
+        if self._analysing and request is not None and request.generation == self._generation:
+            self._set_analysing(True, *request.progress)
+
+    def _finish(self, request: AnalysisRequest) -> None:
+        outcome = request.outcome
+        self._set_analysing(False)
+        if outcome is None:
             return
-        if problem:  # after what the file itself said (truncated, did not end cleanly), not in its place
-            self._show_banner("  ".join([*session.warnings, problem]), "warning")
+        if outcome.error is not None:
+            self._summary.setText(f"<b>The analysis failed:</b> {outcome.error}")
+            raise outcome.error
+        if outcome.not_applied:
+            self._summary.setText(f"<b>Not applied:</b> {outcome.not_applied}")
+            return
+        first = self._analysis is None
+        self._analysis = outcome.analysis
+        session = self._session
+        if outcome.problems:  # after what the file itself said (truncated, did not end cleanly), not in its place
+            self._show_banner("  ".join([*session.warnings, *outcome.problems]), "warning")
         stitched = self._analysis.stitched
         keep = self._level_combo.currentIndex()
         blocked = self._level_combo.blockSignals(True)
@@ -509,9 +569,47 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._level_combo.blockSignals(blocked)
         self._fill_tumour_table()
         self._show_stitched()
+        if first and not self._contrast_chosen:
+            # The raw maps' brightest elements are the face's own edge rows; what a reviewer looks for is what
+            # differs from healthy tissue, so the record maps turn to the contrast once there is one.
+            for record_map in (self._pressure_map, self._stiffness_map):
+                record_map.set_contrast_view(True)
         if self._record is not None:
             self._show_record(self._record)  # its stiffness depends on the L0 source
+        if self._land_on_findings:  # what the reviewer opened the session for, unless they went elsewhere first
+            self._tabs.setCurrentIndex(1)
+        self._land_on_findings = False
+        self._set_exports_enabled(True)
         self.analysis_done.emit()
+
+    def _set_analysing(self, busy: bool, step: str = "", fraction: float | None = None) -> None:
+        """The status bar's account of the analysis: what it is doing and how far, while it works."""
+        if busy:
+            self._analysis_state.setText(f"Analysing… ({step})")
+            bar = self._analysis_progress
+            if fraction is None:
+                bar.setRange(0, 0)  # busy, no measure of how far
+            else:
+                bar.setRange(0, 100)
+                bar.setValue(round(fraction * 100))
+            if self._analysis is None:
+                self._summary.setText("Analysing… the tumours and the whole-tissue maps show here when it is done.")
+            if not self._poll.isActive():
+                self._poll.start()
+        else:
+            self._poll.stop()
+        self._analysis_state.setVisible(busy)
+        self._analysis_progress.setVisible(busy)
+        if busy != self._analysing:
+            self._analysing = busy
+            self._tabs.setTabText(1, "Whole tissue (analysing…)" if busy else "Whole tissue")
+            self.analysing_changed.emit(busy)
+
+    def _looked_elsewhere(self, *_) -> None:
+        self._land_on_findings = False
+
+    def _contrast_was_chosen(self) -> None:
+        self._contrast_chosen = True
 
     def set_reference(self, path: str | Path | None) -> bool:
         """Use a saved reference palpation as the flat field's baseline (None: the session's own); False,
@@ -531,36 +629,6 @@ class ReviewWindow(QtWidgets.QMainWindow):
                                           f"{len(self._reference.forces_N)} levels")
         self.reanalyse()
         return True
-
-    def _current_depth_model(self) -> tuple[DepthModel | None, str]:
-        if self._depth_factory is None:
-            return None, ""
-        if self._depth_model is None:
-            try:
-                self._depth_model = (self._depth_factory(self._session), "")
-            except ValueError as err:
-                self._depth_model = (None, f"Model-based depth unavailable: {err}.")
-        return self._depth_model
-
-    def _current_physics(self) -> tuple[HomogeneousTissue | None, str]:
-        """The chosen physics for the open session (made once per session and option) and, if it could
-        not be had, why (the analysis then runs without it)."""
-        label = self._physics_combo.currentText()
-        factory = self._physics_factories.get(label)
-        if factory is None or self._session is None:
-            return None, ""
-        if label not in self._physics:
-            self.statusBar().showMessage(f"Modelling homogeneous tissue for the flat field ({label}) …")
-            QtWidgets.QApplication.setOverrideCursor(QtCore.Qt.CursorShape.WaitCursor)
-            try:
-                self._physics[label] = factory(self._session)
-            except ValueError as err:
-                self._physics[label] = None
-                return None, f"Flat-field physics {label!r} unavailable: {err}; analysed without it."
-            finally:
-                QtWidgets.QApplication.restoreOverrideCursor()
-                self.statusBar().clearMessage()
-        return self._physics[label], ""
 
     def _reference_dialog(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Reference palpation", str(self._start_folder),
