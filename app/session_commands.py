@@ -349,7 +349,7 @@ def export_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="palpation-console export",
         description="Write a recorded session's streams as tidy tables for pandas, R or a spreadsheet: ticks (one "
-                    "row per control period), frames and levels (one row per element). pandas: "
+                    "row per control period), frames and levels (one row per element), each with its UTC. pandas: "
                     "pd.read_csv('FOLDER/NAME-ticks.csv') or pd.read_parquet('FOLDER/NAME-frames.parquet').")
     parser.add_argument("file", type=Path, help="a session file (.h5)")
     where = parser.add_mutually_exclusive_group(required=True)
@@ -379,13 +379,16 @@ def export_main(argv: list[str] | None = None) -> int:
     if session is None:
         return EXIT_INPUT
     with session:
-        for warning in session.warnings:
+        for warning in session.warnings + ([session.clock_note] if session.clock_note else []):
             print(f"warning: {warning}", file=sys.stderr)
         try:
             written = (write_csv if args.csv else write_parquet)(session, folder, tables)
         except TableError as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_OUTPUT
+        except SessionFileError as err:  # damage found only when the rows were read
+            print(f"error: {err}", file=sys.stderr)
+            return EXIT_INPUT
     for path in written:
         print(path)
     return EXIT_OK
