@@ -62,6 +62,11 @@ def recording_summary(status: RecorderStatus) -> str:
     return text + (f" ({lost} rows missing)" if lost else "")
 
 
+def read_clocks() -> tuple[float, int]:
+    """The controller's loop clock (s) and UTC (ns since the epoch), read together."""
+    return time.monotonic(), time.time_ns()
+
+
 class SessionRecording(QtCore.QObject):
     """Records each run of ``controller`` (a :class:`app.bridge.ControllerBridge`) to a file of its own.
 
@@ -154,12 +159,14 @@ class SessionRecording(QtCore.QObject):
             self._loop_time_s = float(ticks[-1]["t_s"])
         recorder.add_frames(frames)
         recorder.add_events(events)
-        if time.monotonic() - self._paired_at_s >= CLOCK_INTERVAL_S:
-            self._pair_clocks(recorder)
+        self._pair_clocks(recorder, every=CLOCK_INTERVAL_S)
 
-    def _pair_clocks(self, recorder: SessionRecorder) -> None:
-        self._paired_at_s = time.monotonic()
-        recorder.add_clock(self._paired_at_s, time.time_ns())
+    def _pair_clocks(self, recorder: SessionRecorder, every: float = 0.0) -> None:
+        """Pair the clocks, if ``every`` seconds have passed since the last pairing."""
+        loop_s, utc_ns = read_clocks()
+        if loop_s - self._paired_at_s >= every:
+            self._paired_at_s = loop_s
+            recorder.add_clock(loop_s, utc_ns)
 
     def driver_stopped(self, failure: str | None) -> None:
         recorder = self._recorder

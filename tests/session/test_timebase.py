@@ -4,6 +4,7 @@ through the pairs, and the exports carry it; older files fall back to created_ut
 from __future__ import annotations
 
 import csv
+import time
 from datetime import datetime
 
 import h5py
@@ -67,7 +68,7 @@ def test_the_console_pairs_its_controllers_clock_with_utc_when_it_starts_every_s
             pass
 
     fake_monotonic = [1000.0]
-    monkeypatch.setattr(recording.time, "monotonic", lambda: fake_monotonic[0])
+    monkeypatch.setattr(recording, "read_clocks", lambda: (fake_monotonic[0], time.time_ns()))
     session = recording.SessionRecording(Bridge(), INFO, folder=tmp_path, recorder_options={"min_free_bytes": 0})
     session.driver_started()
     for k in range(5):  # rows handed over every 0.6 s of the controller's clock
