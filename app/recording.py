@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ from control.messages import ClearFault, FaultCleared, FaultRaised
 from hardware.array_calibration import CalibratedSensor
 from hardware.rig import Rig
 from hardware.settings import ConfigError
+from session.format import CLOCK_INTERVAL_S
 from session.info import SessionInfo, calibration_of, new_session_path, sessions_dir, software_version
 from session.writer import RecorderError, RecorderStatus, SessionRecorder
 
@@ -60,6 +62,11 @@ def recording_summary(status: RecorderStatus) -> str:
     return text + (f" ({lost} rows missing)" if lost else "")
 
 
+def read_clocks() -> tuple[float, int]:
+    """The controller's loop clock (s) and UTC (ns since the epoch), read together."""
+    return time.monotonic(), time.time_ns()
+
+
 class SessionRecording(QtCore.QObject):
     """Records each run of ``controller`` (a :class:`app.bridge.ControllerBridge`) to a file of its own.
 
@@ -68,6 +75,10 @@ class SessionRecording(QtCore.QObject):
     the console quits), and every tick, frame and event goes into it as the bridge drains them. Operator
     notes (:meth:`add_note`, any thread) are stamped with the loop's clock: the time of the newest tick
     row recorded. Create it in the GUI thread, before the controller starts.
+
+    The controller's loop runs on ``time.monotonic()`` (app/controller.py), one clock for every process of
+    the machine, so this process reads it beside UTC to pair the two: when a recording begins, every
+    CLOCK_INTERVAL_S while rows come, and when it closes.
 
     Signals: ``recording_started(path)``, ``recording_stopped(path, summary)``, ``problem(message)``
     (recording could not start, or stopped early); receivers in the GUI thread get them there.
@@ -87,6 +98,7 @@ class SessionRecording(QtCore.QObject):
         self._recorder: SessionRecorder | None = None
         self._lock = threading.Lock()  # start/close in the bridge's thread, close once more when quitting
         self._loop_time_s: float | None = None  # of the newest tick row recorded
+        self._paired_at_s = -float("inf")  # the loop's clock at the newest pairing with UTC
         self.last_status: RecorderStatus | None = None
         # queued: the writer thread reports through this, the GUI thread shows it
         self._writer_problem.connect(self.problem, QtCore.Qt.ConnectionType.QueuedConnection)
@@ -107,6 +119,7 @@ class SessionRecording(QtCore.QObject):
         except RecorderError as err:
             self.problem.emit(f"This session is NOT being recorded: {err}. The controller is unaffected.")
             return
+        self._pair_clocks(recorder)
         with self._lock:
             self._recorder, self._loop_time_s = recorder, None
         self.recording_started.emit(str(path))
@@ -117,6 +130,7 @@ class SessionRecording(QtCore.QObject):
             recorder, self._recorder = self._recorder, None
         if recorder is None:
             return None
+        self._pair_clocks(recorder)
         status = recorder.close()
         self.last_status = status
         self.recording_stopped.emit(str(status.path), recording_summary(status))
@@ -145,12 +159,46 @@ class SessionRecording(QtCore.QObject):
             self._loop_time_s = float(ticks[-1]["t_s"])
         recorder.add_frames(frames)
         recorder.add_events(events)
+        self._pair_clocks(recorder, every=CLOCK_INTERVAL_S)
+
+    def _pair_clocks(self, recorder: SessionRecorder, every: float = 0.0) -> None:
+        """Pair the clocks, if ``every`` seconds have passed since the last pairing."""
+        loop_s, utc_ns = read_clocks()
+        if loop_s - self._paired_at_s >= every:
+            self._paired_at_s = loop_s
+            recorder.add_clock(loop_s, utc_ns)
 
     def driver_stopped(self, failure: str | None) -> None:
         recorder = self._recorder
         if failure is not None and recorder is not None:
             recorder.add_controller_lost(failure)
         self.close()
+
+
+class NominalClock:
+    """The pairs of clocks of a session simulated on ``ff``'s virtual clock (app.fastforward.FastForward).
+
+    The virtual clock runs faster than the wall's, so no instant of UTC belongs to a simulated one: UTC here
+    is a nominal time line, the moment recording began plus the simulated time since
+    (session.format.CLOCK_NOTES). Pairs the clocks at once; then call :meth:`every_interval` as the
+    simulation goes on and :meth:`pair` at its end."""
+
+    def __init__(self, recorder: SessionRecorder, ff: FastForward):
+        self._recorder, self._ff = recorder, ff
+        self._began_ns, self._began_s = time.time_ns(), ff.now_s
+        self._paired_at_s: float | None = None
+        self.pair()
+
+    def pair(self) -> None:
+        now_s = self._ff.now_s
+        if now_s != self._paired_at_s:  # the end of a run may fall on a pairing already made
+            self._recorder.add_clock(now_s, self._began_ns + round((now_s - self._began_s) * 1e9))
+            self._paired_at_s = now_s
+
+    def every_interval(self) -> None:
+        """Pair the clocks if CLOCK_INTERVAL_S of simulated time have passed since the last pairing."""
+        if self._ff.now_s - self._paired_at_s >= CLOCK_INTERVAL_S:
+            self.pair()
 
 
 OPERATOR_CLEARS_S = 2.0  # a scripted operator's time to read a fault and clear it
@@ -178,6 +226,7 @@ def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = 
     recorder = SessionRecorder(path, session_info(config, rig), **recorder_options)
     try:
         with FastForward(config.control, rig) as ff:
+            clock = NominalClock(recorder, ff)
             clear_at = None
             while not operator.finished:
                 if ff.now_s > max_time_s:
@@ -196,6 +245,8 @@ def record_simulation(path: str | Path, config: AppConfig, *, rig: Rig | None = 
                 recorder.add_frames(ff.frames)
                 recorder.add_events(ff.events)
                 ff.clear()
+                clock.every_interval()
+            clock.pair()
     finally:
         status = recorder.close()
     return status

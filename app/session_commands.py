@@ -18,6 +18,7 @@ from session.depth import DepthModel, DepthModelError
 from session.detect import MATCH_RADIUS_M, DepthParams, DetectError, DetectParams, widths_from_mm, widths_text_mm
 from session.flatfield import FlatFieldError, Reference
 from session.info import sessions_dir
+from session.mcap_export import McapExportError, write_mcap
 from session.physics import PHYSICS, physics_for
 from session.reader import Session, SessionFileError, open_session
 from session.stitch import L0Source, StitchError, StitchParams
@@ -354,16 +355,21 @@ def export_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="palpation-console export",
         description="Write a recorded session's streams as tidy tables for pandas, R or a spreadsheet: ticks (one "
-                    "row per control period), frames and levels (one row per element). pandas: "
-                    "pd.read_csv('FOLDER/NAME-ticks.csv') or pd.read_parquet('FOLDER/NAME-frames.parquet').")
+                    "row per control period), frames and levels (one row per element), each with its UTC. pandas: "
+                    "pd.read_csv('FOLDER/NAME-ticks.csv') or pd.read_parquet('FOLDER/NAME-frames.parquet'). Or as a "
+                    "ROS 2 bag (MCAP) for Foxglove and ros2 bag, stamped in UTC.")
     parser.add_argument("file", type=Path, help="a session file (.h5)")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--csv", type=Path, metavar="FOLDER", help="write NAME-ticks.csv, -frames.csv, -levels.csv here")
     where.add_argument("--parquet", type=Path, metavar="FOLDER",
                        help="write NAME-ticks.parquet, ... here (needs pyarrow: "
                             "pip install 'palpation-console[parquet]')")
-    parser.add_argument("--tables", default=",".join(TABLES),
-                        help=f"which tables, comma-separated (default {','.join(TABLES)})")
+    where.add_argument("--mcap", type=Path, metavar="OUT.mcap",
+                       help="write the session as a ROS 2 bag in MCAP: the TSI's pose, the forces, the loop's state, "
+                            "the tactile frames, levels and events (needs mcap: pip install "
+                            "'palpation-console[mcap]')")
+    parser.add_argument("--tables",
+                        help=f"with --csv or --parquet, which tables, comma-separated (default {','.join(TABLES)})")
     return parser
 
 
@@ -371,12 +377,21 @@ def export_main(argv: list[str] | None = None) -> int:
     args, code = _parse(export_parser(), argv)
     if args is None:
         return code
-    tables = tuple(t.strip() for t in args.tables.split(",") if t.strip())
-    unknown = [t for t in tables if t not in TABLES]
-    if unknown or not tables:
-        print(f"error: --tables {args.tables}: each must be one of {', '.join(TABLES)}", file=sys.stderr)
-        return EXIT_INPUT
-    folder = args.csv or args.parquet
+    if args.mcap is not None:
+        if args.tables is not None:
+            print("error: --tables applies to --csv and --parquet; --mcap writes every stream", file=sys.stderr)
+            return EXIT_INPUT
+        if args.mcap.suffix.lower() != ".mcap":
+            print(f"error: --mcap {args.mcap}: name it .mcap (ros2 bag knows the storage by it)", file=sys.stderr)
+            return EXIT_INPUT
+        folder = args.mcap.parent
+    else:
+        tables = tuple(t.strip() for t in (args.tables or ",".join(TABLES)).split(",") if t.strip())
+        unknown = [t for t in tables if t not in TABLES]
+        if unknown or not tables:
+            print(f"error: --tables {args.tables}: each must be one of {', '.join(TABLES)}", file=sys.stderr)
+            return EXIT_INPUT
+        folder = args.csv or args.parquet
     if not folder.is_dir():
         print(f"error: {folder}: no such folder", file=sys.stderr)
         return EXIT_OUTPUT
@@ -384,13 +399,22 @@ def export_main(argv: list[str] | None = None) -> int:
     if session is None:
         return EXIT_INPUT
     with session:
-        for warning in session.warnings:
+        for warning in session.warnings + ([session.clock_note] if session.clock_note else []):
             print(f"warning: {warning}", file=sys.stderr)
         try:
-            written = (write_csv if args.csv else write_parquet)(session, folder, tables)
-        except TableError as err:
+            if args.mcap is not None:
+                counts = write_mcap(session, args.mcap)
+                written = [args.mcap]
+            else:
+                written = (write_csv if args.csv else write_parquet)(session, folder, tables)
+        except (TableError, McapExportError) as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_OUTPUT
+        except SessionFileError as err:  # damage found only when the rows were read
+            print(f"error: {err}", file=sys.stderr)
+            return EXIT_INPUT
     for path in written:
         print(path)
+    if args.mcap is not None:
+        print(", ".join(f"{topic} {n}" for topic, n in counts.items()), file=sys.stderr)
     return EXIT_OK

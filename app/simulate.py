@@ -82,6 +82,11 @@ def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool,
     failures = 0
     done = 0
     with FastForward(config.control, rig) as ff:
+        clock = None
+        if recorder is not None:
+            from app.recording import NominalClock
+
+            clock = NominalClock(recorder, ff)
         printed = 0
         deadline_s = max_time_s
 
@@ -108,6 +113,7 @@ def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool,
                 recorder.add_ticks(ff.ticks)
                 recorder.add_frames(ff.frames)
                 recorder.add_events(ff.events)
+                clock.every_interval()
             ff.clear()  # the rows are in the file (or not wanted): keep memory flat over long runs
             printed = 0
 
@@ -119,6 +125,8 @@ def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool,
                       file=sys.stderr)
                 return 1
         report()
+        if clock is not None:
+            clock.pair()
     print(f"\n{done} of {len(operator.regions)} regions done, {failures} problems, "
           f"{ff.now_s:.1f} s of simulated time")
     return 0 if done == len(operator.regions) and failures == 0 else 1

@@ -25,22 +25,28 @@ it for readers outside Python; :mod:`session.writer` writes it, :mod:`session.re
     /levels                 LEVEL_DTYPE: one row per recorded force level (control.messages.LevelRecord)
     /events                 EVENT_DTYPE: one row per event, kinds in EventKind; a cleanly closed file ends
                             with one "closed" row
+    /clock                  CLOCK_DTYPE: one row per reading of the loop's clock and UTC together, when
+                            recording began, about every CLOCK_INTERVAL_S of loop time and when it ended
+                            (version 3)
 
 Every dataset carries ``description`` (one line: what a row is); /stream/overview carries ``bucket_rows``
 (:data:`OVERVIEW_BUCKET_ROWS`). /stream/ticks, /levels and /events carry ``notes_json`` (what a column means
 where its name cannot say: that ``missed_ticks`` is a running total, that regions and levels count from 0
-where the console shows them from 1), and /stream/ticks and /events ``codes_json``, the name of every code of
-their coded integer columns (:data:`TICK_CODES`; for /events per kind, :data:`EVENT_CODES`).
+where the console shows them from 1; for /clock, what a pair means, on the simulated rig too:
+:data:`CLOCK_NOTES`), and /stream/ticks and /events ``codes_json``, the name of every code of their coded
+integer columns (:data:`TICK_CODES`; for /events per kind, :data:`EVENT_CODES`).
 
 Text attributes are fixed-length UTF-8 strings. Every dataset is 1-D, chunked, resizable, appended in blocks,
 byte-shuffled, deflated (level 1) and Fletcher-32 checksummed, all of it built into every HDF5, so any HDF5
-tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and no real tick or frame row is
-all zero bytes, so a row whose data never reached the disk (HDF5 reads it as zeros) is recognisable.
+tool reads the file. In /levels and /events ``seq`` is the row's index + 1, and no real tick, frame or clock
+row is all zero bytes, so a row whose data never reached the disk (HDF5 reads it as zeros) is recognisable.
 
 Versions. A column added to a dataset bumps :data:`FORMAT_VERSION`, and :data:`ADDED_COLUMNS` says from which
 version on a column is written, so a reader gives older files the column as NaN (-1 for integers).
-Version 2 added each level's per-element scatter over its settle window (``pressure_std_pa``,
-``window_frames``); version 1 files may also lack ``io_s`` in /stream/ticks, added before this rule.
+A dataset added bumps it too, and :data:`ADDED_TABLES` says from which version on it is written; a reader
+gives an older file the dataset without rows. Version 2 added each level's per-element scatter over its
+settle window (``pressure_std_pa``, ``window_frames``); version 1 files may also lack ``io_s`` in
+/stream/ticks, added before this rule. Version 3 added /clock.
 """
 
 from __future__ import annotations
@@ -68,7 +74,7 @@ from control.telemetry import COLS, FRAME_DTYPE, ROWS, TICK_DTYPE
 from hardware.interfaces import Phase
 
 FORMAT_NAME = "palpation-console-session"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 OVERVIEW_BUCKET_ROWS = 1000
 
 _GRID = (ROWS, COLS)
@@ -109,6 +115,16 @@ EVENT_DTYPE = np.dtype(
     ]
 )
 
+CLOCK_DTYPE = np.dtype(
+    [
+        ("t_s", np.float64),  # the loop's clock
+        ("utc_ns", np.int64),  # UTC at that instant, ns since 1970-01-01 (Unix time: leap seconds not counted)
+    ]
+)
+# Pairs this far apart in loop time keep the interpolated UTC within a millisecond of the wall clock's even
+# while NTP slews it at its fastest (500 ppm), and cost 16 bytes a second.
+CLOCK_INTERVAL_S = 1.0
+
 # Channels of the timeline overview: (name in OVERVIEW_DTYPE, tick field, index into a vector field or None)
 OVERVIEW_CHANNELS: tuple[tuple[str, str, int | None], ...] = (
     ("force_measured_N", "force_measured_N", None),
@@ -146,6 +162,16 @@ TICK_NOTES = {
              "-1 outside the ramp",
 }
 
+CLOCK_NOTES = {
+    "t_s": "the loop's clock, s, as t_s of /stream/ticks",
+    "utc_ns": "UTC at the instant the loop's clock read t_s, ns since 1970-01-01 (Unix time: leap seconds not "
+              "counted); between pairs UTC is interpolated linearly, beyond the first and the last it runs on at "
+              "the loop clock's rate. On the controller the two clocks are read together. A simulated session "
+              "runs on a virtual clock, faster than real time: there utc_ns is a nominal time line, the moment "
+              "recording began plus the simulated time since, which lines up only with other exports of the "
+              "same session",
+}
+
 # How a finding the console told the surgeon begins, among the session's notes (what was told, and when)
 FINDINGS_TOLD = "Console told the surgeon:"
 
@@ -173,7 +199,7 @@ class EventKind:
 
 # A chunk that is still filling up is rewritten at every flush; if that write fails (full disk), the rows
 # it held before are lost too. Levels are the data that matter most, so each gets a chunk of its own.
-CHUNK_ROWS = {"ticks": 1024, "frames": 128, "overview": 256, "levels": 1, "events": 16}
+CHUNK_ROWS = {"ticks": 1024, "frames": 128, "overview": 256, "levels": 1, "events": 16, "clock": 64}
 
 # Columns written from a format version on: (dataset, column) -> the first version that always has it. A file
 # of an older version may lack the column; the reader gives it NaN there.
@@ -183,12 +209,19 @@ ADDED_COLUMNS: dict[tuple[str, str], int] = {
     ("levels", "window_frames"): 2,
 }
 
+# Datasets written from a format version on: name -> the first version that always has it. A file of an older
+# version may lack the dataset; the reader gives it no rows.
+ADDED_TABLES: dict[str, int] = {
+    "clock": 3,
+}
+
 TABLES: dict[str, np.dtype] = {
     "stream/ticks": TICK_DTYPE,
     "stream/frames": FRAME_DTYPE,
     "stream/overview": OVERVIEW_DTYPE,
     "levels": LEVEL_DTYPE,
     "events": EVENT_DTYPE,
+    "clock": CLOCK_DTYPE,
 }
 
 

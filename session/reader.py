@@ -33,6 +33,7 @@ import os
 import re
 import stat
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,9 @@ from control.telemetry import TICK_DTYPE
 from hardware.array_calibration import ArrayCalibration, ArrayCalibrationError
 from session.format import (
     ADDED_COLUMNS,
+    ADDED_TABLES,
+    CLOCK_DTYPE,
+    CLOCK_INTERVAL_S,
     FORMAT_NAME,
     FORMAT_VERSION,
     OVERVIEW_BUCKET_ROWS,
@@ -90,6 +94,8 @@ ROW_BOUNDS: dict[str, tuple[int, str]] = {
     # rows_lost event at most once per batch of rows the display hands it, 60 a second, were it to fall behind
     # at every refresh for all 8 hours; areas, faults, commands and notes come at an operator's pace
     "events": (SESSION_BOUND_S * 64, "8 hours of 64 events a second"),
+    # a pair every CLOCK_INTERVAL_S of loop time; twice that leaves room for the pairs of a start and an end
+    "clock": (int(2 * SESSION_BOUND_S / CLOCK_INTERVAL_S), "8 hours of clock pairs, two a second"),
 }
 # The chunks of a table looked through to find where its rows end, at about 3 us each (3 s at most); a real
 # session's largest table has about 225,000 (8 hours of frames at 1 kHz in the writer's 128-row chunks).
@@ -251,8 +257,12 @@ class Session:
                        f"{hi * 1e3:g} mm (got {pitch!r})")
 
         self._ds: dict[str, h5py.Dataset] = {}
+        absent = set()
         for name, dtype in TABLES.items():
             ds = self._member(name)
+            if ds is None and version < ADDED_TABLES.get(name, 0):
+                absent.add(name)  # written only from a later version on
+                continue
             if not isinstance(ds, h5py.Dataset):
                 self._fail(f"the file is damaged: the dataset /{name} is missing")
             self._check_rows_are_here(name, ds)
@@ -261,12 +271,16 @@ class Session:
             if problem or ds.ndim != 1:
                 self._fail(f"the file is damaged: /{name} does not hold the expected rows ({problem or 'not 1-D'})")
             self._ds[name] = ds
-        self._stored = {name: self._stored_rows(name) for name in TABLES}
+        self._stored = {name: 0 if name in absent else self._stored_rows(name) for name in TABLES}
 
         self.levels = self._placed_levels(self._read_numbered("levels"))
         self.events = self._read_numbered("events")
         self.n_ticks = self._valid_stream_length("stream/ticks")
         self.n_frames = self._valid_stream_length("stream/frames")
+        clock = np.zeros(0, CLOCK_DTYPE) if "clock" in absent else _conform(
+            self._read_rows("clock", 0, self._valid_stream_length("clock")), CLOCK_DTYPE)
+        self.clock = clock[np.isfinite(clock["t_s"])]  # pairs of clocks, in the order recorded
+        self._clock_map: ClockMap | None = None
         self._overview: np.ndarray | None = None
         self.closed_cleanly = bool(len(self.events)) and self.events["kind"][-1] == EventKind.CLOSED.encode()
         for row in self.events[self.events["kind"] == EventKind.RECORDER.encode()]:
@@ -513,6 +527,41 @@ class Session:
                         "value": value if math.isfinite(value) else None, "text": _as_str(row["text"])})
         return out
 
+    # ---- the time base ---------------------------------------------------------------------------------------
+
+    @property
+    def clock_note(self) -> str:
+        """One line on where the session's UTC comes from when the file stores no pairs of clocks; '' when
+        it does."""
+        if len(self.clock):
+            return ""
+        stored = (f"its format (version {self.format_version}) predates them"
+                  if self.format_version < ADDED_TABLES["clock"] else "none reached the file")
+        return (f"the session stores no pairs of its loop clock and UTC ({stored}): UTC is taken as created_utc "
+                f"({self.created_utc}) at the first tick, good to about a second")
+
+    def utc_ns(self, t_s) -> np.ndarray:
+        """UTC, in ns since the epoch (int64), at loop times ``t_s``: see :class:`ClockMap`. A file without
+        pairs (:attr:`clock_note`) is taken to have begun at its created_utc. Raises SessionFileError if it has
+        neither."""
+        if self._clock_map is None:
+            if len(self.clock):
+                self._clock_map = ClockMap(self.clock["t_s"], self.clock["utc_ns"])
+            else:
+                try:
+                    created = datetime.fromisoformat(self.created_utc)
+                except ValueError:
+                    raise SessionFileError(self.path, f"the session stores no pairs of its loop clock and UTC, and "
+                                                      f"its created_utc {self.created_utc!r} is not a time: its UTC "
+                                                      f"is unknown") from None
+                utc = round(created.timestamp() * 1e6) * 1000  # created_utc holds milliseconds: exact in us
+                first = self.tick_rows(0, 1, ["t_s"])["t_s"]
+                self._clock_map = ClockMap(first[:1] if len(first) else np.zeros(1), np.array([utc], np.int64))
+        try:
+            return self._clock_map(t_s)
+        except ValueError as err:
+            raise SessionFileError(self.path, f"the file is damaged: {err}") from None
+
     # ---- streams -----------------------------------------------------------------------------------------
 
     def time_span_s(self) -> tuple[float, float]:
@@ -596,6 +645,40 @@ class Session:
     def __repr__(self) -> str:
         return (f"Session({str(self.path)!r}, {len(self.levels)} levels, {self.n_ticks} ticks, "
                 f"{'recovered' if self.recovered else 'clean'})")
+
+
+class ClockMap:
+    """Loop time to UTC through pairs of readings of both clocks: linear between neighbouring pairs, and
+    beyond the first and the last pair at the loop clock's rate (one second of UTC a second).
+
+    Monotonic however the pairs came: they are taken in order of loop time (a repeated loop time keeps its
+    first pairing), and a wall clock stepped back between two pairs (NTP correcting it) gives a stretch over
+    which UTC stands still, never one in which it runs backwards."""
+
+    def __init__(self, t_s: np.ndarray, utc_ns: np.ndarray):
+        t_s, utc_ns = np.asarray(t_s, np.float64), np.asarray(utc_ns, np.int64)
+        usable = np.isfinite(t_s)
+        if not usable.any():
+            raise ValueError("a clock map needs at least one pair with a finite loop time")
+        t_s, utc_ns = t_s[usable], utc_ns[usable]
+        order = np.argsort(t_s, kind="stable")
+        t_s, utc_ns = t_s[order], utc_ns[order]
+        first = np.concatenate([[True], np.diff(t_s) > 0])
+        t_s, utc_ns = t_s[first], np.maximum.accumulate(utc_ns[first])
+        self.t_s = t_s
+        # UTC relative to the first pair, as float64: exact to well under a nanosecond over 8 hours, where
+        # nanoseconds since 1970 in a float64 would be rounded to 256 ns
+        self._base = int(utc_ns[0])
+        self._rel = (utc_ns - utc_ns[0]).astype(np.float64)
+
+    def __call__(self, t_s) -> np.ndarray:
+        t = np.asarray(t_s, np.float64)
+        if not np.isfinite(t).all():
+            raise ValueError("loop times must be finite to be mapped to UTC")
+        rel = np.interp(t, self.t_s, self._rel)
+        rel = np.where(t < self.t_s[0], self._rel[0] + (t - self.t_s[0]) * 1e9, rel)
+        rel = np.where(t > self.t_s[-1], self._rel[-1] + (t - self.t_s[-1]) * 1e9, rel)
+        return self._base + np.round(rel).astype(np.int64)
 
 
 def open_session(path: str | Path) -> Session:

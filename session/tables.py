@@ -7,6 +7,9 @@ What pandas, R or a spreadsheet expects of the three streams of a session file (
   face's arrays), the frame's own columns repeated on each of its 60 rows.
 * ``levels``: one row per recorded force level and element, likewise.
 
+Each table gains ``utc_ns`` after ``t_s``: UTC at that loop time, in ns since the epoch, through the pairs of
+clocks the session stores (:meth:`session.reader.Session.utc_ns`).
+
 Tables are produced in pieces of at most ``CHUNK_ROWS`` rows, so an hour-long session (3.6 million ticks,
 21 million frame rows) is written in bounded memory. Columns keep the file's units (SI) and types.
 """
@@ -28,12 +31,16 @@ class TableError(RuntimeError):
     """A table could not be written; the message names the file and why."""
 
 
-def _flat_columns(rows: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
-    """Scalar fields as they are, 3-vectors as three columns; per-element fields are left to the caller."""
+def _flat_columns(rows: np.ndarray, names: list[str], session) -> dict[str, np.ndarray]:
+    """Scalar fields as they are, with UTC after the loop time, 3-vectors as three columns; per-element fields
+    are left to the caller."""
     columns = {}
     for name in names:
         values = rows[name]
-        if values.ndim == 1:
+        if name == "t_s":
+            columns[name] = values
+            columns["utc_ns"] = session.utc_ns(values)
+        elif values.ndim == 1:
             columns[name] = values
         else:
             for k, axis in enumerate("xyz"):
@@ -49,12 +56,12 @@ def _per_element(rows: np.ndarray) -> tuple[list[str], list[str]]:
     return whole, element
 
 
-def _long(rows: np.ndarray) -> dict[str, np.ndarray]:
+def _long(rows: np.ndarray, session) -> dict[str, np.ndarray]:
     """``rows`` with an element grid per field as one row per element (row-major over the face)."""
     whole, element = _per_element(rows)
     shape = rows.dtype[element[0]].shape
     per_row = shape[0] * shape[1]
-    columns = {name: np.repeat(values, per_row) for name, values in _flat_columns(rows, whole).items()}
+    columns = {name: np.repeat(values, per_row) for name, values in _flat_columns(rows, whole, session).items()}
     grid_row, grid_col = np.indices(shape)
     columns["row"] = np.tile(grid_row.ravel(), len(rows)).astype(np.int16)
     columns["col"] = np.tile(grid_col.ravel(), len(rows)).astype(np.int16)
@@ -71,7 +78,7 @@ def table_chunks(session, name: str, chunk_rows: int = CHUNK_ROWS) -> Iterator[d
         start = 0
         while True:
             rows = session.tick_rows(start, start + step)
-            yield _flat_columns(rows, list(rows.dtype.names))
+            yield _flat_columns(rows, list(rows.dtype.names), session)
             start += step
             if start >= session.n_ticks:
                 return
@@ -79,7 +86,7 @@ def table_chunks(session, name: str, chunk_rows: int = CHUNK_ROWS) -> Iterator[d
         step = max(1, chunk_rows // 60)
         start = 0
         while True:
-            yield _long(session.frames(start, start + step))
+            yield _long(session.frames(start, start + step), session)
             start += step
             if start >= session.n_frames:
                 return
@@ -87,7 +94,7 @@ def table_chunks(session, name: str, chunk_rows: int = CHUNK_ROWS) -> Iterator[d
         levels = session.levels
         step = max(1, chunk_rows // 60)
         for start in range(0, max(len(levels), 1), step):
-            yield _long(levels[start:start + step])
+            yield _long(levels[start:start + step], session)
         return
     raise ValueError(f"unknown table {name!r} (known: {', '.join(TABLES)})")
 
@@ -135,6 +142,9 @@ def _write(session, folder: Path, tables, suffix: str, writer) -> list[Path]:
         except OSError as err:
             partial.unlink(missing_ok=True)
             raise TableError(f"cannot write {path}: {err.strerror or err}") from None
+        except BaseException:  # a damaged session found half-way, an interrupt: no half-written table either
+            partial.unlink(missing_ok=True)
+            raise
         written.append(path)
     return written
 

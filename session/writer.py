@@ -46,6 +46,8 @@ import numpy as np
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from session.format import (
     CHUNK_ROWS,
+    CLOCK_DTYPE,
+    CLOCK_NOTES,
     EVENT_CODES,
     EVENT_DTYPE,
     FORMAT_NAME,
@@ -266,9 +268,11 @@ class SessionRecorder:
                                  numbered=True)
         self._events = _Appender(table(f, "events", EVENT_DTYPE, "events",
                                        "one row per event; see session.format.EventKind"), numbered=True)
+        self._clock = _Appender(table(f, "clock", CLOCK_DTYPE, "clock",
+                                      "one row per reading of the loop's clock and UTC together"))
         numbering = {key: TICK_NOTES[key] for key in ("region", "level")}
         for ds, codes, notes in ((self._ticks.ds, TICK_CODES, TICK_NOTES), (self._levels.ds, None, numbering),
-                                 (self._events.ds, EVENT_CODES, numbering)):
+                                 (self._events.ds, EVENT_CODES, numbering), (self._clock.ds, None, CLOCK_NOTES)):
             if codes is not None:
                 ds.attrs["codes_json"] = _fixed(json.dumps(codes, sort_keys=True))
             ds.attrs["notes_json"] = _fixed(json.dumps(notes, sort_keys=True))
@@ -300,6 +304,12 @@ class SessionRecorder:
         events = list(events)
         if events:
             self._put(("events", events), 256 * len(events), len(events))
+
+    def add_clock(self, t_s: float, utc_ns: int) -> None:
+        """The loop's clock read ``t_s`` at UTC ``utc_ns`` (ns since the epoch): what lines the session up with
+        other recordings. Give one when the session begins, about every CLOCK_INTERVAL_S of loop time, and one
+        just before :meth:`close`."""
+        self._put(("clock", (float(t_s), int(utc_ns))), 16, 1)
 
     def add_note(self, text: str, t_s: float) -> None:
         """An operator's note at loop time ``t_s``."""
@@ -408,6 +418,8 @@ class SessionRecorder:
                     self._add_event(row)
                 if level is not None:
                     self._levels.add(np.array([level], LEVEL_DTYPE))
+        elif kind == "clock":
+            self._clock.add(np.array([payload], CLOCK_DTYPE))
         elif kind == "note":
             t_s, text = payload
             self._add_event(event_row(t_s, EventKind.NOTE, text=text))
@@ -439,7 +451,7 @@ class SessionRecorder:
                                                                   "began again from 0"))
 
     def _flush(self) -> None:
-        for appender in (self._ticks, self._frames, self._overview_ds, self._levels, self._events):
+        for appender in (self._ticks, self._frames, self._overview_ds, self._levels, self._events, self._clock):
             appender.write()
         self._file.flush()
 
@@ -492,8 +504,8 @@ class SessionRecorder:
                 item.done.set()
             elif item is not _STOP and item is not None:
                 kind, payload = item
-                self.rows_dropped += 1 if kind == "note" else len(payload)
-        for appender in (self._ticks, self._frames, self._levels, self._events):
+                self.rows_dropped += 1 if kind in ("note", "clock") else len(payload)
+        for appender in (self._ticks, self._frames, self._levels, self._events, self._clock):
             appender.pending.clear()
             appender.pending_rows = 0
 
@@ -504,7 +516,7 @@ class SessionRecorder:
             message = (f"Recording stopped: the session writer failed ({type(err).__name__}: {err}). The session "
                        f"up to this point is kept in {self.path}; the controller is unaffected.")
             log.error("session writer failed", exc_info=err)
-        appenders = (self._ticks, self._frames, self._overview_ds, self._levels, self._events)
+        appenders = (self._ticks, self._frames, self._overview_ds, self._levels, self._events, self._clock)
         pending = sum(a.pending_rows for a in appenders)
         self._stop_accepting(message)
         self.rows_dropped += pending

@@ -11,7 +11,8 @@ code, in both directions:
   carries, object by object, and each of them is named in format.py's docstring (the one place the layout
   is defined);
 * the event kinds are exactly :class:`session.format.EventKind`'s, the coded columns' codes are those of
-  :data:`session.format.TICK_CODES`, the added columns those of :data:`session.format.ADDED_COLUMNS`;
+  :data:`session.format.TICK_CODES`, the added columns and datasets those of
+  :data:`session.format.ADDED_COLUMNS` and :data:`session.format.ADDED_TABLES`;
 * nothing in backticks there names something the code does not have.
 
 So adding a column to a dtype, an attribute to the writer, or an event kind, without adding it to the page,
@@ -39,7 +40,8 @@ BEGIN = "<!-- checked layout: begin -->"
 END = "<!-- checked layout: end -->"
 
 # Field names carry their units (control/telemetry.py); the longest matching suffix wins.
-UNITS = (("_m_s", "m/s"), ("_m2", "m²"), ("_pa", "Pa"), ("_hz", "Hz"), ("_N", "N"), ("_s", "s"), ("_m", "m"))
+UNITS = (("_m_s", "m/s"), ("_m2", "m²"), ("_pa", "Pa"), ("_hz", "Hz"), ("_N", "N"), ("_ns", "ns"), ("_s", "s"),
+         ("_m", "m"))
 NO_UNIT = "—"
 SCALAR = "—"
 
@@ -171,6 +173,8 @@ def test_event_kinds_codes_and_versions_are_the_codes():
     added = {("/" + unquote(r[0]).lstrip("/"), unquote(r[1])): int(r[2])
              for r in table_under(all_tables, "Columns added")}
     assert added == {("/" + d, c): v for (d, c), v in fmt.ADDED_COLUMNS.items()}, f"{PAGE.name}: added columns differ"
+    added = {"/" + unquote(r[0]).lstrip("/"): int(r[1]) for r in table_under(all_tables, "Datasets added")}
+    assert added == {"/" + d: v for d, v in fmt.ADDED_TABLES.items()}, f"{PAGE.name}: added datasets differ"
 
     part = checked_part()
     assert f"`{fmt.FORMAT_NAME}`, version {fmt.FORMAT_VERSION}" in part, (

@@ -69,4 +69,4 @@ def test_bad_options_and_files_get_one_line(recorded, tmp_path, capsys):
     assert err.startswith("error: ") and err.count("\n") == 1
     assert not list(tmp_path.glob("*.csv"))
     assert export_main([str(recorded[0])]) == 2  # --csv or --parquet is required: argparse's own line
-    assert "one of the arguments --csv --parquet is required" in capsys.readouterr().err
+    assert "one of the arguments --csv --parquet --mcap is required" in capsys.readouterr().err
