@@ -221,7 +221,8 @@ def _study(argv: list[str]) -> int:
 DELEGATED = {
     "review": (_review, "open a recorded session read-only in the reviewer", None),
     "stitch": (_stitch, "stitch a session into whole-tissue maps and find the tumours", None),
-    "export": (_export, "write a session's ticks, frames and levels as tidy CSV or Parquet tables", None),
+    "export": (_export, "write a session's ticks, frames and levels as tidy CSV or Parquet tables, or as a "
+                        "rosbag2-compatible MCAP", None),
     "slave": (_slave, "run the slave side of the UDP master/slave link", "its simulated robot's [sim] table"),
     "devices": (_devices, "list the tactile sensors, masters and links this machine can see",
                 "also probe the [hardware] devices it names"),
