@@ -17,6 +17,7 @@ from hardware.array_calibration import ArrayCalibration, ArrayCalibrationError, 
 from hardware.interfaces import TactileConstraints
 from hardware.rig import Rig
 from hardware.settings import ConfigError
+from session.array_calibration import describe_array
 
 Progress = Callable[[float, str], None]  # (fraction done, what is being done)
 
@@ -110,6 +111,13 @@ def build_rig(spec: RigSpec, progress: Progress | None = None) -> Rig:
     rig = builder(spec, progress=progress)
     if spec.calibration:
         calibration = load_calibration(spec.calibration)
+        array = describe_array(rig.description)
+        # a simulated array is known exactly by its seed and model: another's pattern would add its 7 % to
+        # this one's instead of taking it out (a real array's description names a port, not the array)
+        if spec.backend == "sim" and calibration.array.startswith("simulated") and calibration.array != array:
+            raise ConfigError("rig.calibration", f"{spec.calibration} was made for the {calibration.array}, this "
+                                                 f"rig has the {array}: calibrate this one (palpation-console "
+                                                 f"calibrate) or leave the calibration out")
         rig.sensor = CalibratedSensor(rig.sensor, calibration)
         rig.description["calibration"] = {"file": spec.calibration, "summary": calibration.summary()}
     return rig

@@ -98,6 +98,15 @@ def test_the_config_loads_it_the_frames_lose_the_pattern_and_the_session_records
     assert "array calibrated 20" in info.text() and "6 presses, 12." in info.toolTip()
 
 
+def test_a_simulated_array_is_not_given_another_s_calibration(calibrated, tmp_path):
+    out, _, _ = calibrated
+    other = tmp_path / "other.toml"
+    other.write_text(REALISTIC + f'seed = 5\n[rig]\ncalibration = "{out}"\n')
+    with pytest.raises(ConfigError, match=r"made for the simulated array \(seed 0, realistic model\), this rig has "
+                                          r"the simulated array \(seed 5, realistic model\)"):
+        build_rig(load_config(other).rig)
+
+
 def test_a_relative_path_is_beside_the_config_file(calibrated, tmp_path):
     out, _, _ = calibrated
     (tmp_path / "tsi.toml").write_text(out.read_text())
