@@ -6,12 +6,15 @@ import math
 
 from PySide6 import QtCore, QtWidgets
 
+from session.detect import DetectParams
 from session.export import depth_model_text
 
 # headings on two lines: the table shares a laptop's left column with the jog, about 380 px
 COLUMNS = ("Area", "Map", "x, y\n(mm)", "First\nat (N)", "Depth,\nrule (mm)", "Depth, model\n(mm, 90 %)", "z")
+# Two tellings of one map this close are one tumour: the detector's own merge radius
+SAME_TUMOUR_M = DetectParams().merge_radius_m
 TOOLTIPS = (
-    "The palpation area whose findings told of it, numbered as on the whole-tissue map and in Messages",
+    "The palpation areas whose findings told of it, numbered as on the whole-tissue map and in Messages",
     "Which map showed it: stiffness (Eq. 1, the paper's better detector) or force",
     "Where it lies: x along the tissue's length from its start, y across it (along the TSI's 15 elements)",
     "The lowest force level of the ramp at which it showed",
@@ -41,14 +44,24 @@ class FindingsTable(QtWidgets.QTableWidget):
         self.cellDoubleClicked.connect(lambda row, _: self.move_requested.emit(*self._positions[row]))
 
     def set_findings(self, told: list[tuple[int, object]]) -> None:
-        """``told``: (area index from 0, tumour) for every tumour told, oldest first."""
-        self.setRowCount(len(told))
-        self._positions = [(t.x_m, t.y_m) for _, t in told]
-        for row, (area, t) in enumerate(told):
+        """``told``: (area index from 0, tumour) for every tumour told, oldest first. The areas beside a tumour
+        each tell of it: one row per tumour and map, with the newest telling's figures and every area that
+        told it (the first screenshots listed the paper's three tumours eight times)."""
+        rows: list[tuple[list[int], object]] = []
+        for area, t in told:
+            same = next((r for r in rows if r[1].source == t.source
+                         and math.hypot(r[1].x_m - t.x_m, r[1].y_m - t.y_m) <= SAME_TUMOUR_M), None)
+            if same is None:
+                rows.append(([area], t))
+            else:
+                rows[rows.index(same)] = (sorted({*same[0], area}), t)
+        self.setRowCount(len(rows))
+        self._positions = [(t.x_m, t.y_m) for _, t in rows]
+        for row, (areas, t) in enumerate(rows):
             rule = f"{t.depth_m * 1e3:.1f}" if math.isfinite(t.depth_m) else "—"
             model = depth_model_text(t) if math.isfinite(t.depth_model_m) else "—"
-            cells = (str(area + 1), t.source, f"{t.x_m * 1e3:.1f}, {t.y_m * 1e3:.1f}", f"{t.first_level_N:g}",
-                     rule, model, f"{t.score:.1f}")
+            cells = (", ".join(str(a + 1) for a in areas), t.source, f"{t.x_m * 1e3:.1f}, {t.y_m * 1e3:.1f}",
+                     f"{t.first_level_N:g}", rule, model, f"{t.score:.1f}")
             for column, text in enumerate(cells):
                 item = QtWidgets.QTableWidgetItem(text)
                 if column != 1:
