@@ -10,7 +10,7 @@ from session.detect import DetectParams
 from session.export import depth_model_text
 
 # headings on two lines: the table shares a laptop's left column with the jog, about 380 px
-COLUMNS = ("Area", "Map", "x, y\n(mm)", "First\nat (N)", "Depth,\nrule (mm)", "Depth, model\n(mm, 90 %)", "z")
+COLUMNS = ("Area", "Map", "x, y\n(mm)", "First\nat (N)", "Depth\nrule", "Depth, model\n(90 %, mm)", "z")
 # Two tellings of one map this close are one tumour: the detector's own merge radius
 SAME_TUMOUR_M = DetectParams().merge_radius_m
 TOOLTIPS = (
@@ -18,7 +18,7 @@ TOOLTIPS = (
     "Which map showed it: stiffness (Eq. 1, the paper's better detector) or force",
     "Where it lies: x along the tissue's length from its start, y across it (along the TSI's 15 elements)",
     "The lowest force level of the ramp at which it showed",
-    "The TSI indentation at that level: the paper's depth rule (reads deep tumours shallow)",
+    "The depth by the paper's rule, in mm: the TSI indentation at that level (reads deep tumours shallow)",
     "The model-based depth: the sphere that best explains what the tumour did to the elements, with the range "
     "that holds the true depth 9 times in 10",
     "How many standard deviations of healthy tissue its strongest spot stood out by",
