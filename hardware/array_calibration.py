@@ -78,14 +78,14 @@ class ArrayCalibration:
         gain = np.asarray(self.gain, dtype=float)
         sigma = np.asarray(self.gain_sigma, dtype=float)
         if gain.ndim != 2 or sigma.shape != gain.shape:
-            raise ArrayCalibrationError(f"gain and gain_sigma must be tables of the same shape, got {gain.shape} and "
-                                   f"{sigma.shape}")
+            raise ArrayCalibrationError(f"gain and gain_sigma must be tables of the same shape, got {gain.shape} "
+                                        f"and {sigma.shape}")
         lo, hi = GAIN_RANGE
         if not (np.all(np.isfinite(gain)) and np.all((gain >= lo) & (gain <= hi))):
             bad = np.argwhere(~((gain >= lo) & (gain <= hi)))[0]
             raise ArrayCalibrationError(f"element (row {bad[0]}, column {bad[1]}) has a sensitivity of "
-                                   f"{gain[tuple(bad)]:.3g} times the array's: outside {lo}-{hi}, a broken element "
-                                   f"or a reference that did not press every element alike")
+                                        f"{gain[tuple(bad)]:.3g} times the array's: outside {lo}-{hi}, a broken "
+                                        f"element or a reference that did not press every element alike")
         if not (np.all(np.isfinite(sigma)) and np.all(sigma >= 0) and np.all(sigma < 1)):
             raise ArrayCalibrationError("gain_sigma must be finite, relative and between 0 and 1")
         object.__setattr__(self, "gain", gain)
@@ -171,36 +171,24 @@ def fit_gains(pressure_pa: np.ndarray, press: np.ndarray, *, array: str = "", so
     press = np.asarray(press)
     if readings.ndim != 3 or press.shape != readings.shape[:1]:
         raise ArrayCalibrationError(f"expected (records, rows, cols) readings and a press per record, got "
-                               f"{readings.shape} and {press.shape}")
+                                    f"{readings.shape} and {press.shape}")
     shape = readings.shape[1:]
-    usable = np.all(np.isfinite(readings.reshape(len(readings), -1)), axis=1)
-    groups = []
-    face_mean = readings.mean(axis=(1, 2))
-    for a in np.unique(press[usable]):
-        idx = np.flatnonzero(usable & (press == a))
-        idx = idx[face_mean[idx] >= LINEAR_FROM * face_mean[idx].max()] if len(idx) else idx
-        span = np.ptp(face_mean[idx]) if len(idx) else 0.0
-        if len(idx) >= MIN_LEVELS and span >= MIN_SPAN_PA:
-            groups.append(idx)
-    if len(groups) < MIN_PRESSES:
-        raise ArrayCalibrationError(f"{len(groups)} usable press(es) of the reference: a calibration needs at least "
-                               f"{MIN_PRESSES}, each of {MIN_LEVELS} or more levels spanning {MIN_SPAN_PA / 1e3:g} kPa")
     y = readings.reshape(len(readings), -1)
+    groups = _presses(y, press)
     used = np.concatenate(groups)
-    if np.any(np.median(y[used], axis=0) <= MIN_SPAN_PA / 10):
-        e = int(np.argmax(np.median(y[used], axis=0) <= MIN_SPAN_PA / 10))
-        raise ArrayCalibrationError(f"element (row {e // shape[1]}, column {e % shape[1]}) did not feel the reference: "
-                               f"the face was not wholly on it")
+    quiet = np.median(y[used], axis=0) <= MIN_SPAN_PA / 10
+    if quiet.any():
+        raise ArrayCalibrationError(f"element {_element(int(np.argmax(quiet)), shape)} did not feel the reference: "
+                                    f"the face was not wholly on it")
     gain = np.ones(y.shape[1])
     for _ in range(50):
         ref = np.mean(y / gain, axis=1)  # the reference's pressure, in the array's mean sensitivity
-        num = np.zeros(y.shape[1])
-        den = 0.0
-        for idx in groups:
-            rc = ref[idx] - ref[idx].mean()
-            num += rc @ (y[idx] - y[idx].mean(axis=0))
-            den += float(rc @ rc)
-        new = num / den
+        slopes = [(rc @ yc, float(rc @ rc)) for rc, yc in _centred(groups, ref, y)]
+        new = sum(s for s, _ in slopes) / sum(d for _, d in slopes)
+        if not np.all(np.isfinite(new) & (new > 0)):
+            bad = int(np.argmax(~(np.isfinite(new) & (new > 0))))
+            raise ArrayCalibrationError(f"element {_element(bad, shape)} does not follow the reference's pressure "
+                                        f"(stuck or dead)")
         new /= new.mean()
         done = np.max(np.abs(new - gain)) < 1e-10
         gain = new
@@ -209,19 +197,45 @@ def fit_gains(pressure_pa: np.ndarray, press: np.ndarray, *, array: str = "", so
     ref = np.mean(y / gain, axis=1)
     residual_ss = np.zeros(y.shape[1])
     den = 0.0
-    for idx in groups:
-        rc = ref[idx] - ref[idx].mean()
-        residual_ss += np.sum((y[idx] - y[idx].mean(axis=0) - np.outer(rc, gain)) ** 2, axis=0)
+    for rc, yc in _centred(groups, ref, y):
+        residual_ss += np.sum((yc - np.outer(rc, gain)) ** 2, axis=0)
         den += float(rc @ rc)
     dof = max(len(used) - 2 * len(groups), 1)
     sigma = np.sqrt(residual_ss / dof / den) / gain
     stamp = (now or datetime.now(timezone.utc)).isoformat(timespec="seconds")
     try:
         return ArrayCalibration(gain.reshape(shape), sigma.reshape(shape), presses=len(groups), levels=len(used),
-                           pressure_range_pa=(float(ref[used].min()), float(ref[used].max())), created_utc=stamp,
-                           array=array, source=source)
+                                pressure_range_pa=(float(ref[used].min()), float(ref[used].max())),
+                                created_utc=stamp, array=array, source=source)
     except ArrayCalibrationError as err:
         raise ArrayCalibrationError(f"the presses do not give a calibration: {err}") from None
+
+
+def _presses(y: np.ndarray, press: np.ndarray) -> list[np.ndarray]:
+    """The records of each usable press, from where its contact has formed (``LINEAR_FROM``)."""
+    usable = np.all(np.isfinite(y), axis=1)
+    face_mean = y.mean(axis=1)
+    groups = []
+    for a in np.unique(press[usable]):
+        idx = np.flatnonzero(usable & (press == a))
+        idx = idx[face_mean[idx] >= LINEAR_FROM * face_mean[idx].max()]
+        if len(idx) >= MIN_LEVELS and np.ptp(face_mean[idx]) >= MIN_SPAN_PA:
+            groups.append(idx)
+    if len(groups) < MIN_PRESSES:
+        raise ArrayCalibrationError(f"{len(groups)} usable press(es) of the reference: a calibration needs at least "
+                                    f"{MIN_PRESSES}, each of {MIN_LEVELS} or more levels spanning "
+                                    f"{MIN_SPAN_PA / 1e3:g} kPa")
+    return groups
+
+
+def _centred(groups: list[np.ndarray], ref: np.ndarray, y: np.ndarray):
+    """Each press's reference pressures and readings about their own means: what takes its offset out."""
+    for idx in groups:
+        yield ref[idx] - ref[idx].mean(), y[idx] - y[idx].mean(axis=0)
+
+
+def _element(flat_index: int, shape: tuple[int, ...]) -> str:
+    return f"(row {flat_index // shape[1]}, column {flat_index % shape[1]})"
 
 
 class CalibratedSensor(TactileSensor):

@@ -179,3 +179,11 @@ def test_calibrate_refuses_options_that_do_not_go_together(tmp_path, capsys):
     assert calibrate_main(["--session", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "c.toml")]) == 2
     assert capsys.readouterr().err.startswith("error: ")
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_a_stuck_element_is_named_not_divided_by():
+    levels = np.linspace(5e3, 30e3, 5)
+    readings = np.array([np.full((4, 15), p) for _ in range(3) for p in levels])
+    readings[:, 1, 4] = 12e3  # reads the same whatever the reference presses
+    with pytest.raises(ArrayCalibrationError, match=r"element \(row 1, column 4\) does not follow"):
+        fit_gains(readings, np.repeat([0, 1, 2], 5))
