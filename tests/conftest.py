@@ -20,6 +20,15 @@ process.limit_blas_threads()
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+# hardware.crtk.dds pins every participant the project makes to loopback; this pins any other, in the suite
+# and in every process it starts (the fake arm), so nothing a test runs multicasts on the machine's network.
+try:
+    from hardware.crtk.dds import loopback_config
+except ImportError:  # without Cyclone DDS (the crtk extra) nothing here speaks DDS
+    pass
+else:
+    os.environ["CYCLONEDDS_URI"] = loopback_config(None)
+
 # Tissue models are precomputed once per machine (seconds to a minute per phantom) and shared by every
 # test run; spawned controller processes inherit the variable.
 TEST_CACHE = Path(__file__).resolve().parents[1] / "build" / "test-cache"

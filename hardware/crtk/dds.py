@@ -53,12 +53,13 @@ def unicast_ports(domain: int) -> set[int]:
             for offset in (DISCOVERY_UNICAST_OFFSET, DATA_UNICAST_OFFSET)}
 
 
-def loopback_config(domain: int) -> str:
-    """Cyclone's configuration (the XML ``CYCLONEDDS_URI`` takes) for one domain on the loopback interface only."""
-    domain = domain_id("domain", domain)
+def loopback_config(domain: int | None) -> str:
+    """Cyclone's configuration (the XML ``CYCLONEDDS_URI`` takes) for one domain on the loopback interface only;
+    ``None``: for every domain (what a process's environment sets, for a participant made some other way)."""
+    which = "any" if domain is None else domain_id("domain", domain)
     return (
         '<CycloneDDS xmlns="https://cdds.io/config">'
-        f'<Domain Id="{domain}">'
+        f'<Domain Id="{which}">'
         '<General><Interfaces><NetworkInterface name="lo" multicast="false"/></Interfaces>'
         '<AllowMulticast>false</AllowMulticast></General>'
         '<Discovery><ParticipantIndex>auto</ParticipantIndex>'

@@ -113,6 +113,20 @@ def test_participants_bind_to_the_loopback_only_and_join_no_multicast_group(doma
     assert not udp_sockets(os.getpid()), "closing the process's last participant left sockets open"
 
 
+def test_a_participant_made_without_our_config_is_pinned_by_the_suite_s_environment(domain):
+    # (tests/conftest.py sets CYCLONEDDS_URI: a library default or a participant made some other way)
+    from cyclonedds.domain import DomainParticipant
+
+    participant = DomainParticipant(domain + 50)
+    try:
+        sockets = udp_sockets(os.getpid())
+        strays = {(ip, port) for ip, port in sockets if ip != "127.0.0.1" and not (
+            ip == "0.0.0.0" and port in dds.unicast_ports(domain + 50))}
+        assert sockets and not strays, f"bound {strays} besides the loopback"
+    finally:
+        participant.__del__()  # the binding deletes it once, now, not when the object is collected
+
+
 def test_the_config_names_only_the_loopback():
     config = dds.loopback_config(7)
     for part in ('<Domain Id="7">', '<NetworkInterface name="lo" multicast="false"/>',
