@@ -504,7 +504,8 @@ class SessionRecorder:
                 item.done.set()
             elif item is not _STOP and item is not None:
                 kind, payload = item
-                self.rows_dropped += 1 if kind in ("note", "clock") else len(payload)
+                # a note, a clock pair and a lost controller are one row each; the rest are blocks of rows
+                self.rows_dropped += 1 if kind in ("note", "clock", "controller_lost") else len(payload)
         for appender in (self._ticks, self._frames, self._levels, self._events, self._clock):
             appender.pending.clear()
             appender.pending_rows = 0

@@ -320,3 +320,25 @@ def test_a_recorder_nobody_closed_is_written_out_when_the_process_exits(tmp_path
 def test_write_errors_are_explained(error, why):
     message = recorder_module._describe_write_error(error, Path("/data/s.h5"))
     assert message.startswith("Recording stopped: ") and why in message and "/data/s.h5" in message
+
+
+def test_what_was_queued_when_the_writer_failed_is_counted_a_row_for_a_row(tmp_path):
+    import errno
+    import threading
+
+    rec = SessionRecorder(tmp_path / "s.h5", INFO)
+    entered, gate = threading.Event(), threading.Event()
+
+    def failing_take(item):  # the disk goes while the writer holds one block
+        entered.set()
+        gate.wait(10)
+        raise OSError(errno.EIO, "Input/output error")
+
+    rec._take = failing_take
+    rec.add_ticks(tick_rows(0, 10))
+    assert entered.wait(10)
+    rec.add_controller_lost("the controller process was killed")  # queued behind the block: one row each
+    rec.add_note("queued too", 0.0)
+    gate.set()
+    status = rec.close()
+    assert status.problem and status.rows_dropped == 2
