@@ -90,3 +90,10 @@ def test_a_loop_blind_to_its_ceilings_is_caught(monkeypatch):
     monkeypatch.setattr(ControlLoop, "_descent_limit_m", lambda self, z, dt: -float("inf"))
     found = campaign.run(seed).violations
     assert {v["type"] for v in found} & {"force", "indentation"}, found
+
+
+def test_a_campaign_tells_its_progress_as_its_runs_come_in(monkeypatch):
+    monkeypatch.setattr(campaign, "CHUNK_RUNS", 1)
+    told = []
+    summary = campaign.campaign(3, seed=5, progress=lambda results: told.append(len(results)))
+    assert told == [1, 2, 3] and summary["runs"] == 3
