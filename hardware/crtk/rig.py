@@ -25,21 +25,20 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hardware.crtk.slave import CrtkSettings, CrtkSlave
+from hardware.device_tables import (
+    ARRAY_KINDS,
+    build_array,
+    build_master,
+    devices_mapping,
+    kind_settings,
+    master_settings,
+    sub_table,
+)
 from hardware.rig import Rig
-from hardware.serial_tactile.adapter import SerialTactileSensor, SerialTactileSettings
+from hardware.serial_tactile.adapter import SerialTactileSettings
 from hardware.settings import ConfigError
-from hardware.usb.spacemouse import SpaceMouseMaster, SpaceMouseSettings
-from hardware.usb.tactile import UsbTactileSensor, UsbTactileSettings
-
-SENSOR_KINDS: dict[str, type] = {"serial": SerialTactileSettings, "usb": UsbTactileSettings}
-MASTER_KINDS: dict[str, type | None] = {"none": None, "spacemouse": SpaceMouseSettings}
-
-
-def _table(data: dict, name: str, prefix: str) -> dict:
-    table = data.get(name, {})
-    if not isinstance(table, dict):
-        raise ConfigError(f"{prefix}{name}", f"must be a table, got {table!r}")
-    return table
+from hardware.usb.spacemouse import SpaceMouseSettings
+from hardware.usb.tactile import UsbTactileSettings
 
 
 @dataclass(frozen=True)
@@ -57,43 +56,29 @@ class CrtkHardwareSettings:
         unknown = sorted(set(data) - {"slave", "sensor", "master"})
         if unknown:
             raise ConfigError(f"{prefix}{unknown[0]}", "unknown table (known: slave, sensor, master)")
-        slave = CrtkSettings.from_mapping(_table(data, "slave", prefix), f"{prefix}slave.")
-        sensor_table, master_table = _table(data, "sensor", prefix), _table(data, "master", prefix)
-        sensor_kind = sensor_table.get("kind")
-        if sensor_kind not in SENSOR_KINDS:
+        slave = CrtkSettings.from_mapping(sub_table(data, "slave", prefix), f"{prefix}slave.")
+        table = sub_table(data, "sensor", prefix)
+        sensor_kind = table.get("kind")
+        if sensor_kind not in ARRAY_KINDS:
             raise ConfigError(f"{prefix}sensor.kind", f"the CRTK rig takes its tactile array from "
-                              f"{' or '.join(SENSOR_KINDS)}, got {sensor_kind!r}")
-        master_kind = master_table.get("kind", "none")
-        if master_kind not in MASTER_KINDS:
-            raise ConfigError(f"{prefix}master.kind",
-                              f"unknown kind {master_kind!r} (known: {', '.join(MASTER_KINDS)})")
-        sensor = SENSOR_KINDS[sensor_kind].from_mapping({k: v for k, v in sensor_table.items() if k != "kind"},
-                                                        f"{prefix}sensor.")
-        master_cls = MASTER_KINDS[master_kind]
-        master_keys = {k: v for k, v in master_table.items() if k != "kind"}
-        if master_cls is None and master_keys:
-            raise ConfigError(f"{prefix}master.{sorted(master_keys)[0]}", "unknown key for kind 'none' (it takes no "
-                              "settings)")
-        master = master_cls.from_mapping(master_keys, f"{prefix}master.") if master_cls else None
+                              f"{' or '.join(ARRAY_KINDS)}, got {sensor_kind!r}")
+        sensor = kind_settings(table, f"{prefix}sensor.", ARRAY_KINDS[sensor_kind], sensor_kind)
+        master_kind, master = master_settings(data, prefix)
         return cls(slave=slave, sensor_kind=sensor_kind, sensor=sensor, master_kind=master_kind, master=master)
 
     def to_mapping(self) -> dict[str, Any]:
-        sensor = {"kind": self.sensor_kind, **(self.sensor.to_mapping() if self.sensor else {})}
-        master = {"kind": self.master_kind, **(self.master.to_mapping() if self.master else {})}
-        return {"slave": self.slave.to_mapping(), "sensor": sensor, "master": master}
+        return {"slave": self.slave.to_mapping(),
+                **devices_mapping(self.sensor_kind, self.sensor, self.master_kind, self.master)}
 
 
 def build_crtk_rig(settings: CrtkHardwareSettings, usb_backend=None) -> Rig:
     """Build (not open) the rig; ``usb_backend`` replaces libusb (the tests' emulated bus)."""
     slave = CrtkSlave(settings.slave)
-    if settings.sensor_kind == "usb":
-        sensor = UsbTactileSensor(settings.sensor, backend=usb_backend)  # type: ignore[arg-type]
-    else:
-        sensor = SerialTactileSensor(settings.sensor)  # type: ignore[arg-type]
-    master = SpaceMouseMaster(settings.master, backend=usb_backend) if settings.master_kind == "spacemouse" else None
+    sensor = build_array(settings.sensor_kind, settings.sensor, usb_backend)
     description = {"backend": "crtk", "hardware": settings.to_mapping(), "slave": slave.describe(),
                    "sensor": sensor.describe()}
-    return Rig(sensor=sensor, slave=slave, master=master, description=description)
+    return Rig(sensor=sensor, slave=slave,
+               master=build_master(settings.master_kind, settings.master, usb_backend), description=description)
 
 
 def build_rig(spec) -> Rig:
