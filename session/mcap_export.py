@@ -23,7 +23,6 @@ file is written beside its final name and renamed into place, so a failure leave
 from __future__ import annotations
 
 import math
-import os
 import re
 import struct
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from control.telemetry import FRAME_DTYPE
 from session.format import TICK_CODES
 from session.info import software_version
+from session.tables import written_whole
 
 WINDOW_TICKS = 20_000  # control periods read, encoded and written at a time (20 s at 1 kHz)
 _FRAME_BLOCK = 1024  # tactile frames read at a time
@@ -412,8 +412,7 @@ def write_mcap(session, path: str | Path, window_ticks: int = WINDOW_TICKS) -> d
     path = Path(path)
     if not path.parent.is_dir():
         raise McapExportError(f"{path.parent}: no such folder")
-    partial = path.with_name(path.name + ".partial")
-    try:
+    with written_whole(path, McapExportError) as partial:
         with open(partial, "wb") as out:
             writer = Writer(out, compression=CompressionType.ZSTD)
             writer.start(profile="ros2", library=f"palpation-console {software_version()}")
@@ -438,11 +437,4 @@ def write_mcap(session, path: str | Path, window_ticks: int = WINDOW_TICKS) -> d
                     sequence[c] += 1
                     writer.add_message(c, log_time=t, data=data, publish_time=t, sequence=sequence[c])
             writer.finish()
-        os.replace(partial, path)
-    except OSError as err:
-        partial.unlink(missing_ok=True)
-        raise McapExportError(f"cannot write {path}: {err.strerror or err}") from None
-    except BaseException:  # a damaged session found half-way, an interrupt: no half-written bag either
-        partial.unlink(missing_ok=True)
-        raise
     return {topic_of[c]: n for c, n in sequence.items()}

@@ -16,6 +16,7 @@ Tables are produced in pieces of at most ``CHUNK_ROWS`` rows, so an hour-long se
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 from collections.abc import Iterator
@@ -30,6 +31,23 @@ CHUNK_ROWS = 200_000
 class TableError(RuntimeError):
     """A table could not be written; the message names the file and why."""
 
+
+
+@contextlib.contextmanager
+def written_whole(path: Path, error: type[Exception]) -> Iterator[Path]:
+    """A file beside ``path`` to write, renamed onto it when the block ends: never a half-written export under
+    the final name. A disk's error becomes ``error`` (one line); any failure (a damaged session found half-way,
+    an interrupt) removes the partial file."""
+    partial = path.with_name(path.name + ".partial")
+    try:
+        yield partial
+        os.replace(partial, path)
+    except OSError as err:
+        partial.unlink(missing_ok=True)
+        raise error(f"cannot write {path}: {err.strerror or err}") from None
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
 
 def _flat_columns(rows: np.ndarray, names: list[str], session) -> dict[str, np.ndarray]:
     """Scalar fields as they are, with UTC after the loop time, 3-vectors as three columns; per-element fields
@@ -135,16 +153,8 @@ def _write(session, folder: Path, tables, suffix: str, writer) -> list[Path]:
     written = []
     for name in tables:
         path = folder / f"{session.path.stem}-{name}{suffix}"
-        partial = path.with_name(path.name + ".partial")
-        try:
+        with written_whole(path, TableError) as partial:
             writer(table_chunks(session, name), partial)
-            os.replace(partial, path)  # never a half-written table under the final name
-        except OSError as err:
-            partial.unlink(missing_ok=True)
-            raise TableError(f"cannot write {path}: {err.strerror or err}") from None
-        except BaseException:  # a damaged session found half-way, an interrupt: no half-written table either
-            partial.unlink(missing_ok=True)
-            raise
         written.append(path)
     return written
 
