@@ -9,8 +9,6 @@ from pathlib import Path
 import pytest
 
 from bench import independent_campaign as campaign
-from control import safety
-from control.loop import ControlLoop
 
 
 def test_it_imports_no_physics_of_the_simulated_rig_or_our_campaign():
@@ -77,17 +75,10 @@ def test_an_array_reading_a_third_of_the_force_takes_the_probe_over_the_ceiling(
     assert result.max_force_over_ceiling_N > campaign.FORCE_MARGIN_N
 
 
-def test_a_loop_blind_to_its_ceilings_is_caught(monkeypatch):
+def test_a_loop_blind_to_its_ceilings_is_caught(blind_loop):
     seed = 32  # the operator pushes the master down: today's loop stops the probe short of every ceiling
     assert campaign.run(seed).violations == []
-    check = safety.SafetySupervisor.check
-
-    def blind(self, **readings):
-        readings.update(force_N=0.0, max_pressure_pa=0.0, saturated_elements=0, indentation_m=float("nan"))
-        return check(self, **readings)
-
-    monkeypatch.setattr(safety.SafetySupervisor, "check", blind)
-    monkeypatch.setattr(ControlLoop, "_descent_limit_m", lambda self, z, dt: -float("inf"))
+    blind_loop()
     found = campaign.run(seed).violations
     assert {v["type"] for v in found} & {"force", "indentation"}, found
 
