@@ -183,8 +183,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._physics = None  # the live flat field's physics (set_live_physics), if the composition root has it
         self._findings_pending: set[int] = set()  # areas done whose findings wait for that physics
         self._told_areas: set[int] = set()  # areas whose findings were told
-        self._told: list = []  # the tumours told of, in any area
-        self._told_rows: list = []  # (area, tumour) of each, as the findings table lists them
+        self._told: list = []  # (area, tumour) for every tumour told of, oldest first
         self._health_degraded: bool | None = None
         self._ramp_to_restore: RampSettings | None = None
 
@@ -905,23 +904,23 @@ class LiveWindow(QtWidgets.QMainWindow):
             text = f"Area {region + 1}: " + "; ".join(_finding_text(t) for t in findings)
         if findings is not None:
             self._told_areas.add(region)
-            self._told += findings
-            self._told_rows += [(region, t) for t in findings]
-            self._tissue.set_told(self._told)
-            self._findings.set_findings(self._told_rows)
+            self._tell([(region, t) for t in findings])
             self.findings_told.emit(text)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
         self._flow.show_findings(text)
+
+    def _tell(self, told: list) -> None:
+        """Add (area, tumour) pairs to what the surgeon has been told: the map's labels and the table follow."""
+        self._told += told
+        self._tissue.set_told([t for _, t in self._told])
+        self._findings.set_findings(self._told)
 
     def _tell_later_findings(self) -> None:
         """Tumours that areas already told of show only now (the areas beside them palpated since, or the
         tissue model of more of them): said once each, in the messages."""
         for region in sorted(self._told_areas):
-            for tumour in self._tissue.findings_in(region, self._told) or []:
-                self._told.append(tumour)
-                self._told_rows.append((region, tumour))
-                self._tissue.set_told(self._told)
-                self._findings.set_findings(self._told_rows)
+            for tumour in self._tissue.findings_in(region, [t for _, t in self._told]) or []:
+                self._tell([(region, tumour)])
                 text = f"Area {region + 1}, with the areas palpated since: {_finding_text(tumour)}"
                 self._messages.add(text, Severity.WARNING)
                 self.findings_told.emit(text)
