@@ -54,6 +54,10 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
                        help="the part of that error every element near a tumour shares, one scale on all its "
                             f"predicted contrast, relative (default {DepthParams.scale_error:g}); larger widens "
                             "the depth intervals")
+    group.add_argument("--depth-law-spread", type=float, default=DepthParams.law_spread,
+                       help="how unsure the depth model is of the tissue's law: a tumour's contrast taken to grow "
+                            "with the press 1 - this to 1 + this times as fast as its finite-strain model says "
+                            f"(default {DepthParams.law_spread:g}; 0 trusts that model, 1 reaches small strain)")
     group.add_argument("--physics", choices=list(PHYSICS), default="rebuilt",
                        help="the probe's expected pattern on homogeneous tissue: " + "; ".join(
                            f"{k} = {v}" for k, v in PHYSICS.items()) + " (default rebuilt)")
@@ -85,7 +89,8 @@ def analysis_params(args) -> AnalysisParams:
     detect = DetectParams(false_alarm_per_area=args.false_alarm, accuracy=args.accuracy,
                           merge_radius_m=args.merge_radius_mm * 1e-3, fit_radius_m=args.fit_radius_mm * 1e-3,
                           kernel_widths_m=args.blob_widths_m)
-    return AnalysisParams(stitch, detect, DepthParams(args.depth_model_error, args.depth_scale_error))
+    return AnalysisParams(stitch, detect,
+                          DepthParams(args.depth_model_error, args.depth_scale_error, args.depth_law_spread))
 
 
 def analyse(session: Session, args, progress: Progress | None = None) -> SessionAnalysis:

@@ -58,6 +58,7 @@ def _params_block(stitch_params: StitchParams, detect_params: DetectParams | Non
     if depth_params is not None:
         out["depth_model_error"] = depth_params.model_error
         out["depth_scale_error"] = depth_params.scale_error
+        out["depth_law_spread"] = depth_params.law_spread
     return out
 
 

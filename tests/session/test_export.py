@@ -27,7 +27,7 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
                         "--json", str(out["maps.json"]), "--tumours", str(out["tumours.json"]),
                         "--report", str(out["report.pdf"]), "--cell-mm", "2", "--fit-radius-mm", "5",
                         "--blob-widths-mm", "2,4", "--depth-model-error", "0.3",
-                        "--depth-scale-error", "0.1", *analysis])
+                        "--depth-scale-error", "0.1", "--depth-law-spread", "0.25", *analysis])
     assert code == 0
     printed = capsys.readouterr().out
     assert "3 regions, 9 recorded levels (forces 0.5, 1, 1.5 N)" in printed
@@ -71,8 +71,8 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
     assert len(tumours["comparison"]) == 6 and tumours["false_positives"] == {"stiffness": 0, "force": 0}
     params = tumours["params"]
     keys = ("cell_m", "false_alarm_per_area", "accuracy", "merge_radius_m", "fit_radius_m", "depth_model_error",
-            "depth_scale_error")
-    assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.001, 0.02, 4e-3, 5e-3, 0.3, 0.1]
+            "depth_scale_error", "depth_law_spread")
+    assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.001, 0.02, 4e-3, 5e-3, 0.3, 0.1, 0.25]
     assert params["kernel_widths_m"] == pytest.approx([2e-3, 4e-3]) and params["l0_source"] == "element"
 
 
@@ -107,6 +107,8 @@ def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, 
                                 ("--depth-model-error", "nan", "depth model error must be a relative error"),
                                 ("--depth-scale-error", "-0.1", "depth scale error must be a relative error within "
                                                                 "[0, 2], got -0.1"),
+                                ("--depth-law-spread", "1.5", "depth law spread must be a relative error within "
+                                                              "[0, 1], got 1.5"),
                                 ("--blob-widths-mm", "2,x", "'2,x' is not a comma-separated list of widths in mm")):
         assert stitch_main([str(recorded[0]), option, value]) == 2
         err = capsys.readouterr().err

@@ -93,6 +93,11 @@ def test_the_reviewer_re_analyses_with_the_detectors_and_the_depth_models_parame
         window.findChild(QtWidgets.QDoubleSpinBox, "depthScaleSpin").setValue(0.0)
     assert window.analysis.params.depth.scale_error == 0.0
     assert sum(_widths(window.analysis)) < sum(before)
+    before = _widths(window.analysis)
+    with qtbot.waitSignal(window.analysis_done, timeout=20000):
+        window.findChild(QtWidgets.QDoubleSpinBox, "depthLawSpin").setValue(0.0)
+    assert window.analysis.params.depth.law_spread == 0.0
+    assert sum(_widths(window.analysis)) < sum(before)
 
     widths = window.findChild(QtWidgets.QLineEdit, "blobWidthsEdit")
     assert widths.text() == "2, 4"

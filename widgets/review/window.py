@@ -246,6 +246,10 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._depth_scale_spin = spin("depthScaleSpin", 0.0, 200.0, DepthParams.scale_error * 100, 5.0, " %", 0)
         self._depth_scale_spin.setToolTip("The part of the depth model's error every element near a tumour "
                                           "shares (one scale on all it predicts): larger widens the depth intervals")
+        self._depth_law_spin = spin("depthLawSpin", 0.0, 100.0, DepthParams.law_spread * 100, 10.0, " %", 0)
+        self._depth_law_spin.setToolTip("How unsure the depth model is of the tissue's law: a tumour's contrast "
+                                        "taken to grow with the press this much slower to this much faster than "
+                                        "its finite-strain model says; 0 trusts that model")
         self._physics_combo = QtWidgets.QComboBox(objectName="physicsCombo")
         for label in self._physics_factories:
             self._physics_combo.addItem(label)
@@ -273,6 +277,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         form.addRow("Fit radius", self._fit_spin)
         form.addRow("Depth model error", self._depth_error_spin)
         form.addRow("Depth scale error", self._depth_scale_spin)
+        form.addRow("Depth law spread", self._depth_law_spin)
         form.addRow("Flat-field physics", self._physics_combo)
         form.addRow(self._reference_button, self._reference_label)
         form.addRow("L0 (Eq. 1) from", self._l0_combo)
@@ -490,13 +495,14 @@ class ReviewWindow(QtWidgets.QMainWindow):
                               fit_radius_m=self._fit_spin.value() * 1e-3,
                               kernel_widths_m=widths)
         return AnalysisParams(stitch, detect, DepthParams(self._depth_error_spin.value() / 100.0,
-                                                          self._depth_scale_spin.value() / 100.0))
+                                                          self._depth_scale_spin.value() / 100.0,
+                                                          self._depth_law_spin.value() / 100.0))
 
     def set_analysis(self, stitch: StitchParams, detect: DetectParams, depth: DepthParams = DepthParams()) -> None:
         """Put parameters into the panel and ask for their analysis now (``analysis_done`` when it is shown)."""
         widgets = (self._cell_spin, self._false_alarm_spin, self._accuracy_spin, self._l0_combo, self._l0_fixed_spin,
                    self._widths_edit, self._merge_spin, self._fit_spin, self._depth_error_spin,
-                   self._depth_scale_spin)
+                   self._depth_scale_spin, self._depth_law_spin)
         blocked = [w.blockSignals(True) for w in widgets]
         self._cell_spin.setValue(stitch.cell_m * 1e3)
         self._false_alarm_spin.setValue(detect.false_alarm_per_area * 100)
@@ -506,6 +512,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._fit_spin.setValue(detect.fit_radius_m * 1e3)
         self._depth_error_spin.setValue(depth.model_error * 100)
         self._depth_scale_spin.setValue(depth.scale_error * 100)
+        self._depth_law_spin.setValue(depth.law_spread * 100)
         self._l0_combo.setCurrentIndex(self._l0_combo.findData(stitch.l0_source.value))
         if stitch.l0_fixed_m is not None:
             self._l0_fixed_spin.setValue(stitch.l0_fixed_m * 1e3)
