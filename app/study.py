@@ -39,6 +39,20 @@ from tissue.generator import RealisticConditions, StudyDistribution, draw_condit
 
 # ---- one case ------------------------------------------------------------------------------------------
 
+TRAVEL_OVER_TOP_M = 0.005  # the operator's moves between areas clear the phantom's highest point by this at least
+
+
+def travel_height_m(phantom, settings: dict[str, Any]) -> float:
+    """The height the scripted operator moves between areas at: the settings' (the default's), or higher
+    where the phantom stands taller. The distribution draws blocks up to 32 mm thick with bumps or a slope
+    on top, and the operator clears the highest, as one would over a tall phantom (seed 4949 drew one whose
+    approach stood at 46 mm, over the default travel height of 45 mm, and the case was lost)."""
+    from hardware.sim.settings import OperatorSimSettings
+
+    top = phantom.highest_surface_m(phantom.length_m / 2, phantom.width_m / 2, (phantom.length_m, phantom.width_m))
+    given = settings.get("sim", {}).get("operator", {}).get("travel_height_m", OperatorSimSettings.travel_height_m)
+    return max(float(given), top + OperatorSimSettings.clearance_m + TRAVEL_OVER_TOP_M)
+
 # The worlds a study palpates in, as the settings every case's rig is built with. "ideal": the analysis and the
 # simulator share the mechanics, and the array's only fast error is white noise. "realistic": the array has
 # the errors a real capacitive array has (hardware/sim/settings.py, SENSOR_MODELS), and each phantom is
@@ -160,13 +174,14 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     folder.mkdir(parents=True, exist_ok=True)
     phantom_path = folder / f"{case.name}.toml"
     phantom_path.write_text(tomli_w.dumps(case.phantom), encoding="utf-8")
+    started = time.perf_counter()
+    phantom = load_phantom(phantom_path)
     config = load_config(None, merge_tables(merge_tables(settings, WORLDS[case.world]), {
         "rig": {"backend": "sim", "phantom": str(phantom_path), "seed": case.rig_seed},
         "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue,
-                "probe_tilt_deg": list(case.conditions.get("probe_tilt_deg", (0.0, 0.0)))},
+                "probe_tilt_deg": list(case.conditions.get("probe_tilt_deg", (0.0, 0.0))),
+                "operator": {"travel_height_m": travel_height_m(phantom, settings)}},
         "control": {"ramp": {"force_max_N": case.force_max_N}}}))
-    started = time.perf_counter()
-    phantom = load_phantom(phantom_path)
     tissue = build_tissue(phantom, config.rig.sim, workers=1)  # the study's own processes fill the cores
     prepared = time.perf_counter()
     rig = build_sim_rig(phantom, config.rig.sim, tissue=tissue, seed=case.rig_seed)

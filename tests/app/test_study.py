@@ -171,6 +171,19 @@ def test_a_case_that_cannot_run_is_reported_not_fatal(tmp_path):
     assert score([result])["failed_cases"] == 1
 
 
+def test_the_operator_moves_between_areas_over_a_phantom_taller_than_its_travel_height(tmp_path):
+    """A block 42 mm thick: its areas' approach (surface + clearance) stands over the default 45 mm travel
+    height, which refused the case before the study raised it over the phantom."""
+    import copy
+
+    case = tiny_cases(1, seed=4)[0]
+    phantom = copy.deepcopy(case.phantom)
+    phantom["phantom"]["thickness_m"] = 0.042  # its tumour drawn by depth under the surface, kept
+    [result], _ = run_study([replace(case, phantom=phantom)], _LastFirst(), tmp_path, analysis=DETECTION_ONLY)
+    assert "error" not in result
+    assert result["regions_done"] == result["regions"] > 0
+
+
 def test_the_command_writes_json_and_plot_and_refuses_nonsense(tmp_path, capsys, monkeypatch, qapp):
     assert study_main(["--phantoms", "0"]) == 2
     assert "nothing to run" in capsys.readouterr().err
