@@ -106,6 +106,8 @@ def test_with_the_physics_computed_aside_the_live_maps_find_the_tumours_and_not_
         assert physics.busy
         with qtbot.waitSignal(physics.ready, timeout=60_000) as quick:
             pass  # on the finite elements of the five areas' block, solved for the first answer
+        with qtbot.waitSignal(physics.ready, timeout=90_000) as full:
+            pass  # then the same four areas solved in full behind it, no area having come since
     finally:
         physics.close()
     records, patterns, description = answered.args
@@ -120,6 +122,10 @@ def test_with_the_physics_computed_aside_the_live_maps_find_the_tumours_and_not_
     found = _judged(four, records, patterns, description)
     assert all(_near_a_tumour(xy) for xy in found)
     assert all(any(math.dist(xy, t) < 2e-3 for xy in found) for t in TUMOURS_XY_M)
+    records, patterns, description = full.args
+    assert records == len(four) and "meshed on" not in description
+    in_full = _judged(four, records, patterns, description)
+    assert len(in_full) == len(found) and all(min(math.dist(xy, f) for f in found) < 1e-3 for xy in in_full)
 
 
 def test_without_a_plan_the_newest_areas_far_edge_is_not_read_as_a_tumour(qtbot, flat_session):
@@ -157,7 +163,7 @@ def test_a_held_worker_is_sent_nothing_and_one_killed_under_way_is_said_so(qtbot
         assert not physics.busy  # kept until the loop leaves force control
         physics.hold(False)
         assert physics.busy
-        process = physics._worker[0]
+        process = physics._quick.process
         process.kill()
         process.join()
         physics.hold(True)
