@@ -102,19 +102,25 @@ def _all_in_view(window, width: int, height: int, state: str = "idle", names=ESS
 ALWAYS = ("indentation", "estopButton", "healthChip", "pressureMap", "stiffnessMap", "szPosition", "szForce")
 
 
+def _laptop_console(qtbot, tmp_path, size) -> tuple[LiveWindow, FakeController]:
+    """A console shown at ``size``, driven by hand."""
+    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
+    controller = FakeController()
+    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
+    qtbot.addWidget(window)
+    window.resize(*size)
+    window.show()
+    qtbot.waitExposed(window)
+    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(*size))
+    return window, controller
+
+
 @pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
 def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_path, size):
     """issue 50: at 1280 x 800 the depth figure was half cut during REGION DONE, at 1366 x 768 hidden, and a
     fault banner scrolled it away; the fit test looked at the idle console only."""
     width, height = size
-    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
-    controller = FakeController()
-    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
-    qtbot.addWidget(window)
-    window.resize(width, height)
-    window.show()
-    qtbot.waitExposed(window)
-    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
+    window, controller = _laptop_console(qtbot, tmp_path, size)
     states = {
         # the longest phase and ladder texts: they widened the side panel past its view, cutting FORCE off
         "seeking contact": (make_tick(phase=Phase.SEEK_CONTACT, sz=0, level=0, n_levels=7), ()),
@@ -141,14 +147,7 @@ def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_pa
     """issue 50: nothing told the surgeon the findings were on their way; the progress and then the findings
     show under the region-done flag, beside the depth and the stop button."""
     width, height = size
-    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
-    controller = FakeController()
-    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
-    qtbot.addWidget(window)
-    window.resize(width, height)
-    window.show()
-    qtbot.waitExposed(window)
-    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
+    window, controller = _laptop_console(qtbot, tmp_path, size)
     physics = Physics()
     window.set_live_physics(physics)
     for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
