@@ -51,7 +51,10 @@ from tissue.mechanics.progress import stage
 
 Extent = tuple[float, float, float, float]  # (x0, x1, y0, y1) in m
 POLL_MS = 100  # how often the console looks for answers: a tenth of a second on seconds is little
-NICENESS = 10  # below the console: the operator's display never waits for the tissue model
+# Below the console, so the operator's display never waits for the tissue model, but above other work of the
+# computer's: at +10, on this project's machine busy with other sessions' work (a load of 12-14), the worker had
+# 11 s of CPU in the 8 minutes of an autopilot run, and no area's findings came
+NICENESS = 5
 FULL_NICENESS = 15  # below the quick worker: the next area's answer never waits for a full solve
 PROGRESS_EVERY_S = 0.2  # the workers' progress, at most this often (the condensation reports each of its boxes)
 
