@@ -194,3 +194,34 @@ def test_a_held_worker_is_sent_nothing_and_one_killed_under_way_is_said_so(qtbot
         assert "no element of this session ever touched the tissue" in answered.args[0]
     finally:
         physics.close()
+
+
+def test_the_terminal_shows_the_findings_being_computed_and_how_long_they_took(qapp):
+    from PySide6 import QtCore
+
+    from app.gui import wire_findings_progress
+
+    class Physics(QtCore.QObject):
+        ready = QtCore.Signal(int, object, str)
+        failed = QtCore.Signal(str)
+        progress = QtCore.Signal(int, float, str)
+
+    lines: list[list[tuple[float, str]]] = []
+    physics = Physics()
+
+    def bar():
+        lines.append([])
+        return lambda fraction, text: lines[-1].append((fraction, text))
+
+    wire_findings_progress(physics, bar)
+    physics.progress.emit(28, 0.0, "starting")
+    physics.progress.emit(28, 1.0, "the face's contact on record 28 of 28")
+    physics.ready.emit(28, {}, "")
+    physics.ready.emit(28, {}, "")  # the full solve behind it: no line of its own
+    physics.progress.emit(35, 0.5, "condensing the tissue onto its surface")
+    physics.failed.emit("no element touched")
+    assert [[(f, text.split(" in ")[0].split(" after ")[0]) for f, text in line] for line in lines] == [
+        [(0.0, "findings (28 levels): starting"), (0.99, "findings (28 levels): the face's contact on record 28 of 28"),
+         (1.0, "findings (28 levels)")],
+        [(0.5, "findings (35 levels): condensing the tissue onto its surface"),
+         (1.0, "no findings' tissue model")]]
