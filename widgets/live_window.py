@@ -793,9 +793,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._findings.show_progress(fraction, f"Tissue model of the {areas} areas palpated: {what}")
         if fraction == 0.0:
             self._messages.add(f"Computing the findings: the tissue model of the {areas} areas palpated…")
-        waiting = [region for region in sorted(self._findings_pending) if self._findings_can_come()]
-        if waiting:
-            self._flow.show_findings(f"Area {waiting[-1] + 1}: computing findings… {fraction:.0%}")
+        if self._findings_pending and self._findings_can_come():
+            self._flow.show_findings(f"Area {max(self._findings_pending) + 1}: computing findings… {fraction:.0%}")
 
     def _areas_palpated(self, records: int | None = None) -> int:
         """Areas among the first ``records`` levels recorded (None: all)."""
