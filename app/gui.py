@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -156,6 +157,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     wire_depth_model(window, info)
     physics = LivePhysics(info, window, plan.phantom_extent_m if plan is not None else None)
     window.set_live_physics(physics)
+    wire_findings_progress(physics, TextProgressBar)
     window.setWindowTitle(f"Palpation Console — {rig.backend} rig, phantom {rig.phantom}")
     if autopilot is None:
         autopilot = screenshot is not None
@@ -183,6 +185,27 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
         physics.close()
         bridge.shutdown()  # drains the controller's last rows into the recording and closes its file
         recording.close()  # in case the driver never started
+
+
+def wire_findings_progress(physics, bar) -> None:
+    """The terminal shows the live findings' tissue model being computed, as the console does: a progress
+    line per answer (``bar()`` makes one, :class:`tissue.mechanics.progress.TextProgressBar`), closed with
+    how long it took."""
+    under_way: list = []  # (its line, when it started) while an answer is computed
+
+    def moved(records: int, fraction: float, what: str) -> None:
+        if not under_way:
+            under_way.append((bar(), time.monotonic()))
+        under_way[0][0](min(fraction, 0.99), f"findings ({records} levels): {what}")
+
+    def finished(text: str) -> None:
+        if under_way:
+            line, started = under_way.pop()
+            line(1.0, text.format(s=time.monotonic() - started))
+
+    physics.progress.connect(moved)
+    physics.ready.connect(lambda records, *_: finished(f"findings ({records} levels) in {{s:.1f}} s"))
+    physics.failed.connect(lambda reason: finished(f"no findings' tissue model after {{s:.1f}} s: {reason}"))
 
 
 def wire_depth_model(window, info, library: Path = LIBRARY_PATH) -> None:

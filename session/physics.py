@@ -45,6 +45,7 @@ import numpy as np
 from session.info import SessionInfo
 from session.reader import Session
 from tissue.face import COVER_SPREAD_M, cover_operators, cover_weight, element_offsets_m
+from tissue.mechanics.progress import stage
 
 if TYPE_CHECKING:
     from tissue.mechanics.model import FiniteStrain
@@ -252,16 +253,37 @@ class BlockResponse(HomogeneousTissue):
         table = float(described.calibration.get("table_height_m", 0.0))
         pitch = float(described.calibration["pitch_m"])
         block, origin = measured_surface(levels, pitch, table, extent_m)
-        compliance, nodes = _block_compliance(block, cache_dir, progress)
+        compliance, nodes = _block_compliance(block, cache_dir, stage(progress, 0.0, 0.6))
         return cls(block, origin, compliance, nodes, _cover_of(described), pitch, shape,
-                   _block_stiffening(block, shape, pitch, cache_dir), table, ends_known)
+                   _block_stiffening(block, shape, pitch, cache_dir, stage(progress, 0.6, 1.0)), table, ends_known)
 
-    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+    def on_surface_of(self, levels: np.ndarray, extent_m: tuple[float, float, float, float] | None = None
+                      ) -> BlockResponse:
+        """This block's finite elements (its surface compliance and finite-strain factor) under the surface that
+        ``levels`` measured over the same extent: the contact is solved on the new surface, the tissue's
+        response is the one meshed on this block's. Seconds instead of :meth:`from_levels`'s finite elements;
+        an approximation where the surfaces differ (the live maps, app/live_physics.py, say how much). Raises
+        ValueError where ``levels`` reach beyond this block's extent."""
+        block, origin = measured_surface(levels, self.pitch_m, self.table_height_m, extent_m)
+        if block.heights_m.shape != self.block.heights_m.shape or not np.allclose(origin, self.origin_xy_m,
+                                                                                   atol=GRID_M / 10):
+            raise ValueError(f"the areas reach beyond the {self.block.name} whose finite elements are known")
+        tissue = BlockResponse(block, origin, self._compliance, self._nodes, self.cover_spread_m, self.pitch_m,
+                               self.shape, self.finite_strain, self.table_height_m, self.ends_known)
+        if block.content_hash() != self.block.content_hash():
+            tissue.description = tissue.description[:-1] + f"; its finite elements meshed on the {self.block.name})"
+        return tissue
+
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True, progress: Progress | None = None
+                ) -> Pattern:
+        """As :meth:`HomogeneousTissue.pattern`; ``progress(fraction, message)`` after each record."""
         shape = levels["pressure_pa"].shape
+        done = _records_done(progress, len(levels))
         if not measured_surface:
             flat = np.full(shape, np.nan)
             modes = [[] for _ in levels]
             for k, row in enumerate(levels):
+                done(k)
                 flat[k] = self._share(row, None)
                 modes[k] = self._extent_modes(row, None, flat[k])
             return _pattern(flat, np.zeros(shape), modes)
@@ -281,6 +303,7 @@ class BlockResponse(HomogeneousTissue):
         independent = np.full(shape, np.nan)
         modes = [[] for _ in levels]
         for k, row in enumerate(levels):
+            done(k)
             region = int(row["region"])
             high = upper[region]
             low = np.minimum(_lower_envelope(high), high - relief[region])
@@ -437,6 +460,14 @@ class BlockResponse(HomogeneousTissue):
             surfaces[int(region)] = heights.reshape(self.shape)
             sink_in[int(region)] = (heights - onset).reshape(self.shape)
         return surfaces, sink_in
+
+
+def _records_done(progress: Progress | None, records: int) -> Callable[[int], None]:
+    def done(k: int) -> None:
+        if progress is not None:
+            progress(k / records, f"the face's contact on record {k + 1} of {records}")
+
+    return done
 
 
 def _change_of_pattern(share: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -627,8 +658,8 @@ def _finite(finite_strain: FiniteStrain | None) -> str:
     return ", finite strain"
 
 
-def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None
-                      ) -> FiniteStrain:
+def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None,
+                      progress: Progress | None = None) -> FiniteStrain:
     """The finite-strain factor of the face pressed into a homogeneous neo-Hookean block of the rebuilt
     extent and thickness (free sides: the tissue ends where the palpation ends), cached. A real tissue's law
     is not known to the analysis: neo-Hookean is the phantom's default (docs/phantoms.md)."""
@@ -641,7 +672,7 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
     homogeneous = Phantom("rebuilt", "the rebuilt block, homogeneous", block.length_m, block.width_m,
                           block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio)
     sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
-    return homogeneous_stiffening(homogeneous, sensor, cache_dir)
+    return homogeneous_stiffening(homogeneous, sensor, cache_dir, progress)
 
 
 def _cover_of(session: Session | SessionInfo) -> float:

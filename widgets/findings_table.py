@@ -68,3 +68,34 @@ class FindingsTable(QtWidgets.QTableWidget):
                     item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
                 self.setItem(row, column, item)
         self.resizeColumnsToContents()
+
+
+class FindingsPanel(QtWidgets.QWidget):
+    """The findings table under what the tissue model behind them is doing while it is computed (the findings
+    of an area wait for it: app/live_physics.py)."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None):
+        super().__init__(parent)
+        self.table = FindingsTable()
+        self._bar = QtWidgets.QProgressBar(objectName="findingsProgress")
+        self._bar.setRange(0, 100)
+        self._bar.setFormat("Computing findings… %p %")
+        self._what = QtWidgets.QLabel(objectName="findingsProgressText", wordWrap=True)
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        for widget in (self._bar, self._what, self.table):
+            layout.addWidget(widget)
+        self.show_progress(None)
+
+    def show_progress(self, fraction: float | None, what: str = "") -> None:
+        """``fraction`` of the tissue model computed, and what it is doing; None: none under way."""
+        computing = fraction is not None
+        self._bar.setVisible(computing)
+        self._what.setVisible(computing)
+        if computing:
+            self._bar.setValue(round(100 * min(max(fraction, 0.0), 1.0)))
+            self._what.setText(what)
+
+    def progress_text(self) -> str | None:
+        """What the bar and the line under it say; None while nothing is computed."""
+        return f"{self._bar.text()}: {self._what.text()}" if self._bar.isVisibleTo(self) else None

@@ -65,7 +65,7 @@ from session.array_calibration import calibration_from_session
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
-from widgets.findings_table import FindingsTable
+from widgets.findings_table import FindingsPanel
 from widgets.flowchart import FlowchartPanel
 from widgets.glossary import GLOSSARY
 from widgets.health import VERDICT, HealthPanel, health_summary
@@ -417,8 +417,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         health_dock = self._dock("Loop health", "healthDock", self._health_panel, bottom)
         self._session_panel = SessionPanel()
         session_dock = self._dock("Session recording", "sessionDock", self._session_panel, bottom)
-        self._findings = FindingsTable()
-        self._findings.move_requested.connect(self._move_to)
+        self._findings = FindingsPanel()
+        self._findings.table.move_requested.connect(self._move_to)
         findings_dock = self._dock("Findings", "findingsDock", self._findings, left)
 
         self.tabifyDockWidget(jog_dock, settings_dock)
@@ -779,19 +779,41 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._physics = physics
         physics.ready.connect(self._physics_ready)
         physics.failed.connect(self._physics_failed)
+        physics.progress.connect(self._physics_progress)
         self._tissue.expect_physics(True)
 
     def _ask_physics(self) -> None:
         if self._physics is not None and self._tissue.record_count():
             self._physics.request(self._tissue.levels())
 
+    def _physics_progress(self, records: int, fraction: float, what: str) -> None:
+        """The tissue model of the first ``records`` levels is being computed: the findings panel shows how far,
+        the flag's line the same for the area waiting, and Messages says once that it started."""
+        areas = self._areas_palpated(records)
+        self._findings.show_progress(fraction, f"Tissue model of the {areas} areas palpated: {what}")
+        if fraction == 0.0:
+            self._messages.add(f"Computing the findings: the tissue model of the {areas} areas palpated…")
+        if self._findings_pending and self._findings_can_come():
+            self._flow.show_findings(f"Area {max(self._findings_pending) + 1}: computing findings… {fraction:.0%}")
+
+    def _areas_palpated(self, records: int | None = None) -> int:
+        """Areas among the first ``records`` levels recorded (None: all)."""
+        return len(np.unique(self._tissue.levels()[:records]["region"]))
+
+    def _findings_can_come(self) -> bool:
+        """Whether the next answer of the physics can give findings (enough areas to vouch for each other)."""
+        return self._areas_palpated() > MIN_VOUCHING
+
     def _physics_ready(self, records: int, patterns: dict, description: str) -> None:
+        if not self._physics.busy:
+            self._findings.show_progress(None)
         self._tissue.set_physics(records, patterns, description)
         self._tell_pending_findings()
         self._tell_later_findings()
 
     def _physics_failed(self, reason: str) -> None:
         self._physics = None
+        self._findings.show_progress(None)
         self._tissue.expect_physics(False)
         self._messages.add(f"Tissue model of the palpated areas unavailable: {reason}; the probe's pattern now comes "
                            "from the areas alone (the tissue's ends may read as tumours)", Severity.WARNING)
@@ -885,8 +907,11 @@ class LiveWindow(QtWidgets.QMainWindow):
         """At "region done": what that area showed, in the messages and under the flowchart's flag."""
         if self._tissue.findings_pending(region):
             self._findings_pending.add(region)
-            text = (f"Area {region + 1}: findings once {MIN_VOUCHING + 1} areas are palpated and the tissue model "
-                    "of the areas is computed")
+            if self._findings_can_come():
+                text = f"Area {region + 1}: computing findings…"
+            else:
+                text = (f"Area {region + 1}: findings once {MIN_VOUCHING + 1} areas are palpated and the tissue "
+                        "model of the areas is computed")
             self._messages.add(text)
             self._flow.show_findings(text)
             return
@@ -913,7 +938,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         """Add (area, tumour) pairs to what the surgeon has been told: the map's labels and the table follow."""
         self._told += told
         self._tissue.set_told([t for _, t in self._told])
-        self._findings.set_findings(self._told)
+        self._findings.table.set_findings(self._told)
 
     def _tell_later_findings(self) -> None:
         """Tumours that areas already told of show only now (the areas beside them palpated since, or the

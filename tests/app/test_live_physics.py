@@ -11,13 +11,17 @@ import numpy as np
 import pytest
 import tomli_w
 
+from app import live_physics
 from app.config import load_config
+from app.fastforward import FastForward
 from app.live_physics import LivePhysics
-from app.recording import record_simulation, session_info
+from app.recording import session_info
+from app.rigs import build_rig
+from control.messages import FaultRaised, LevelRecorded
 from hardware.interfaces import TactileConstraints
 from hardware.settings import read_toml
+from session.format import LEVEL_DTYPE, level_row
 from session.live import LiveMaps
-from session.reader import open_session
 from tissue.phantom import PHANTOM_DIR
 
 EXTENT_M = (0.0, 0.040, 0.0, 0.030)  # the block's, as an autopilot plan gives it
@@ -26,7 +30,9 @@ TUMOURS_XY_M = ((0.012, 0.015), (0.028, 0.015))
 
 @pytest.fixture(scope="module")
 def flat_session(tmp_path_factory):
-    """(the five areas' levels, what the console's session says of itself)."""
+    """(the five areas' levels as the console receives them, what the console's session says of itself). Its
+    levels come straight from the loop's events: writing the session's ticks and frames to a file first took
+    most of this module's time on a busy machine."""
     folder = tmp_path_factory.mktemp("flat")
     data = read_toml(PHANTOM_DIR / "flat.toml", "phantom file")
     block = data["phantom"]
@@ -36,9 +42,27 @@ def flat_session(tmp_path_factory):
     (folder / "flat-40.toml").write_text(tomli_w.dumps(data), encoding="utf-8")
     config = load_config(None, {"rig": {"phantom": str(folder / "flat-40.toml")},
                                 "control": {"ramp": {"force_max_N": 5.0}}})
-    path = folder / "flat.h5"
-    record_simulation(path, config)
-    return open_session(path).levels, session_info(config)
+    rig = build_rig(config.rig)
+    info = session_info(config, rig)
+    rows = []
+    with FastForward(config.control, rig) as palpating:
+        while not rig.master.finished:
+            assert palpating.now_s < 600.0, "the scripted operator did not finish"
+            palpating.run_for(0.5)
+            for event in palpating.events:
+                assert not isinstance(event, FaultRaised), event
+                if isinstance(event, LevelRecorded):
+                    rows.append(level_row(event.record))
+            palpating.clear()
+    return np.array(rows, dtype=LEVEL_DTYPE), info
+
+
+@pytest.fixture(autouse=True)
+def at_the_tests_priority(monkeypatch):
+    """The workers at the suite's own priority: the console's lower ones yield to the suite's other tests run
+    beside them, and on a loaded machine took the end-to-end test past the suite's timeout."""
+    monkeypatch.setattr(live_physics, "NICENESS", 0)
+    monkeypatch.setattr(live_physics, "FULL_NICENESS", 0)
 
 
 def _maps(levels) -> LiveMaps:
@@ -93,9 +117,30 @@ def test_with_the_physics_computed_aside_the_live_maps_find_the_tumours_and_not_
         physics.close()
     records, patterns, description = answered.args
     assert records == len(levels) and "rebuilt from the session" in description
+    assert "meshed on" not in description  # solved in full
     found = _judged(levels, records, patterns, description)
     assert all(_near_a_tumour(xy) for xy in found)
     assert all(any(math.dist(xy, t) < 2e-3 for xy in found) for t in TUMOURS_XY_M)
+
+
+def test_a_quick_answer_is_followed_by_the_full_solve_of_the_same_levels(qtbot, flat_session):
+    # one area's block (8 x 30 mm) keeps the three solves to seconds
+    levels, info = flat_session
+    first = levels[levels["region"] == 0]
+    lower = first.copy()
+    lower["onset_height_m"] -= 0.5e-3  # another surface over the same extent: a quick answer, then a full one
+    x0, y0 = (float(v) for v in first["tsi_position_m"][0, :2])
+    physics = LivePhysics(info, extent_m=(x0 - 0.004, x0 + 0.004, y0 - 0.015, y0 + 0.015))
+    answers = []
+    physics.ready.connect(lambda records, patterns, description: answers.append(description))
+    try:
+        with qtbot.waitSignal(physics.ready, timeout=60_000):
+            physics.request(first)
+        physics.request(lower)
+        qtbot.waitUntil(lambda: len(answers) == 3, timeout=90_000)
+    finally:
+        physics.close()
+    assert ["meshed on" in description for description in answers] == [False, True, False]
 
 
 def test_without_a_plan_the_newest_areas_far_edge_is_not_read_as_a_tumour(qtbot, flat_session):
@@ -133,7 +178,7 @@ def test_a_held_worker_is_sent_nothing_and_one_killed_under_way_is_said_so(qtbot
         assert not physics.busy  # kept until the loop leaves force control
         physics.hold(False)
         assert physics.busy
-        process = physics._worker[0]
+        process = physics._quick.process
         process.kill()
         process.join()
         physics.hold(True)
@@ -147,3 +192,34 @@ def test_a_held_worker_is_sent_nothing_and_one_killed_under_way_is_said_so(qtbot
         assert "no element of this session ever touched the tissue" in answered.args[0]
     finally:
         physics.close()
+
+
+def test_the_terminal_shows_the_findings_being_computed_and_how_long_they_took(qapp):
+    from PySide6 import QtCore
+
+    from app.gui import wire_findings_progress
+
+    class Physics(QtCore.QObject):
+        ready = QtCore.Signal(int, object, str)
+        failed = QtCore.Signal(str)
+        progress = QtCore.Signal(int, float, str)
+
+    lines: list[list[tuple[float, str]]] = []
+    physics = Physics()
+
+    def bar():
+        lines.append([])
+        return lambda fraction, text: lines[-1].append((fraction, text))
+
+    wire_findings_progress(physics, bar)
+    physics.progress.emit(28, 0.0, "starting")
+    physics.progress.emit(28, 1.0, "the face's contact on record 28 of 28")
+    physics.ready.emit(28, {}, "")
+    physics.ready.emit(28, {}, "")  # the full solve behind it: no line of its own
+    physics.progress.emit(35, 0.5, "condensing the tissue onto its surface")
+    physics.failed.emit("no element touched")
+    assert [[(f, text.split(" in ")[0].split(" after ")[0]) for f, text in line] for line in lines] == [
+        [(0.0, "findings (28 levels): starting"), (0.99, "findings (28 levels): the face's contact on record 28 of 28"),
+         (1.0, "findings (28 levels)")],
+        [(0.5, "findings (35 levels): condensing the tissue onto its surface"),
+         (1.0, "no findings' tissue model")]]

@@ -4,6 +4,7 @@ further, and stiffens more than linear elasticity says."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from session.physics import BlockResponse, _block_compliance, measured_surface
 from session.synthetic import level_record
@@ -140,3 +141,27 @@ def test_where_the_tissue_ends_is_not_known_it_may_go_on_by_another_area(tmp_pat
         assert np.abs(unsure.modes[end][:, row]).max() > 4 * np.abs(sure.modes[end][:, row]).max()
     assert "where the tissue ends not known" in unknown.description
     assert "not known" not in known.description
+
+
+def test_a_block_solved_before_answers_another_surface_of_its_extent_and_refuses_other_areas(tmp_path):
+    levels = ridge_levels((0.019, 0.017))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    solved = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    same = solved.on_surface_of(levels)
+    assert same.description == solved.description  # its own surface: the block solved, exactly
+    np.testing.assert_array_equal(same.pattern(levels).share, solved.pattern(levels).share)
+
+    flat = levels.copy()
+    flat["onset_height_m"] = BASE_M
+    flat["dL_m"] = BASE_M - flat["tsi_position_m"][:, 2][:, None, None]
+    on_flat = solved.on_surface_of(flat)
+    assert on_flat.block.heights_m.max() < RIDGE_M - 1e-3 and "meshed on the 8 x 30 mm block" in on_flat.description
+    ridge = solved.pattern(levels).share[:, 1:3, RIDGE].mean() / solved.pattern(levels).share[:, 1:3, 2].mean()
+    level = on_flat.pattern(flat).share[:, 1:3, RIDGE].mean() / on_flat.pattern(flat).share[:, 1:3, 2].mean()
+    assert ridge > 1.5 * level  # the contact is the new surface's: the ridge's load is gone
+
+    elsewhere = levels.copy()
+    elsewhere["tsi_position_m"][:, 0] += 0.004
+    with pytest.raises(ValueError, match="reach beyond the 8 x 30 mm block"):
+        solved.on_surface_of(elsewhere)

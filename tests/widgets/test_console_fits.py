@@ -19,7 +19,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.messages import FaultKind, FaultRaised
 from hardware.interfaces import Phase
-from tests.widgets.test_live_window import CONFIG, PLAN, FakeController, make_tick, push
+from tests.widgets.test_live_window import CONFIG, PLAN, FakeController, Physics, area, make_tick, push
 from widgets.live_window import LiveWindow
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
@@ -102,19 +102,25 @@ def _all_in_view(window, width: int, height: int, state: str = "idle", names=ESS
 ALWAYS = ("indentation", "estopButton", "healthChip", "pressureMap", "stiffnessMap", "szPosition", "szForce")
 
 
+def _laptop_console(qtbot, tmp_path, size) -> tuple[LiveWindow, FakeController]:
+    """A console shown at ``size``, driven by hand."""
+    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
+    controller = FakeController()
+    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
+    qtbot.addWidget(window)
+    window.resize(*size)
+    window.show()
+    qtbot.waitExposed(window)
+    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(*size))
+    return window, controller
+
+
 @pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
 def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_path, size):
     """issue 50: at 1280 x 800 the depth figure was half cut during REGION DONE, at 1366 x 768 hidden, and a
     fault banner scrolled it away; the fit test looked at the idle console only."""
     width, height = size
-    settings = QtCore.QSettings(str(tmp_path / "console.ini"), QtCore.QSettings.Format.IniFormat)
-    controller = FakeController()
-    window = LiveWindow(controller, config=CONFIG, settings=settings, plan=PLAN)
-    qtbot.addWidget(window)
-    window.resize(width, height)
-    window.show()
-    qtbot.waitExposed(window)
-    qtbot.waitUntil(lambda: window.size() == QtCore.QSize(width, height))
+    window, controller = _laptop_console(qtbot, tmp_path, size)
     states = {
         # the longest phase and ladder texts: they widened the side panel past its view, cutting FORCE off
         "seeking contact": (make_tick(phase=Phase.SEEK_CONTACT, sz=0, level=0, n_levels=7), ()),
@@ -134,3 +140,30 @@ def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_p
         _all_in_view(window, width, height, state, ALWAYS)
         depth = window.findChild(QtWidgets.QLabel, "indentation").text()
         assert depth.endswith("mm") or (state == "seeking contact" and depth == "no contact"), state
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
+def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_path, size):
+    """issue 50: nothing told the surgeon the findings were on their way; the progress and then the findings
+    show under the region-done flag, beside the depth and the stop button."""
+    width, height = size
+    window, controller = _laptop_console(qtbot, tmp_path, size)
+    physics = Physics()
+    window.set_live_physics(physics)
+    for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
+        push(controller, make_tick(phase=Phase.DONE, region_done=1, indentation_m=0.009), events=area(region, x,
+                                                                                                      region == 3))
+    physics.busy = True
+    physics.progress.emit(12, 0.4, "the face's contact on record 5 of 12")
+    shown = window.findChild(QtWidgets.QLabel, "regionFindings")
+
+    def in_view(state: str, text: str) -> None:
+        QtWidgets.QApplication.processEvents()
+        _all_in_view(window, width, height, state, ALWAYS + ("regionDone", "regionFindings"))
+        assert shown.text().startswith(text), state
+
+    in_view("computing findings", "Area 4: computing findings… 40%")
+    physics.busy = False
+    physics.asked = physics.asked[-1:]
+    physics.answer()
+    in_view("findings told", "Area 4: stiffness map: tumour at x 36")

@@ -31,7 +31,7 @@ from control.messages import (
 )
 from control.telemetry import LiveSnapshot, LoopHealth, empty_frame, empty_tick
 from hardware.interfaces import Phase, TactileConstraints
-from widgets.findings_table import FindingsTable
+from widgets.findings_table import FindingsPanel, FindingsTable
 from widgets.flowchart import LevelLadder
 from widgets.health import HealthPanel
 from widgets.history_plots import HistoryPlots
@@ -658,7 +658,9 @@ class Physics(QtCore.QObject):
 
     ready = QtCore.Signal(int, object, str)
     failed = QtCore.Signal(str)
+    progress = QtCore.Signal(int, float, str)
     ends_known = False
+    busy = False
 
     def __init__(self):
         super().__init__()
@@ -693,7 +695,7 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     for region, x in enumerate((0.012, 0.020, 0.028, 0.036)):
         push(controller, make_tick(t_s=1.0 + region), events=area(region, x, tumour=region == 3))
     assert [len(levels) for levels in physics.asked] == [3, 6, 9, 12]  # after every area, every level so far
-    assert label(window, "regionFindings").text().startswith("Area 4: findings once 4 areas are palpated")
+    assert label(window, "regionFindings").text() == "Area 4: computing findings…"
     physics.asked = physics.asked[-1:]
     assert tissue.spot_count() == 0  # nothing is judged without it
     physics.answer()
@@ -706,7 +708,7 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     assert all(f"Area {n}: {unsure}" in told for n in (1, 2, 3))  # the first areas' too
 
     push(controller, make_tick(t_s=6.0), events=area(4, 0.044))
-    assert label(window, "regionFindings").text().startswith("Area 5: findings once 4 areas are palpated")
+    assert label(window, "regionFindings").text() == "Area 5: computing findings…"
     assert tissue.spot_count() == 1  # the areas the physics covers are still judged
     physics.failed.emit("the palpated areas span too much")
     assert label(window, "regionFindings").text() == "Area 5: nothing significant up to 7 N"
@@ -716,6 +718,32 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     assert len(physics.asked) == 1  # not asked again once it failed
     assert label(window, "regionFindings").text() == "Area 6: nothing significant up to 7 N"
     assert tissue.quantity() == "stiffness_pa"
+
+
+def test_while_the_tissue_model_is_computed_the_console_says_so_and_how_far(window, controller):
+    physics = Physics()
+    window.set_live_physics(physics)
+    panel = window.findChild(FindingsPanel)
+    for region, x in enumerate((0.012, 0.020, 0.028)):
+        push(controller, make_tick(t_s=1.0 + region), events=area(region, x))
+    physics.progress.emit(9, 0.5, "the face's contact on record 5 of 9")  # three areas: no findings can come yet
+    assert label(window, "regionFindings").text().startswith("Area 3: findings once 4 areas are palpated")
+    assert panel.progress_text() == "Computing findings… 50 %: Tissue model of the 3 areas palpated: the face's " \
+                                    "contact on record 5 of 9"
+    push(controller, make_tick(t_s=4.0), events=area(3, 0.036, tumour=True))
+    assert label(window, "regionFindings").text() == "Area 4: computing findings…"
+    physics.busy = True
+    physics.progress.emit(12, 0.0, "starting")
+    physics.progress.emit(12, 0.4, "the face's contact on record 5 of 12")
+    assert label(window, "regionFindings").text() == "Area 4: computing findings… 40%"
+    assert panel.progress_text().startswith("Computing findings… 40 %: Tissue model of the 4 areas palpated")
+    told = [line.split("  ", 1)[-1].strip() for line in window.messages().lines()]
+    assert told.count("Computing the findings: the tissue model of the 4 areas palpated…") == 1
+    physics.busy = False
+    physics.asked = physics.asked[-1:]
+    physics.answer()
+    assert panel.progress_text() is None
+    assert label(window, "regionFindings").text().startswith("Area 4: stiffness map: tumour at x 36")
 
 
 def test_a_tumour_an_area_shows_only_once_the_areas_beside_it_are_palpated_is_told_then(window, controller):
