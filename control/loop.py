@@ -156,6 +156,7 @@ class ControlLoop:
         self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2,
                                         config.safety.element_pressure_ceiling_pa)
         self.history = PoseHistory(config.contact.pose_history_s, config.rate_hz)
+        self._told = PoseHistory(config.contact.pose_history_s, config.rate_hz)  # the references sent, per tick
         self.tick = empty_tick()
         self.frame = empty_frame()
         self._started = False
@@ -182,10 +183,13 @@ class ControlLoop:
         self._lowest_allowance_pa = 0.0
         self._saturated = 0  # elements of the newest frame at their converter's limit
         self._indentation_m = math.nan  # the face's mean indentation over the elements in contact (shown, recorded)
-        self._deepest_m = math.nan  # below the first touch: what the indentation ceiling is held to
-        # The highest contact onset since the face last read nothing: the first touch, kept when the probe slides
-        # sideways pressing lightly (the tracker starts afresh then, and its onsets were 0.5 mm too low)
-        self._touch_top_m = math.nan
+        # What the indentation ceiling is held to: the depth below the first touch, the highest onset tracked, not
+        # below the elements' mean onset (an element loaded less than the rest passes its threshold deeper)
+        self._deepest_m = math.nan
+        # The highest onset of a tracking started afresh because the probe slid sideways while it pressed lightly
+        # and still below it: the new tracking's onsets come from where the slide had taken it (the fault campaign:
+        # a jog down and sideways, and the ceiling counted from 0.5 mm below the surface)
+        self._carried_top_m = math.nan
         self._noise = AirNoise(sensor.shape)
         # until the array's own noise is measured, what a noisy element may read below zero is not known either
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
@@ -226,6 +230,11 @@ class ControlLoop:
         # a frame older than this is overdue: normally one arrives every period, a latency after its sample
         self._overdue_s = min(config.safety.sensor_timeout_s, OVERDUE_FRAME_PERIODS / sensor.frame_rate_hz)
         self._frame_z = math.nan  # the TSI's height when the newest frame was sampled
+        # ... and the force floor's: the higher of that and where the robot was told to be then. A robot pressing
+        # into tissue, or descending, stays above its reference, so a reading below it is one that lies low; the
+        # floor then went that much deeper (the independent campaign: a reading that carried on descending after
+        # the robot had met the tissue, 0.6 mm low, and 0.6 N over the ceiling)
+        self._floor_from_z = math.nan
         self._tracked_xy: tuple[float, float] | None = None  # where the contact tracking began (position control)
         self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
@@ -348,6 +357,8 @@ class ControlLoop:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 onset, _ = self._thresholds
                 touching = bool((self.frame["pressure_pa"] >= onset).any())
+                if not touching:
+                    self._carried_top_m = math.nan  # the ramp tracks this area afresh
                 sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching,
                          seek_speed_m_s=sm.ramp.force_min_N / self.law.damping_N_s_m(Z))
                 sigma = self._noise.sigma_pa()
@@ -435,12 +446,21 @@ class ControlLoop:
         # Every fault first stops the reference where the robot is: a retract that started from the law's
         # moving state would carry the probe on into the tissue for as long as M/B takes to stop it
         # (2.3 mm past the indentation ceiling with a light damping, in the fault campaign).
-        self.law.reset(self._x_s, ZERO3)
-        self.sm.fault(now_s, message, self._x_s[Z], retract=self.safety.retract)
+        here = self._lift_start()
+        self.law.reset(here, ZERO3)
+        self.sm.fault(now_s, message, here[Z], retract=self.safety.retract)
         self._hold_xy = (self._x_s[0], self._x_s[1])
         if not self.safety.retract:
             self._stopping_from = self._x_s
             self.stop_distance_m = math.nan
+
+    def _lift_start(self) -> Vec3:
+        """Where a lift starts: the robot's reading, or the last reference sent where that is higher. A robot
+        pressing into tissue or descending stays above its reference, so a reading below it lies low, and a lift
+        from it sent the probe down first (the independent campaign: a reading that carried on descending after
+        the robot had stopped, 7 mm low, and 28 N over the ceiling)."""
+        x, sent = self._x_s, self._sent
+        return (x[0], x[1], sent[Z]) if sent is not None and sent[Z] > x[Z] else x
 
     def _watch_stop(self, now_s: float, events: list) -> None:
         """Once the robot has come to rest after a stop-where-it-is fault, say how far it went."""
@@ -523,7 +543,7 @@ class ControlLoop:
         if not force >= 0.0:  # tissue never pulls; an unknown force leaves no headroom
             force = 0.0 if force < 0.0 else math.inf
         headroom = lim.force_ceiling_N - FORCE_RESERVE_N - force
-        return self._frame_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
+        return self._floor_from_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
 
     def _indentation_now(self) -> float:
         """The newest frame's deepest element indentation with the robot's own motion since added: a late frame
@@ -573,6 +593,8 @@ class ControlLoop:
         self._saturated = int(frame.saturated.sum()) if frame.saturated is not None else 0
         pos = self.history.at(frame.t_s)
         self._frame_z = pos[Z]
+        told = self._told.at(frame.t_s)[Z]
+        self._floor_from_z = told if told > pos[Z] else pos[Z]
         sm = self.sm
         sm.on_frame(frame.t_s, p, self._force_N, pos)
         fr = self.frame
@@ -598,7 +620,11 @@ class ControlLoop:
             moved = (self._tracked_xy is None or math.dist(self._tracked_xy, pos[:2])
                      > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m) and not self._force_N > RESIDUAL_FORCE_N
             if clear:
-                self._touch_top_m = math.nan
+                self._carried_top_m = math.nan
+            elif moved and tracker.confirmed:
+                top = float(np.nanmax(tracker.onset_height_m))
+                if pos[Z] < top and not self._carried_top_m >= top:  # still in the tissue it touched
+                    self._carried_top_m = top
             if clear or moved:
                 tracker.reset(self._thresholds)  # the next contact is a new descent, tracked from here
                 self._tracked_xy = (pos[0], pos[1])
@@ -613,19 +639,16 @@ class ControlLoop:
                 self._clear_z = math.inf
             elif self._clear_z == -math.inf or (pos[Z] > self._clear_z and (p < self._thresholds[0]).all()):
                 self._clear_z = pos[Z]
+        self._deepest_m = self._carried_top_m - pos[Z]
         if np.isfinite(tracker.onset_height_m).any():
             top = float(np.nanmax(tracker.onset_height_m))
-            if not self._touch_top_m >= top:
-                self._touch_top_m = top
+            if not self._deepest_m >= top - pos[Z]:
+                self._deepest_m = top - pos[Z]
             if not self._surface_top_m >= top:
                 self._surface_top_m = top
         if self._zero_in_doubt and not pos[Z] <= self._surface_top_m + PRELOAD_ONSET_M \
                 and (p < self._thresholds[0]).all() and self._force_N >= -self._drift_allowance_N:
             self._zero_in_doubt = False  # seen clear of the tissue, reading nothing and nothing below zero
-        # The ceiling counts from the first touch, not from the elements' mean onset: an element loaded less than
-        # the rest (the face's middle, on a layer) passes its onset threshold deeper, and the mean lagged the true
-        # depth by 0.5 mm (the fault campaign, on the flat phantom)
-        self._deepest_m = self._touch_top_m - pos[Z]
         _, dL, stiffness, _, self._indentation_m = element_analysis(
             p, tracker.onset_height_m, pos[Z], tracker.onset_pa, self.config.contact, area)
         # Elements already pressed when tracking began have no onset, so no indentation; without this the
@@ -782,6 +805,7 @@ class ControlLoop:
             self._started = True
             self._t0 = self._last = now_s
             self.law.reset(self._x_s, self._v_s)  # Eq. 3
+            self._told.push(now_s, self._x_s)
             self._clutch((0, 1, 2))
             events.append(SzChanged(now_s, 1, Source.CONTROLLER))
         dt = min(max(now_s - self._last, 0.0), self.config.max_step_s)
@@ -822,6 +846,7 @@ class ControlLoop:
 
         self._reference(now_s, dt, result, events)
         self._guard(now_s, dt, result, events)
+        self._told.push(now_s, self._x_s if result.hold else result.position_ref_m)
         self._watch_stop(now_s, events)
         events.extend(sm.take_events())
         result.feedback = MasterFeedback(now_s, int(sm.phase), sm.region_done, self._force_N, self.safety.faulted)
@@ -844,8 +869,9 @@ class ControlLoop:
             # held pressing harder than a ceiling allows (a robot that braked into the tissue): lift, and stay
             # faulted; a live robot moving up, away from the tissue, is safe
             self._lifting = True
-            law.reset(self._x_s, ZERO3)
-            sm.set_retract(self._x_s[Z])
+            here = self._lift_start()
+            law.reset(here, ZERO3)
+            sm.set_retract(here[Z])
             z_before = law.x_r[Z]
             events.append(Notice(now_s, f"{too_hard} while the robot was held: the probe is being lifted off the "
                                         f"tissue at the retract speed; the fault stays latched."))
