@@ -108,9 +108,9 @@ APPROACH_STIFFNESS_N_M = 5000.0
 # An array that reads no contact at all while the probe is this far below where it confirmed contact is not
 # reading the tissue
 DEAD_DEPTH_M = 0.5e-3
-# A first contact found less than this below the highest height the array read nothing at was not made from air: the array
-# was already pressing (an onset's refinement is good to a tenth of a millimetre; an honest start this close
-# to tissue only has to be lifted once)
+# A first contact found less than this below the highest height the array read nothing at was not made from
+# air: the array was already pressing (an onset's refinement is good to a tenth of a millimetre; an honest
+# start this close to tissue only has to be lifted once)
 PRELOAD_ONSET_M = 0.25e-3
 # A robot's position reading may stray this far from where its last reading's position and velocity put it,
 # plus what the robot can accelerate away in between: an encoder steps micrometres at 1 kHz, and a real
@@ -411,9 +411,9 @@ class ControlLoop:
                     f"making: it may press the tissue by a depth no ceiling would count; lift it clear of the "
                     f"tissue (a reading left by the last area fades within seconds in air)")
         if self._zero_in_doubt:
-            return ("the array read its first contact as soon as the probe moved down from where it read nothing: it may "
-                    "have been tared pressing the tissue, by a force and depth no ceiling would count; lift the "
-                    "probe clear of the tissue and tare the sensor")
+            return ("the array read its first contact as soon as the probe moved down from where it read nothing: "
+                    "it may have been tared pressing the tissue, by a force and depth no ceiling would count; lift "
+                    "the probe clear of the tissue and tare the sensor")
         zero = self._noise.zero_pa()
         bound = DRIFT_FRACTION * self.sensor.full_scale_pa
         if abs(zero) > bound:  # (not known before the array was seen unloaded)
