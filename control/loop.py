@@ -217,7 +217,8 @@ class ControlLoop:
         # may have been tared pressed into tissue (an array takes its first frame as zero on connection), and the
         # force and depth of that press are hidden from every ceiling (the fault campaign: started 1.7 mm in,
         # the probe was taken 1.9 mm past the indentation ceiling). No deeper until it has been seen clear.
-        # before the first contact, the first frame's height or the highest the array read nothing at (then inf)
+        # ``_clear_z``: before the first contact, the first frame's height or the highest the array read nothing
+        # at; inf once it is made.
         self._clear_z = -math.inf
         self._zero_in_doubt = False
         contact = config.contact
@@ -546,7 +547,7 @@ class ControlLoop:
         return self._floor_from_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
 
     def _indentation_now(self) -> float:
-        """The newest frame's deepest element indentation with the robot's own motion since added: a late frame
+        """The newest frame's depth below the first touch with the robot's own motion since added: a late frame
         must not hide travel into the tissue from the ceiling."""
         return self._deepest_m + max(self._frame_z - self._x_s[Z], 0.0)
 
@@ -869,9 +870,8 @@ class ControlLoop:
             # held pressing harder than a ceiling allows (a robot that braked into the tissue): lift, and stay
             # faulted; a live robot moving up, away from the tissue, is safe
             self._lifting = True
-            here = self._lift_start()
-            law.reset(here, ZERO3)
-            sm.set_retract(here[Z])
+            law.reset(self._x_s, ZERO3)
+            sm.set_retract(self._x_s[Z])
             z_before = law.x_r[Z]
             events.append(Notice(now_s, f"{too_hard} while the robot was held: the probe is being lifted off the "
                                         f"tissue at the retract speed; the fault stays latched."))
