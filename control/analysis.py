@@ -166,6 +166,11 @@ class ContactTracker:
     def blind(self) -> np.ndarray:
         return self._blind
 
+    @property
+    def confirmed(self) -> bool:
+        """Whether an element has confirmed contact in this descent."""
+        return bool(self._confirmed.any())
+
 
 class AirNoise:
     """Each element's white noise, from the frames read while the operator holds the probe between areas.

@@ -108,6 +108,10 @@ APPROACH_STIFFNESS_N_M = 5000.0
 # An array that reads no contact at all while the probe is this far below where it confirmed contact is not
 # reading the tissue
 DEAD_DEPTH_M = 0.5e-3
+# A first contact found less than this below the highest height the array read nothing at was not made from
+# air: the array was already pressing (an onset's refinement is good to a tenth of a millimetre; an honest
+# start this close to tissue only has to be lifted once)
+PRELOAD_ONSET_M = 0.25e-3
 # A robot's position reading may stray this far from where its last reading's position and velocity put it,
 # plus what the robot can accelerate away in between: an encoder steps micrometres at 1 kHz, and a real
 # robot arm accelerates at a few m/s^2
@@ -152,6 +156,7 @@ class ControlLoop:
         self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2,
                                         config.safety.element_pressure_ceiling_pa)
         self.history = PoseHistory(config.contact.pose_history_s, config.rate_hz)
+        self._told = PoseHistory(config.contact.pose_history_s, config.rate_hz)  # the references sent, per tick
         self.tick = empty_tick()
         self.frame = empty_frame()
         self._started = False
@@ -177,13 +182,26 @@ class ControlLoop:
         self._lowest_pa = 0.0  # the element reading furthest below what a tared array can read, and how far it may
         self._lowest_allowance_pa = 0.0
         self._saturated = 0  # elements of the newest frame at their converter's limit
-        self._indentation_m = math.nan
+        self._indentation_m = math.nan  # the face's mean indentation over the elements in contact (shown, recorded)
+        # What the indentation ceiling is held to: the depth below the first touch, the highest onset tracked, not
+        # below the elements' mean onset (an element loaded less than the rest passes its threshold deeper)
+        self._deepest_m = math.nan
+        # The highest onset of a tracking started afresh because the probe slid sideways while it pressed lightly
+        # and still below it: the new tracking's onsets come from where the slide had taken it (the fault campaign:
+        # a jog down and sideways, and the ceiling counted from 0.5 mm below the surface)
+        self._carried_top_m = math.nan
         self._noise = AirNoise(sensor.shape)
         # until the array's own noise is measured, what a noisy element may read below zero is not known either
         self._negative_allowance_pa = np.full(sensor.shape, UNMEASURED_NEGATIVE_FRACTION * sensor.full_scale_pa)
         self._repeats = RepeatWatch(sensor.shape)  # a frame that repeats the one before says nothing new
         # the rise is set again from the array's noise at each area
         self._travel = TravelWatch(FORCE_RISE_N, SOFTEST_TISSUE_N_M, ENGAGED_FORCE_N)
+        # The least the whole face may read under force control: what its zero may have wandered since the tare
+        # over every element, less the sum's noise (set at each area). A uniform drift down inside each element's
+        # plausibility bound shows in the sum: 15 kPa hid 3.7 N and read -0.6 N in air (the fault campaign).
+        self._drift_allowance_N = DRIFT_FRACTION * sensor.full_scale_pa * sensor.rows * sensor.cols \
+            * sensor.element_area_m2
+        self._sum_allowance_N = self._drift_allowance_N + FORCE_RISE_N
         self._contradiction: str | None = None  # what the array says that the probe's motion belies
         self._previous_contact: tuple[float, float] | None = None  # (force N, face height m) of the last frame
         self._recent_force_N: deque[float] = deque(maxlen=RECENT_FRAMES)  # the newest frames' total force
@@ -195,6 +213,14 @@ class ControlLoop:
         # has been lifted (the fault campaign: started 1.7 mm in, the ceiling counted from there and the probe went
         # 1.9 mm past it)
         self._started_pressed: bool | None = None
+        # The array read its first contact as soon as the probe moved down from the highest it read nothing at: it
+        # may have been tared pressed into tissue (an array takes its first frame as zero on connection), and the
+        # force and depth of that press are hidden from every ceiling (the fault campaign: started 1.7 mm in,
+        # the probe was taken 1.9 mm past the indentation ceiling). No deeper until it has been seen clear.
+        # ``_clear_z``: before the first contact, the first frame's height or the highest the array read nothing
+        # at; inf once it is made.
+        self._clear_z = -math.inf
+        self._zero_in_doubt = False
         contact = config.contact
         self._thresholds = (np.full(sensor.shape, contact.onset_threshold_pa),
                             np.full(sensor.shape, contact.confirm_threshold_pa))
@@ -205,6 +231,11 @@ class ControlLoop:
         # a frame older than this is overdue: normally one arrives every period, a latency after its sample
         self._overdue_s = min(config.safety.sensor_timeout_s, OVERDUE_FRAME_PERIODS / sensor.frame_rate_hz)
         self._frame_z = math.nan  # the TSI's height when the newest frame was sampled
+        # ... and the force floor's: the higher of that and where the robot was told to be then. A robot pressing
+        # into tissue, or descending, stays above its reference, so a reading below it is one that lies low; the
+        # floor then went that much deeper (the independent campaign: a reading that carried on descending after
+        # the robot had met the tissue, 0.6 mm low, and 0.6 N over the ceiling)
+        self._floor_from_z = math.nan
         self._tracked_xy: tuple[float, float] | None = None  # where the contact tracking began (position control)
         self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
@@ -327,11 +358,14 @@ class ControlLoop:
                 self._jog_pending = [0.0, 0.0, 0.0]  # no lateral motion under force control
                 onset, _ = self._thresholds
                 touching = bool((self.frame["pressure_pa"] >= onset).any())
+                if not touching:
+                    self._carried_top_m = math.nan  # the ramp tracks this area afresh
                 sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching,
                          seek_speed_m_s=sm.ramp.force_min_N / self.law.damping_N_s_m(Z))
                 sigma = self._noise.sigma_pa()
                 force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
                 self._travel.rise_N = max(5.0 * force_noise_N, FORCE_RISE_N)
+                self._sum_allowance_N = self._drift_allowance_N + self._travel.rise_N
                 self._set_sz(now_s, False, cmd.source, events)
                 notice = self._noise_notice()
                 if notice:
@@ -377,6 +411,10 @@ class ControlLoop:
                     f"{float(self.frame['pressure_pa'][pressed].max()) / 1e3:.2f} kPa, that the probe was not seen "
                     f"making: it may press the tissue by a depth no ceiling would count; lift it clear of the "
                     f"tissue (a reading left by the last area fades within seconds in air)")
+        if self._zero_in_doubt:
+            return ("the array read its first contact as soon as the probe moved down from where it read nothing: "
+                    "it may have been tared pressing the tissue, by a force and depth no ceiling would count; lift "
+                    "the probe clear of the tissue and tare the sensor")
         zero = self._noise.zero_pa()
         bound = DRIFT_FRACTION * self.sensor.full_scale_pa
         if abs(zero) > bound:  # (not known before the array was seen unloaded)
@@ -409,12 +447,21 @@ class ControlLoop:
         # Every fault first stops the reference where the robot is: a retract that started from the law's
         # moving state would carry the probe on into the tissue for as long as M/B takes to stop it
         # (2.3 mm past the indentation ceiling with a light damping, in the fault campaign).
-        self.law.reset(self._x_s, ZERO3)
-        self.sm.fault(now_s, message, self._x_s[Z], retract=self.safety.retract)
+        here = self._lift_start()
+        self.law.reset(here, ZERO3)
+        self.sm.fault(now_s, message, here[Z], retract=self.safety.retract)
         self._hold_xy = (self._x_s[0], self._x_s[1])
         if not self.safety.retract:
             self._stopping_from = self._x_s
             self.stop_distance_m = math.nan
+
+    def _lift_start(self) -> Vec3:
+        """Where a lift starts: the robot's reading, or the last reference sent where that is higher. A robot
+        pressing into tissue or descending stays above its reference, so a reading below it lies low, and a lift
+        from it sent the probe down first (the independent campaign: a reading that carried on descending after
+        the robot had stopped, 7 mm low, and 28 N over the ceiling)."""
+        x, sent = self._x_s, self._sent
+        return (x[0], x[1], sent[Z]) if sent is not None and sent[Z] > x[Z] else x
 
     def _watch_stop(self, now_s: float, events: list) -> None:
         """Once the robot has come to rest after a stop-where-it-is fault, say how far it went."""
@@ -467,7 +514,7 @@ class ControlLoop:
         """The lowest this tick's reference may go from ``z_before`` (never above it): near tissue (below the
         highest surface touched plus the retract height, or anywhere before any was touched) no faster than
         the approach speed, and never where the force would pass the ceiling (:meth:`_force_floor_m`)."""
-        if self._started_pressed:
+        if self._started_pressed or self._zero_in_doubt:
             return z_before  # started pressed: up, or nowhere, until lifted
         near = not z_before > self._surface_top_m + self.config.contact.retract_height_m
         lowest = z_before - self._approach_speed_m_s() * dt if near else -math.inf
@@ -497,12 +544,12 @@ class ControlLoop:
         if not force >= 0.0:  # tissue never pulls; an unknown force leaves no headroom
             force = 0.0 if force < 0.0 else math.inf
         headroom = lim.force_ceiling_N - FORCE_RESERVE_N - force
-        return self._frame_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
+        return self._floor_from_z - max(headroom, 0.0) / lim.tissue_stiffness_max_N_m
 
     def _indentation_now(self) -> float:
-        """The newest frame's indentation with the robot's own motion since added: a late frame must not hide
-        travel into the tissue from the ceiling."""
-        return self._indentation_m + max(self._frame_z - self._x_s[Z], 0.0)
+        """The newest frame's depth below the first touch with the robot's own motion since added: a late frame
+        must not hide travel into the tissue from the ceiling."""
+        return self._deepest_m + max(self._frame_z - self._x_s[Z], 0.0)
 
     def _read_master(self, master: MasterState, now_s: float, events: list, result: StepResult) -> None:
         if master.seq == self._master_seq:
@@ -547,6 +594,8 @@ class ControlLoop:
         self._saturated = int(frame.saturated.sum()) if frame.saturated is not None else 0
         pos = self.history.at(frame.t_s)
         self._frame_z = pos[Z]
+        told = self._told.at(frame.t_s)[Z]
+        self._floor_from_z = told if told > pos[Z] else pos[Z]
         sm = self.sm
         sm.on_frame(frame.t_s, p, self._force_N, pos)
         fr = self.frame
@@ -571,14 +620,36 @@ class ControlLoop:
             # fault campaign: an operator jogging down and sideways went 8.4 mm in while the loop counted 3).
             moved = (self._tracked_xy is None or math.dist(self._tracked_xy, pos[:2])
                      > TRACKED_DRIFT_PITCHES * self.sensor.pitch_m) and not self._force_N > RESIDUAL_FORCE_N
+            if clear:
+                self._carried_top_m = math.nan
+            elif moved and tracker.confirmed:
+                top = float(np.nanmax(tracker.onset_height_m))
+                if pos[Z] < top and not self._carried_top_m >= top:  # still in the tissue it touched
+                    self._carried_top_m = top
             if clear or moved:
                 tracker.reset(self._thresholds)  # the next contact is a new descent, tracked from here
                 self._tracked_xy = (pos[0], pos[1])
             tracker.update(p, pos[Z])
+        if self._clear_z < math.inf:  # no contact confirmed yet in this session
+            # (told from noise only once the array's noise is measured: one noisy element crosses 900 Pa in air)
+            if (p >= tracker.confirm_pa).any() and self._noise.sigma_pa() is not None:
+                # where each element's reading began to rise: its onset, or if it read from the first frame on (a
+                # residual, or a press), where it rose from that (nowhere yet: it read contact from the start)
+                rose = np.fmax(tracker.onset_height_m, tracker.blind_onset_m)
+                self._zero_in_doubt = not np.nanmax(rose, initial=-math.inf) < self._clear_z - PRELOAD_ONSET_M
+                self._clear_z = math.inf
+            elif self._clear_z == -math.inf or (pos[Z] > self._clear_z and (p < self._thresholds[0]).all()):
+                self._clear_z = pos[Z]
+        self._deepest_m = self._carried_top_m - pos[Z]
         if np.isfinite(tracker.onset_height_m).any():
             top = float(np.nanmax(tracker.onset_height_m))
+            if not self._deepest_m >= top - pos[Z]:
+                self._deepest_m = top - pos[Z]
             if not self._surface_top_m >= top:
                 self._surface_top_m = top
+        if self._zero_in_doubt and not pos[Z] <= self._surface_top_m + PRELOAD_ONSET_M \
+                and (p < self._thresholds[0]).all() and self._force_N >= -self._drift_allowance_N:
+            self._zero_in_doubt = False  # seen clear of the tissue, reading nothing and nothing below zero
         _, dL, stiffness, _, self._indentation_m = element_analysis(
             p, tracker.onset_height_m, pos[Z], tracker.onset_pa, self.config.contact, area)
         # Elements already pressed when tracking began have no onset, so no indentation; without this the
@@ -591,6 +662,9 @@ class ControlLoop:
             travel = float(np.mean(blind_onset[pressed_blind])) - pos[Z]
             if not self._indentation_m >= travel:
                 self._indentation_m = max(travel, 0.0)
+            travel = float(np.max(blind_onset[pressed_blind])) - pos[Z]
+            if not self._deepest_m >= travel:
+                self._deepest_m = max(travel, 0.0)
         self._check_contact(p, pos[Z])
         self._check_stiffness(p, pos[Z])
         if sm.force_control:
@@ -626,6 +700,13 @@ class ControlLoop:
         loop pushes on into the tissue."""
         sm = self.sm
         previous, self._previous_contact = self._previous_contact, (self._force_N, z_m)
+        if sm.force_control and not self._force_N >= -self._sum_allowance_N:
+            self._contradiction = (
+                f"Tactile force {self._force_N:.2f} N: the array's elements add up to less than the "
+                f"{-self._sum_allowance_N:.2f} N a tared array can read (tissue never pulls, and its zero wanders by "
+                f"{DRIFT_FRACTION:.0%} of full scale at most); its reading has drifted down and hides force. The "
+                f"probe was lifted off the tissue.")
+            return
         if sm.phase != Phase.SETTLING:
             self._travel.reset()
             self._contradiction = None
@@ -725,6 +806,7 @@ class ControlLoop:
             self._started = True
             self._t0 = self._last = now_s
             self.law.reset(self._x_s, self._v_s)  # Eq. 3
+            self._told.push(now_s, self._x_s)
             self._clutch((0, 1, 2))
             events.append(SzChanged(now_s, 1, Source.CONTROLLER))
         dt = min(max(now_s - self._last, 0.0), self.config.max_step_s)
@@ -765,6 +847,7 @@ class ControlLoop:
 
         self._reference(now_s, dt, result, events)
         self._guard(now_s, dt, result, events)
+        self._told.push(now_s, self._x_s if result.hold else result.position_ref_m)
         self._watch_stop(now_s, events)
         events.extend(sm.take_events())
         result.feedback = MasterFeedback(now_s, int(sm.phase), sm.region_done, self._force_N, self.safety.faulted)

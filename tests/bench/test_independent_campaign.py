@@ -37,6 +37,20 @@ def test_an_array_dead_from_the_start_of_force_control_ends_safely(seed):
     assert result.max_indentation_over_ceiling_mm <= campaign.INDENTATION_MARGIN_M * 1e3
 
 
+# A robot position reading that lies smoothly, so the jump check passes it: one that carries on descending at
+# the speed it had when it stuck, after the robot has met the tissue (288: the force floor went 0.6 mm deeper,
+# 0.6 N over the ceiling; 840: the lift started 7 mm below the robot, 28 N over), and one that creeps away (1705)
+LYING_SMOOTHLY = [49000288, 49000840, 49001705]
+
+
+@pytest.mark.parametrize("seed", LYING_SMOOTHLY)
+def test_a_position_reading_that_lies_smoothly_ends_safely(seed):
+    result = campaign.run(seed)
+    assert result.kind in ("stuck-position", "lying-position") and result.injected
+    assert result.violations == []
+    assert result.max_force_over_ceiling_N <= campaign.FORCE_MARGIN_N
+
+
 @pytest.mark.parametrize("seed", ESTOP_PRESSING)
 def test_an_estop_while_pressing_ends_safely(seed):
     result = campaign.run(seed)

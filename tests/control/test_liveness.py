@@ -166,3 +166,55 @@ def test_a_probe_that_starts_pressed_in_goes_no_deeper_until_lifted_clear():
     h.send(Jog((0.0, 0.0, -0.0075)))  # ... and down again: now tracked from its contact
     h.run(1.5)
     assert h.plant.x[2] < 0.0235 and not h.of(FaultRaised)
+
+
+def test_an_array_drifting_down_inside_each_elements_bound_faults_by_its_sum():
+    """Issue 49 (our campaign, seeds 3639 and 6255): a uniform drift that stays inside each element's
+    plausibility bound hid 3.7 N and read -0.6 N over the face in air, and the ramp went on to 1.6 N over the
+    ceiling. No tissue pulls, so a face that adds up below what its tare may wander is lying."""
+    h = Harness()
+    start_region(h)
+    z = h.plant.x[2]
+    lie(h.plant, lambda p: p - 2e3)  # 0.48 N over the face, 2 kPa an element: inside the 3 kPa bound
+    run_to_fault(h, seconds=0.1)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.SENSOR_IMPLAUSIBLE and fault.message.startswith("Tactile force -0.4")
+    assert h.plant.x[2] >= z - 0.1e-3  # still in the air it was seeking through
+
+
+def test_an_array_tared_pressing_lets_the_probe_no_deeper():
+    """Issue 49 (our campaign, rig seed 1500019): an array takes its first frame as zero, and the probe began
+    1.7 mm into the tissue; the ceiling counted from where the reading rose, and the operator's jog took the
+    probe 1.9 mm past it. Contact read as soon as the probe moves down from where it read nothing was not made
+    from air: the probe goes no deeper until it has been seen clear, and force control is refused."""
+    from control.messages import CommandRefused, Jog
+    from hardware.sim.plant import LayerPlant
+
+    plant = LayerPlant(start_m=(0.03, 0.015, 0.0233))  # 1.7 mm in ...
+    preload = plant.pressure_at(plant.x[2])
+    lie(plant, lambda p: p - preload)  # ... and read as zero
+    h = Harness(plant=plant)
+    h.run(0.4)
+    h.send(Jog((0.0, 0.0, -0.020)))
+    h.run(3.0)
+    assert h.plant.x[2] > 0.0233 - 0.5e-3 and not h.of(FaultRaised)
+    h.send(SetSz(position_control=False))
+    h.run(0.01)
+    (refused,) = h.of(CommandRefused)
+    assert "may have been tared pressing the tissue" in refused.reason
+
+
+def test_the_indentation_ceiling_counts_from_the_first_touch_of_a_probe_sliding_in():
+    """Issue 49 (our campaign, rig seed 1500089): a jog down and sideways touched lightly while sliding, the
+    tracking began afresh at every quarter pitch until the face pressed 0.5 N, and the ceiling counted from
+    0.5 mm below the surface: the probe went 0.56 mm past it."""
+    from control.config import ControlConfig, SafetyLimits
+    from control.messages import Jog
+
+    h = Harness(config=ControlConfig(safety=SafetyLimits(indentation_ceiling_m=0.008)))
+    h.run(0.4)
+    h.send(Jog((0.03, 0.0, -0.03)))
+    deepest = run_to_fault(h)
+    (fault,) = h.of(FaultRaised)
+    assert fault.kind == FaultKind.INDENTATION_CEILING
+    assert h.plant.surface_m - deepest < 0.008 + 0.1e-3
