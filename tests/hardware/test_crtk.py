@@ -249,7 +249,9 @@ def test_close_sends_hold(domain, fake_arm, listener):
     ({"slave": {"probe_in_tool_m": [0, 0, 2]}}, r"hardware.slave.probe_in_tool_m\[2\]: must lie between -1 and 1"),
     ({"slave": {"timeout_s": 0}}, "hardware.slave.timeout_s: must lie between 0.002 and 5"),
     ({"slave": {"host": "x"}}, "hardware.slave.host: unknown key"),
-    ({"slave": {}}, "hardware.sensor.kind: the CRTK rig takes its tactile array from serial or usb, got None"),
+    ({"sensor": {"kind": "sim", "port": "/dev/x"}}, "hardware.sensor.port: unknown key for kind .sim."),
+    ({"sensor": {"kind": "sim"}, "bus": {"topics": 1}}, "hardware.bus.topics: unknown key"),
+    ({"slave": {}}, "hardware.sensor.kind: the CRTK rig takes its tactile array from serial, usb or sim, got None"),
     ({"sensor": {"kind": "udp"}}, "hardware.sensor.kind: .* got 'udp'"),
     ({"sensor": {"kind": "serial", "port": "/dev/x"}, "robot": {}}, "hardware.robot: unknown table"),
 ])

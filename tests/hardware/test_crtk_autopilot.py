@@ -1,0 +1,160 @@
+"""The console on a CRTK arm: the autopilot palpating the flat phantom through the fake dVRK arm, with the
+simulated array riding on the arm's pose, and the palpation on the ROS 2 bus as it happens."""
+
+import numpy as np
+import pytest
+
+from app.bridge import ControllerBridge
+from app.cli import build_parser, config_overrides
+from app.controller import ControllerProcess, ControllerStartError, PacingOptions
+from app.rigs import RigSpec, bus_publisher, plan_for_rig
+from app.ros_bus import STATE, TACTILE, qos
+from control.autopilot import Autopilot, AutopilotState
+from control.config import ControlConfig, MasterMapping, RampSettings, SafetyLimits
+from control.messages import FaultKind, FaultRaised, LevelRecorded, RegionDone
+from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from hardware.crtk import dds
+from hardware.crtk import messages as M
+from hardware.interfaces import Phase
+from hardware.settings import ConfigError
+from session import mcap_export as bag
+from tests.hardware import test_crtk
+
+# the fake arm on a domain of this worker's own, and a participant of the test's (test_crtk's fixtures)
+domain, fake_arm, listener = test_crtk.domain, test_crtk.fake_arm, test_crtk.listener
+
+PLAIN = PacingOptions(realtime=False, pin_cpu=False)
+# A short ramp: two levels, so that an area takes seconds of real time. The arm's readings may be as old as its
+# slave's own watchdog allows (CrtkSettings.timeout_s): the fake arm, unprivileged on a shared machine, misses
+# 10 ms now and then, as a dVRK publishing at its default 100 Hz would every period.
+CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force_step_N=0.5),
+                       master=MasterMapping(jog_speed_m_s=0.04), safety=SafetyLimits(slave_timeout_s=0.05))
+# The phantom's corner 36 mm, 15 mm off the arm's base axis and 150 mm below it: the fake arm's home, 100 mm
+# below its base, is 50 mm above the middle of the phantom (25 mm thick).
+TISSUE_IN_BASE_M = [-0.036, -0.015, -0.15]
+LAST_AREA = 8
+
+
+def spec(domain, **slave) -> RigSpec:
+    return RigSpec(backend="crtk", phantom="flat", hardware={
+        "slave": {"domain": domain, "tissue_in_base_m": TISSUE_IN_BASE_M, **slave}, "sensor": {"kind": "sim"}})
+
+
+class Rows:
+    """A sink keeping every row the console received."""
+
+    def __init__(self):
+        self.ticks, self.frames, self.events = [np.zeros(0, TICK_DTYPE)], [np.zeros(0, FRAME_DTYPE)], []
+
+    def driver_started(self):
+        pass
+
+    def add_rows(self, ticks, frames, events):
+        self.ticks.append(ticks.copy())
+        self.frames.append(frames.copy())
+        self.events += events
+
+    def driver_stopped(self, failure):
+        pass
+
+
+def test_the_autopilot_palpates_through_the_arm_and_the_bus_carries_the_palpation(qtbot, domain, fake_arm,
+                                                                                   listener):
+    fake_arm("--floor-z-m", "-0.125")  # the arm's own wrench from the phantom's surface
+    rig = spec(domain)
+    types = {topic: M.ros_message_type(name, bag.DEFINITIONS) for topic, name in bag.TOPICS}
+    # a reader keeping everything, as `ros2 bag record` does
+    keep = dds.Qos(dds.Policy.Reliability.Reliable(max_blocking_time=0), dds.Policy.History.KeepAll, dds.XCDR1)
+    readers = {topic: listener.reader(dds.ros_topic(topic), types[topic], keep) for topic in (TACTILE, STATE)}
+    holds = listener.reader(dds.ros_topic("PSM1/hold"), M.Empty, dds.COMMANDS)
+    its_console = listener.writer(dds.ros_topic("PSM1/state_command"), M.StringStamped, dds.COMMANDS)
+
+    autopilot = Autopilot(plan_for_rig(rig, CONFIG))
+    bridge = ControllerBridge.for_process(CONFIG, rig, PLAIN)
+    rows, publisher = Rows(), bus_publisher(rig)
+    bridge.add_sink(rows)
+    bridge.add_sink(publisher)
+    bridge.snapshot.connect(lambda snapshot: [bridge.send(c) for c in autopilot.update(snapshot.tick,
+                                                                                         snapshot.events)])
+    try:
+        with qtbot.waitSignal(bridge.started, timeout=30_000):
+            bridge.start()
+        for command in autopilot.start(LAST_AREA):
+            bridge.send(command)
+        qtbot.waitUntil(lambda: autopilot.state != AutopilotState.RUNNING, timeout=60_000)
+        assert autopilot.state == AutopilotState.FINISHED, autopilot.message
+        assert [e.region for e in rows.events if isinstance(e, RegionDone)] == [LAST_AREA]
+        assert sum(isinstance(e, LevelRecorded) for e in rows.events) == 2
+        assert not [e for e in rows.events if isinstance(e, FaultRaised)]
+        assert not dds.take(holds, 10)
+
+        # the arm disabled from its own console: a fault, and the arm is told to hold
+        its_console.write(M.StringStamped(string="disable"))
+        qtbot.waitUntil(lambda: any(isinstance(e, FaultRaised) for e in rows.events), timeout=10_000)
+        qtbot.waitUntil(lambda: len(dds.take(holds, 10)) > 0, timeout=10_000)
+        fault = next(e for e in rows.events if isinstance(e, FaultRaised))
+        assert fault.kind == FaultKind.SLAVE_STALE, fault
+        with qtbot.waitSignal(bridge.stopped, timeout=10_000):
+            bridge.stop()
+    finally:
+        bridge.shutdown()
+
+    ticks, frames = np.concatenate(rows.ticks), np.concatenate(rows.frames)
+    assert ticks["phase"].min() == Phase.APPROACH and Phase.SETTLING in ticks["phase"]
+    # every frame the console had, in order, on the bus: its pressures, and stamps as far apart as its times
+    images = [s for s in dds.take(readers[TACTILE], 100_000)]
+    assert len(images) == len(frames) > 100
+    pressures = np.array([np.frombuffer(bytes(s.data), "<f4").reshape(s.height, s.width) for s in images])
+    np.testing.assert_array_equal(pressures, frames["pressure_pa"])
+    assert pressures.max() > 1e3, "the array never pressed the phantom"
+    stamps = np.array([M.seconds(s.header.stamp) for s in images])
+    np.testing.assert_allclose(stamps - stamps[0], frames["t_s"] - frames["t_s"][0], atol=1e-3)
+    assert {s.encoding for s in images} == {"32FC1"} and {s.header.frame_id for s in images} == {bag.TSI_FRAME}
+    # and the loop's state whenever it changed, phase by phase
+    states = dds.take(readers[STATE], 100_000)
+    changed, _ = bag.state_changes(ticks, None)
+    assert [(s.phase, s.level, s.fault) for s in states] == \
+        [(int(ticks["phase"][k]), int(ticks["level"][k]), int(ticks["fault"][k])) for k in changed]
+    assert publisher.published["/palpation/force"] == len(ticks) and not publisher.problem
+
+
+def test_the_console_refuses_an_arm_it_may_not_home(domain, fake_arm):
+    fake_arm()
+    controller = ControllerProcess(CONFIG, spec(domain, home=False, open_timeout_s=1.0), PLAIN)
+    with pytest.raises(ControllerStartError, match=r"arm PSM1 \(DDS domain \d+\) is ENABLED but not homed; the "
+                                                    r"console drives it only ENABLED and homed"):
+        controller.start()
+    assert not controller.is_alive
+
+
+def test_the_bag_s_encoding_is_the_dds_type_s():
+    # what BusPublisher writes as bytes must be what a DDS reader of the declared type reads
+    image = M.ros_message_type("sensor_msgs/Image", bag.DEFINITIONS)
+    state = M.ros_message_type("palpation_console_msgs/LoopState", bag.DEFINITIONS)
+    assert image.__idl_typename__ == "sensor_msgs::msg::dds_::Image_"
+    assert M.ros_message_type("geometry_msgs/WrenchStamped", bag.DEFINITIONS) is M.WrenchStamped
+    pressure = np.arange(60, dtype=np.float32).reshape(1, 4, 15)
+    encoded = bag.encode_images(np.array([1_700_000_000_123_456_789]), pressure)[0]
+    assert image.deserialize(encoded).serialize(use_version_2=False) == encoded
+    tick = np.zeros(1, TICK_DTYPE)[0]
+    tick["phase"], tick["level"], tick["n_levels"] = Phase.SETTLING, 1, 2
+    encoded = bag.encode_state(1_700_000_000_000_000_000, tick)
+    decoded = state.deserialize(encoded)
+    assert (decoded.phase_name, decoded.level, decoded.n_levels) == ("SETTLING", 1, 2)
+    assert decoded.serialize(use_version_2=False) == encoded
+    with pytest.raises(ValueError, match="cannot read the field 'int32 x = 3'"):
+        M.ros_message_type("a/B", {"a/B": "int32 x = 3\n"})
+
+
+def test_publishing_is_on_with_the_crtk_rig_and_switchable():
+    assert bus_publisher(RigSpec()) is None
+    assert bus_publisher(RigSpec(backend="crtk", hardware={"sensor": {"kind": "sim"}})).domain == 0
+    assert bus_publisher(RigSpec(backend="crtk", hardware={"sensor": {"kind": "sim"}, "bus": {"publish": False}})) \
+        is None
+    args = build_parser().parse_args(["run", "--backend", "crtk", "--no-publish"])
+    assert config_overrides(args)["hardware"] == {"bus": {"publish": False}}
+    with pytest.raises(ConfigError, match="--publish: is about the CRTK rig's ROS 2 bus"):
+        config_overrides(build_parser().parse_args(["run", "--publish"]))
+    with pytest.raises(ConfigError, match="hardware.bus.publish: must be true or false"):
+        bus_publisher(RigSpec(backend="crtk", hardware={"sensor": {"kind": "sim"}, "bus": {"publish": "yes"}}))
+    assert qos(STATE) != qos(TACTILE)  # the state is transient-local: a late subscriber has the phase at once
