@@ -35,7 +35,6 @@ class ArmPoseWorld:
     def __init__(self, arm: SlaveManipulator, tissue: TissueModel, settings: SimSettings):
         self.arm = arm
         self.tissue = tissue
-        self.phantom = tissue.phantom
         self.settings = settings
         self.epoch_s: float | None = None
         self._now_s = -math.inf

@@ -7,15 +7,17 @@ import pytest
 from app.bridge import ControllerBridge
 from app.cli import build_parser, config_overrides
 from app.controller import ControllerProcess, ControllerStartError, PacingOptions
+from app.crtk_sim import ArmPoseWorld
 from app.rigs import RigSpec, bus_publisher, plan_for_rig
-from app.ros_bus import STATE, TACTILE, qos
+from app.ros_bus import STATE, TACTILE, BusPublisher, qos
 from control.autopilot import Autopilot, AutopilotState
 from control.config import ControlConfig, MasterMapping, RampSettings, SafetyLimits
 from control.messages import FaultKind, FaultRaised, LevelRecorded, RegionDone
 from control.telemetry import FRAME_DTYPE, TICK_DTYPE
 from hardware.crtk import dds
 from hardware.crtk import messages as M
-from hardware.interfaces import Phase
+from hardware.crtk.rig import build_rig as build_crtk_rig
+from hardware.interfaces import DeviceError, Phase, SlaveConstraints, SlaveState
 from hardware.settings import ConfigError
 from session import mcap_export as bag
 from tests.hardware import test_crtk
@@ -158,3 +160,55 @@ def test_publishing_is_on_with_the_crtk_rig_and_switchable():
     with pytest.raises(ConfigError, match="hardware.bus.publish: must be true or false"):
         bus_publisher(RigSpec(backend="crtk", hardware={"sensor": {"kind": "sim"}, "bus": {"publish": "yes"}}))
     assert qos(STATE) != qos(TACTILE)  # the state is transient-local: a late subscriber has the phase at once
+
+
+class Arm:
+    """The readings an arm gave, one at a time."""
+
+    constraints = SlaveConstraints(rate_hz=1000.0)
+
+    def __init__(self):
+        self.reading = None
+
+    def latest(self):
+        return self.reading
+
+
+def test_the_array_s_world_interpolates_the_arm_s_readings():
+    arm = Arm()
+    world = ArmPoseWorld(arm, tissue=None, settings=None)
+    world.advance(10.0)
+    with pytest.raises(DeviceError, match="no reading of the arm's pose yet"):
+        world.state_at(10.0)
+    arm.reading = SlaveState(seq=0, t_s=10.0, position_m=(0.0, 0.0, 0.02), velocity_m_s=(0.0, 0.0, -0.01))
+    world.advance(10.001)
+    arm.reading = SlaveState(seq=1, t_s=10.002, position_m=(0.002, 0.0, 0.01), velocity_m_s=(0.0, 0.0, -0.03))
+    world.advance(10.0025)
+    arm.reading = SlaveState(seq=2, t_s=10.001, position_m=(9.0, 9.0, 9.0), velocity_m_s=(0.0, 0.0, 0.0))
+    world.advance(10.003)  # stamped before the reading before it: nothing to interpolate
+    position, velocity = world.state_at(10.0005)
+    assert position == pytest.approx((0.0005, 0.0, 0.0175)) and velocity == pytest.approx((0.0, 0.0, -0.015))
+    assert world.state_at(9.0)[0] == (0.0, 0.0, 0.02) and world.state_at(11.0)[0] == (0.002, 0.0, 0.01)
+    assert world.instant_index(100.0) == 0 and world.instant_s(3, 100.0) == pytest.approx(10.03)
+    world.advance(10.0301)
+    assert world.instant_index(100.0) == 3
+
+
+def test_the_crtk_rig_needs_the_console_to_build_a_simulated_array():
+    with pytest.raises(ConfigError, match="hardware.sensor.kind: the simulated array is built by the console"):
+        build_crtk_rig(RigSpec(backend="crtk", hardware={"sensor": {"kind": "sim"}}))
+
+
+def test_a_bus_that_fails_stops_publishing_and_says_so(domain):
+    publisher = BusPublisher(domain)
+    publisher.driver_started()
+    ticks, frames = np.zeros(3, TICK_DTYPE), np.zeros(2, FRAME_DTYPE)
+    ticks["t_s"], frames["t_s"] = (1.0, 1.001, 1.002), (1.0, 1.01)
+    publisher.add_rows(ticks, frames, [])
+    assert publisher.published == {"/palpation/tsi_pose": 3, "/palpation/force": 3, "/palpation/force_desired": 3,
+                                   STATE: 1, TACTILE: 2}
+    publisher._bus.close()  # the participant gone under it (what a DDS failure leaves)
+    publisher.add_rows(ticks, frames, [])
+    assert publisher.problem.startswith("the palpation is no longer published on the ROS 2 bus: ")
+    assert publisher._bus is None
+    publisher.driver_stopped(None)
