@@ -28,8 +28,9 @@ domain, fake_arm, listener = test_crtk.domain, test_crtk.fake_arm, test_crtk.lis
 PLAIN = PacingOptions(realtime=False, pin_cpu=False)
 # A short ramp: two levels, so that an area takes seconds of real time. The fake arm runs unprivileged on a
 # machine the suite shares: its readings are taken as stale (by the loop and by the slave's own watchdog) only
-# after a quarter of a second, not after the 10 ms a 1 kHz robot is given, lest a stall of the host end the run.
-STALE_S = 0.25
+# after a second, the longest the loop allows, not after the 10 ms a 1 kHz robot is given, lest a stall of the
+# host end the run (the whole suite on two loaded cores once left the arm silent for 251 ms).
+STALE_S = 1.0
 CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force_step_N=0.5),
                        master=MasterMapping(jog_speed_m_s=0.04), safety=SafetyLimits(slave_timeout_s=STALE_S))
 # The phantom's corner 36 mm, 15 mm off the arm's base axis and 150 mm below it: the fake arm's home, 100 mm
