@@ -28,9 +28,12 @@ _GRID_EPS = 1e-6
 
 class ArmPoseWorld:
     """What a :class:`SimTactileSensor` asks of its world, with the arm's readings for the robot: the probe's
-    position at an instant is interpolated between the arm's readings around it (the newest after the last,
-    the oldest kept before the first); the frames' instants are ``epoch + m / rate`` from the first
-    :meth:`advance`, as on the simulated rig."""
+    position at an instant is interpolated between the arm's readings around it (the oldest kept before the
+    first); the frames' instants are ``epoch + m / rate`` from the first :meth:`advance`, as on the simulated
+    rig, but the world's present is the newest instant the arm has reported: a frame sampled after it would
+    describe where the probe was last reported, not where it is. (The arm's readings arrive late and in bursts
+    when its process or the bus stalls: frames made meanwhile from the last pose read the tissue 1.8 mm
+    shallower than the arm then reported, and the loop rightly took the array for dead.)"""
 
     def __init__(self, arm: SlaveManipulator, tissue: TissueModel, settings: SimSettings):
         self.arm = arm
@@ -71,7 +74,8 @@ class ArmPoseWorld:
                 tuple(a + f * (b - a) for a, b in zip(v0, v1)))
 
     def instant_index(self, rate_hz: float) -> int:
-        return math.floor((self._now_s - self.epoch_s) * rate_hz + _GRID_EPS)
+        present = min(self._now_s, self._t[-1]) if self._t else self.epoch_s
+        return math.floor((present - self.epoch_s) * rate_hz + _GRID_EPS)
 
     def instant_s(self, m: int, rate_hz: float) -> float:
         return self.epoch_s + m / rate_hz

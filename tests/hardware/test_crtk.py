@@ -76,6 +76,13 @@ def listener(domain):
     bus.close()
 
 
+def await_arm(listener) -> None:
+    """Until the fake arm's state is on the bus: a refusal is only about the arm once the arm is there (it starts
+    in a second or two on a loaded machine; a test that waited a second for it was refused a silent arm)."""
+    state = listener.reader(dds.ros_topic("PSM1/operating_state"), M.OperatingState, dds.LATCHED)
+    until(lambda: bool(dds.take(state, 10)), 30.0, "the fake arm's operating_state")
+
+
 def connected(domain, **settings) -> CrtkSlave:
     slave = CrtkSlave(CrtkSettings(domain=domain, **settings))
     slave.open()
@@ -150,8 +157,9 @@ def test_messages_are_ros2_types_in_xcdr1():
     assert M.seconds(M.stamp(12.25)) == 12.25
 
 
-def test_the_slave_refuses_a_disabled_or_unhomed_arm_in_one_line(domain, fake_arm):
+def test_the_slave_refuses_a_disabled_or_unhomed_arm_in_one_line(domain, fake_arm, listener):
     fake_arm()
+    await_arm(listener)
     with pytest.raises(DeviceError) as refused:
         connected(domain, enable=False, open_timeout_s=1.0)
     assert "arm PSM1 (DDS domain" in str(refused.value) and "is DISABLED and not homed" in str(refused.value)
