@@ -82,6 +82,12 @@ def config_overrides(args) -> dict:
         if "slave" in hardware:
             raise ConfigError("--slave", "is the UDP link's; the CRTK rig's arm is named by --arm")
         hardware["slave"] = {"arm": arm}
+    publish = getattr(args, "publish", None)
+    if publish is not None:
+        if backend != "crtk":
+            raise ConfigError("--publish" if publish else "--no-publish",
+                              "is about the CRTK rig's ROS 2 bus: give --backend crtk with it")
+        hardware["bus"] = {"publish": publish}
     if hardware:
         if backend == "sim":
             flags = " and ".join(f"--{name}" for name in hardware)
@@ -251,6 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
                       "udp: the robot behind `palpation-console slave`; crtk: a CRTK / ROS 2 arm (dVRK) over DDS")
     real.add_argument("--arm", metavar="NAME", help="crtk: the arm's ROS namespace (e.g. PSM1; default: "
                       "[hardware.slave] arm)")
+    real.add_argument("--publish", action=argparse.BooleanOptionalAction, default=None,
+                      help="crtk: publish the tactile frames, force, setpoint and phase as ROS 2 topics "
+                      "(/palpation/...) on the arm's DDS domain, for `ros2 bag record` (default: [hardware.bus] "
+                      "publish, true)")
     real.add_argument("--slave", metavar="HOST:PORT", type=slave_address,
                       help="where `palpation-console slave` listens (default 127.0.0.1:47600)")
     real.add_argument("--sensor", metavar="KIND", type=sensor_choice,

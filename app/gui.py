@@ -135,7 +135,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
 
     from app.bridge import ControllerBridge
     from app.live_physics import LivePhysics
-    from app.rigs import plan_for_rig, prepare_rig
+    from app.rigs import bus_publisher, plan_for_rig, prepare_rig
     from tissue.mechanics.progress import TextProgressBar
     from widgets.live_window import LiveWindow
 
@@ -154,6 +154,9 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)
     wire_recording(window, recording)
+    publisher = bus_publisher(rig)
+    if publisher is not None:
+        bridge.add_sink(publisher)
     wire_depth_model(window, info)
     physics = LivePhysics(info, window, plan.phantom_extent_m if plan is not None else None)
     window.set_live_physics(physics)

@@ -73,9 +73,37 @@ def _crtk_rig():
     return rig
 
 
+def arm_with_sim_array(spec: RigSpec) -> bool:
+    """The CRTK rig whose tactile array is the simulated one on the arm (``[hardware.sensor] kind = "sim"``)."""
+    sensor = spec.hardware.get("sensor") if isinstance(spec.hardware, dict) else None
+    return spec.backend == "crtk" and isinstance(sensor, dict) and sensor.get("kind") == "sim"
+
+
 def _build_crtk(spec: RigSpec, progress: Progress | None = None) -> Rig:
     # The arm is enabled and homed when the rig opens, in the controller process: nothing to report here.
-    return _crtk_rig().build_rig(spec)
+    def sim_array(arm):
+        from app.crtk_sim import sim_array  # only this rig loads the simulator
+
+        return sim_array(spec.phantom, spec.sim, spec.seed, arm)
+
+    rig = _crtk_rig().build_rig(spec, sim_array=sim_array)
+    if arm_with_sim_array(spec):
+        from tissue.phantom import load_phantom
+
+        rig.ground_truth = load_phantom(spec.phantom).ground_truth()
+    return rig
+
+
+def bus_publisher(spec: RigSpec):
+    """The :class:`app.ros_bus.BusPublisher` of a CRTK rig that publishes (``[hardware.bus] publish``), or None."""
+    if spec.backend != "crtk":
+        return None
+    settings = _crtk_rig().CrtkHardwareSettings.from_mapping(spec.hardware, "hardware.")
+    if not settings.bus.publish:
+        return None
+    from app.ros_bus import BusPublisher
+
+    return BusPublisher(settings.slave.domain)
 
 
 BACKENDS: dict[str, Callable[..., Rig]] = {"sim": _build_sim, "udp": _build_udp,  # (spec, progress=None) -> Rig
@@ -97,7 +125,7 @@ def check_hardware(backend: str, table: dict[str, Any], prefix: str = "hardware.
 def prepare_rig(spec: RigSpec, progress: Progress | None = None) -> None:
     """Do a rig's slow one-off work before the controller process starts, so that process starts in
     milliseconds: for the simulated rig, precompute (or load from the disk cache) the tissue model."""
-    if spec.backend == "sim":
+    if spec.backend == "sim" or arm_with_sim_array(spec):
         from hardware.sim.rig import build_tissue
 
         build_tissue(spec.phantom, dict(spec.sim), progress)
@@ -133,9 +161,10 @@ def load_calibration(path: str) -> ArrayCalibration:
 
 def plan_for_rig(spec: RigSpec, config: ControlConfig,
                  sensor: TactileConstraints | None = None) -> AutopilotPlan | None:
-    """The autopilot's plan for a simulated rig's phantom, with the simulated operator's clearance and travel
-    height; None for other backends (no phantom file to take the areas from)."""
-    if spec.backend != "sim":
+    """The autopilot's plan for a simulated tissue's phantom (the simulated rig's, or the simulated array's on a
+    CRTK arm), with the simulated operator's clearance and travel height; None for other rigs (no phantom file
+    to take the areas from)."""
+    if spec.backend != "sim" and not arm_with_sim_array(spec):
         return None
     from hardware.sim.settings import SimSettings
     from tissue.phantom import load_phantom

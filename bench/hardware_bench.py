@@ -25,7 +25,20 @@ Writes ``hardware.json``:
 * ``crtk_round_trip_p50_us``, ``crtk_round_trip_p99_us``: a ``servo_cp`` out through the CRTK slave to the
   fake dVRK arm (its own process, on the loopback, its loop at the dVRK's 1.5 kHz, reaching each goal at its
   next tick) until the slave reads a ``measured_cp`` at that goal: DDS both ways plus up to one of the arm's
-  periods. None, with ``crtk_skipped`` saying why, where cyclonedds is not installed (the ``crtk`` extra).
+  periods. None, with ``crtk_skipped`` saying why, where cyclonedds is not installed (the ``crtk`` extra);
+* ``crtk_loop_*`` (the figures of :func:`bench.loop_bench.tick_statistics` named in :data:`CRTK_FIGURES`,
+  ``crtk_loop_late_over_udp``: its ``late_over_0_5ms_pct`` over the UDP run's): the same loop, driver and
+  operator on the CRTK rig instead, after the UDP run: the fake arm in its own process at the dVRK's 1.5 kHz
+  through its second-order dynamics, and the simulated array of hardware/sim pressing the flat phantom where the
+  arm's pose puts it (``[hardware.sensor] kind = "sim"``, app/crtk_sim.py); what it palpated
+  (``crtk_levels_recorded``, ``crtk_regions_done``, ``crtk_faults``). The loop takes the arm's readings as stale
+  after 50 ms (``safety.slave_timeout_s``, the slave's own watchdog) rather than 10: the fake arm, without
+  real-time priority on a shared machine, misses 10 ms now and then;
+* ``crtk_console_*`` and ``crtk_console_published_*``: the loop's lateness on the CRTK rig as the console runs it
+  (the controller process, its rows drained at display rate by this process, now unprivileged and unpinned as
+  the console's GUI process is, the operator above acting on them), without and with the palpation published
+  on the bus from this process (app/ros_bus.py, what the console's bridge does with ``[hardware.bus]
+  publish``), and ``crtk_console_published_messages``: what it published.
 """
 
 from __future__ import annotations
@@ -45,8 +58,9 @@ from pathlib import Path
 import numpy as np
 
 from app.realtime import claim_realtime
+from app.rigs import RigSpec, build_rig
 from app.runtime import make_loop, run_tick
-from bench.loop_bench import WARMUP_S, duration_s, tick_statistics
+from bench.loop_bench import DISPLAY_HZ, WARMUP_S, duration_s, tick_statistics
 from control.config import ControlConfig
 from control.messages import ClearFault, FaultRaised, Jog, LevelRecorded, RegionDone, SetSz
 from control.telemetry import TICK_DTYPE
@@ -62,6 +76,11 @@ PINGS = 5000
 SZ_OFF_AT_S = 1.0
 CRTK_ROUND_TRIPS = 2000
 CRTK_DOMAIN = 231  # the tests take theirs from 150 up
+CRTK_ARM_HZ = 1500.0  # the dVRK's loop
+# The fake arm's home, 100 mm below its base, is where the simulated rig's robot starts in the tissue frame.
+CRTK_TISSUE_IN_BASE_M = [-0.036, -0.015, -0.16]
+CRTK_FIGURES = ("ticks", "late_over_0_5ms_pct", "late_over_1ms_pct", "p99_abs_jitter_us", "longest_stall_ms",
+                "missed_ticks", "tick_work_p99_us", "io_p99_us")
 
 
 def _pin(cpu: int) -> bool:
@@ -72,6 +91,20 @@ def _pin(cpu: int) -> bool:
     except (AttributeError, OSError):
         pass
     return False
+
+
+def _start_arm(*options: str, cpu: int | None = None) -> subprocess.Popen:
+    """The fake arm, on CPU ``cpu`` where there is one to give it: started from this process while it runs
+    pinned, it would inherit its CPU and SCHED_FIFO, and never run while this process spins on that CPU."""
+    arm = subprocess.Popen([sys.executable, "-m", "hardware.crtk.fake_arm", "--domain", str(CRTK_DOMAIN), *options],
+                           stdout=subprocess.DEVNULL)
+    if cpu is None:
+        return arm
+    try:
+        os.sched_setaffinity(arm.pid, {cpu})
+    except (AttributeError, OSError):  # no such CPU, or not ours to give: the scheduler places it
+        pass
+    return arm
 
 
 def _slave_side(conn, serving, answering) -> None:
@@ -211,8 +244,7 @@ def _crtk_round_trips(count: int) -> dict:
     except ImportError as err:
         return {"crtk_round_trip_p50_us": None, "crtk_round_trip_p99_us": None,
                 "crtk_skipped": f"{err} (pip install 'palpation-console[crtk]')"}
-    arm = subprocess.Popen([sys.executable, "-m", "hardware.crtk.fake_arm", "--domain", str(CRTK_DOMAIN),
-                            "--rate-hz", "1500", "--ideal"], stdout=subprocess.DEVNULL)
+    arm = _start_arm("--rate-hz", f"{CRTK_ARM_HZ:g}", "--ideal", cpu=1)
     slave = CrtkSlave(CrtkSettings(domain=CRTK_DOMAIN, open_timeout_s=30.0))
     rtts = np.full(count, np.nan)
     try:
@@ -224,18 +256,107 @@ def _crtk_round_trips(count: int) -> dict:
             slave.command(goal, (0.0, 0.0, 0.0), time.monotonic())
             deadline = sent + 0.5
             while time.perf_counter() < deadline:
+                # Cyclone's receiving threads share this process's CPU and SCHED_FIFO priority: spinning
+                # without yielding, it never let them hand over the arm's reply (every trip lost at 0.5 s).
+                os.sched_yield()
                 slave.poll(time.monotonic())
                 if abs(slave.latest().position_m[2] - goal[2]) < 1e-9:
                     rtts[i] = time.perf_counter() - sent
                     break
     finally:
         slave.close()
-        arm.terminate()
-        arm.wait(10)
+        _stop(arm)
     done = rtts[np.isfinite(rtts)]
     return {"crtk_round_trip_p50_us": float(np.percentile(done, 50) * 1e6),
             "crtk_round_trip_p99_us": float(np.percentile(done, 99) * 1e6),
             "crtk_round_trips": int(len(done)), "crtk_round_trips_lost": int(count - len(done))}
+
+
+def _crtk_spec() -> RigSpec:
+    return RigSpec(backend="crtk", phantom="flat", hardware={
+        "slave": {"domain": CRTK_DOMAIN, "tissue_in_base_m": CRTK_TISSUE_IN_BASE_M, "open_timeout_s": 30.0},
+        "sensor": {"kind": "sim"}})
+
+
+def _stop(arm: subprocess.Popen) -> None:
+    arm.terminate()
+    try:
+        arm.wait(10)
+    except subprocess.TimeoutExpired:
+        arm.kill()
+        arm.wait()
+
+
+def _figures(prefix: str, ticks: np.ndarray, period_s: float) -> dict:
+    steady = ticks[ticks["t_s"] - ticks["t_s"][0] >= WARMUP_S]
+    figures = tick_statistics(steady, period_s)
+    return {f"{prefix}{name}": figures[name] for name in CRTK_FIGURES}
+
+
+def _crtk_loop(config: ControlConfig, seconds: float) -> dict:
+    """The loop of the UDP run, in this process, on the CRTK rig."""
+    rig = build_rig(_crtk_spec())
+    arm = _start_arm("--rate-hz", f"{CRTK_ARM_HZ:g}", cpu=1)  # this process runs the loop on CPU 0
+    try:
+        rig.open()
+        ticks, events = _run_loop(rig, config, seconds)
+    finally:
+        rig.close()
+        _stop(arm)
+    return {**_figures("crtk_loop_", ticks, config.period_s),
+            "crtk_levels_recorded": sum(isinstance(e, LevelRecorded) for e in events),
+            "crtk_regions_done": sum(isinstance(e, RegionDone) for e in events),
+            "crtk_faults": [e.message for e in events if isinstance(e, FaultRaised)]}
+
+
+def _crtk_console(config: ControlConfig, seconds: float, publish: bool) -> dict:
+    """The CRTK rig's loop in the controller process, drained here at display rate (and published)."""
+    from app.controller import ControllerProcess
+    from app.ros_bus import BusPublisher
+
+    prefix = "crtk_console_published_" if publish else "crtk_console_"
+    arm = _start_arm("--rate-hz", f"{CRTK_ARM_HZ:g}")
+    controller = ControllerProcess(config, _crtk_spec())
+    publisher = BusPublisher(CRTK_DOMAIN) if publish else None
+    chunks, cursor, frame_cursor = [], 0, 0
+    operator, next_action = _Operator(), time.monotonic() + SZ_OFF_AT_S
+    try:
+        controller.start(timeout_s=60.0)
+        if publisher is not None:
+            publisher.driver_started()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            time.sleep(1.0 / DISPLAY_HZ)
+            ticks, cursor, _ = controller.ticks.read_since(cursor)
+            frames, frame_cursor, _ = controller.frames.read_since(frame_cursor)
+            events = controller.drain_events()
+            if publisher is not None:
+                publisher.add_rows(ticks, frames, events)
+            if len(ticks):
+                chunks.append(ticks)
+                if time.monotonic() >= next_action:
+                    for command in operator.act(ticks[-1]):
+                        controller.send(command)
+                    next_action = time.monotonic() + 0.1
+    finally:
+        controller.stop()
+        if publisher is not None:
+            publisher.driver_stopped(None)
+        _stop(arm)
+    result = _figures(prefix, np.concatenate(chunks), config.period_s)
+    if publisher is not None:
+        result[f"{prefix}messages"] = sum(publisher.published.values())
+        result[f"{prefix}problem"] = publisher.problem
+    return result
+
+
+def _crtk_config(base: ControlConfig) -> ControlConfig | None:
+    """``base`` with the arm's readings stale after the slave's own watchdog; None without cyclonedds."""
+    try:
+        from hardware.crtk.slave import CrtkSettings
+    except ImportError:
+        return None  # _crtk_round_trips has said why
+    return base.replace(safety=base.safety.replace(slave_timeout_s=CrtkSettings().timeout_s))
 
 
 def run(out_dir: Path) -> dict:
@@ -271,8 +392,16 @@ def run(out_dir: Path) -> dict:
         rig = None
         ping_rtts, ping_lost = _ping_round_trips(address, PINGS)
         crtk = _crtk_round_trips(CRTK_ROUND_TRIPS)
+        crtk_config = _crtk_config(config)
+        if crtk_config is not None:  # the UDP run's loop, driver, priority and CPU on the CRTK rig
+            crtk.update(_crtk_loop(crtk_config, seconds))
         claim.release()
         claim = None
+        if saved_affinity is not None:
+            os.sched_setaffinity(0, saved_affinity)
+        if crtk_config is not None:  # the console's own processes: its GUI side runs unprivileged, unpinned
+            crtk.update(_crtk_console(crtk_config, seconds, publish=False))
+            crtk.update(_crtk_console(crtk_config, seconds, publish=True))
         answering.clear()
         if not parent.poll(30.0):
             raise RuntimeError("the slave process did not report back")
@@ -293,8 +422,12 @@ def run(out_dir: Path) -> dict:
 
     steady = ticks[ticks["t_s"] - ticks["t_s"][0] >= WARMUP_S]
     faults = [e.message for e in events if isinstance(e, FaultRaised)]
+    udp = tick_statistics(steady, config.period_s)
+    if "crtk_loop_late_over_0_5ms_pct" in crtk:
+        late = udp["late_over_0_5ms_pct"]
+        crtk["crtk_loop_late_over_udp"] = crtk["crtk_loop_late_over_0_5ms_pct"] / late if late > 0 else None
     result = {
-        **tick_statistics(steady, config.period_s),
+        **udp,
         "round_trip_p50_us": float(np.percentile(ping_rtts, 50) * 1e6),
         "round_trip_p99_us": float(np.percentile(ping_rtts, 99) * 1e6),
         "round_trip_pings": int(len(ping_rtts)),

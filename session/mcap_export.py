@@ -290,6 +290,16 @@ def encode_state(utc_ns: int, tick: np.void) -> bytes:
     return bytes(cdr.out)
 
 
+def state_changes(ticks: np.ndarray, previous: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The indices of the tick rows whose LoopState differs from the row before (``previous``: the state
+    after the rows before these, None at the first), and the state after these rows, for the next call."""
+    if not len(ticks):
+        return np.zeros(0, np.int64), previous
+    state = np.stack([ticks[c].astype(np.int64) for c in _STATE_COLUMNS], axis=1)
+    before = np.concatenate([[previous if previous is not None else state[0] - 1], state[:-1]])
+    return np.flatnonzero((state != before).any(axis=1)), state[-1]
+
+
 def encode_level(utc_ns: int, level: np.void) -> bytes:
     """palpation_console_msgs/LevelRecord of one /levels row."""
     cdr = _Cdr()
@@ -373,12 +383,8 @@ def _pieces(session, channel: dict[str, int], window_ticks: int):
         span.add("/palpation/tsi_pose", utc, encode_poses(utc, ticks["x_slave_m"]))
         span.add("/palpation/force", utc, encode_wrenches(utc, ticks["force_measured_N"]))
         span.add("/palpation/force_desired", utc, encode_wrenches(utc, ticks["force_desired_N"]))
-        if len(ticks):
-            state = np.stack([ticks[c].astype(np.int64) for c in _STATE_COLUMNS], axis=1)
-            before = np.concatenate([[previous_state if previous_state is not None else state[0] - 1], state[:-1]])
-            changed = np.flatnonzero((state != before).any(axis=1))
-            previous_state = state[-1]
-            span.add("/palpation/state", utc[changed], [encode_state(int(utc[k]), ticks[k]) for k in changed])
+        changed, previous_state = state_changes(ticks, previous_state)
+        span.add("/palpation/state", utc[changed], [encode_state(int(utc[k]), ticks[k]) for k in changed])
         frame_utc = session.utc_ns(span_frames["t_s"])
         span.add("/palpation/tactile", frame_utc, encode_images(frame_utc, span_frames["pressure_pa"]))
         for topic, rows, encode in (("/palpation/levels", levels, encode_level),

@@ -9,13 +9,19 @@ fields and their order are the ``.msg`` files', which is all XCDR1 encodes. Leng
 * crtk_msgs: OperatingState (``operating_state``: state, is_homed, is_busy), StringStamped (``state_command``,
   as the dVRK's ROS 2 bridge takes it);
 * std_msgs: Empty (``hold``, a command without a payload; ROS 2 gives an empty message one placeholder byte).
+
+The console's own topics (``/palpation/...``) carry the messages a session's ROS 2 bag holds, whose ``.msg``
+definitions are written once, in :data:`session.mcap_export.DEFINITIONS`: :func:`ros_message_type` makes the
+DDS type of one from its definition, taking the types above where the definition uses them.
 """
 
 # No ``from __future__ import annotations``: cyclonedds reads the field types from the annotations themselves.
 import math
+import re
 from dataclasses import dataclass, field
 
-from cyclonedds.idl import IdlStruct
+from cyclonedds.idl import IdlStruct, make_idl_struct
+from cyclonedds.idl import types as T
 from cyclonedds.idl.types import float64, int32, uint8, uint32
 
 
@@ -123,3 +129,43 @@ def pose(position_m, t_s: float, frame_id: str = "") -> PoseStamped:
     x, y, z = position_m
     return PoseStamped(header=Header(stamp=stamp(t_s), frame_id=frame_id),
                        pose=Pose(position=Point(float(x), float(y), float(z))))
+
+
+# The ROS 2 primitive types as IDL ("byte" and "char" as ROS 2 maps them).
+_PRIMITIVES = {"bool": bool, "byte": T.uint8, "char": T.uint8, "int8": T.int8, "uint8": T.uint8, "int16": T.int16,
+               "uint16": T.uint16, "int32": T.int32, "uint32": T.uint32, "int64": T.int64, "uint64": T.uint64,
+               "float32": T.float32, "float64": T.float64, "string": str}
+_FIELD = re.compile(r"^([A-Za-z0-9_/]+)(\[(\d*)\])?\s+([a-z][a-z0-9_]*)$")
+
+
+def dds_typename(type_name: str) -> str:
+    """ "sensor_msgs/Image" as rmw_cyclonedds_cpp names it on DDS: "sensor_msgs::msg::dds_::Image_"."""
+    package, name = type_name.split("/")
+    return f"{package}::msg::dds_::{name}_"
+
+
+_made: dict[str, type] = {cls.__idl_typename__: cls for cls in list(globals().values())
+                          if isinstance(cls, type) and issubclass(cls, IdlStruct) and cls is not IdlStruct}
+
+
+def ros_message_type(type_name: str, definitions: dict[str, str]) -> type:
+    """The DDS type of the ROS 2 message ``type_name`` ("package/Type"), made from its ``.msg`` text in
+    ``definitions`` (and those of the types it uses); a type this module defines is that class. ValueError
+    for a line this reader does not know (constants and default values are not used by our messages)."""
+    typename = dds_typename(type_name)
+    made = _made.get(typename)
+    if made is not None:
+        return made
+    fields: dict[str, object] = {}
+    for line in definitions[type_name].splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        match = _FIELD.match(line)
+        if match is None:
+            raise ValueError(f"{type_name}: cannot read the field {line!r}")
+        kind, bracket, size, name = match.groups()
+        element = _PRIMITIVES.get(kind) or ros_message_type(kind, definitions)
+        fields[name] = element if bracket is None else T.sequence[element] if not size else T.array[element, int(size)]
+    made = _made[typename] = make_idl_struct(type_name.split("/")[1], typename, fields)
+    return made

@@ -76,6 +76,13 @@ def listener(domain):
     bus.close()
 
 
+def await_arm(listener) -> None:
+    """Until the fake arm's state is on the bus: a refusal is only about the arm once the arm is there (it starts
+    in a second or two on a loaded machine; a test that waited a second for it was refused a silent arm)."""
+    state = listener.reader(dds.ros_topic("PSM1/operating_state"), M.OperatingState, dds.LATCHED)
+    until(lambda: bool(dds.take(state, 10)), 30.0, "the fake arm's operating_state")
+
+
 def connected(domain, **settings) -> CrtkSlave:
     slave = CrtkSlave(CrtkSettings(domain=domain, **settings))
     slave.open()
@@ -150,8 +157,9 @@ def test_messages_are_ros2_types_in_xcdr1():
     assert M.seconds(M.stamp(12.25)) == 12.25
 
 
-def test_the_slave_refuses_a_disabled_or_unhomed_arm_in_one_line(domain, fake_arm):
+def test_the_slave_refuses_a_disabled_or_unhomed_arm_in_one_line(domain, fake_arm, listener):
     fake_arm()
+    await_arm(listener)
     with pytest.raises(DeviceError) as refused:
         connected(domain, enable=False, open_timeout_s=1.0)
     assert "arm PSM1 (DDS domain" in str(refused.value) and "is DISABLED and not homed" in str(refused.value)
@@ -249,7 +257,9 @@ def test_close_sends_hold(domain, fake_arm, listener):
     ({"slave": {"probe_in_tool_m": [0, 0, 2]}}, r"hardware.slave.probe_in_tool_m\[2\]: must lie between -1 and 1"),
     ({"slave": {"timeout_s": 0}}, "hardware.slave.timeout_s: must lie between 0.002 and 5"),
     ({"slave": {"host": "x"}}, "hardware.slave.host: unknown key"),
-    ({"slave": {}}, "hardware.sensor.kind: the CRTK rig takes its tactile array from serial or usb, got None"),
+    ({"sensor": {"kind": "sim", "port": "/dev/x"}}, "hardware.sensor.port: unknown key for kind .sim."),
+    ({"sensor": {"kind": "sim"}, "bus": {"topics": 1}}, "hardware.bus.topics: unknown key"),
+    ({"slave": {}}, "hardware.sensor.kind: the CRTK rig takes its tactile array from serial, usb or sim, got None"),
     ({"sensor": {"kind": "udp"}}, "hardware.sensor.kind: .* got 'udp'"),
     ({"sensor": {"kind": "serial", "port": "/dev/x"}, "robot": {}}, "hardware.robot: unknown table"),
 ])
