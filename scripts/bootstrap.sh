@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Make a machine ready: the system packages the console needs (installed with apt when missing), then .venv
 # with the console installed in editable mode at the versions of constraints.txt.
-#   scripts/bootstrap.sh run    what running needs (make run, simulate, bench, study, depth-library)
+#   scripts/bootstrap.sh run    what running needs (make run, simulate, bench, study, depth-library), CRTK and MCAP too
 #   scripts/bootstrap.sh test   that and the test stack (make test, make bootstrap)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
 case "${1:-}" in
-  run) extras="" ;;
+  run) extras="[crtk,mcap]" ;;  # the CRTK backend and export --mcap, which make bench measures too
   test) extras="[test]" ;;
   *) echo "usage: scripts/bootstrap.sh run|test" >&2; exit 2 ;;
 esac
