@@ -9,7 +9,14 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import time
 from dataclasses import dataclass
+
+
+def read_clocks() -> tuple[float, int]:
+    """The controller's loop clock (s) and UTC (ns since the epoch), read together: the loop runs on
+    ``time.monotonic()``, one clock for every process of the machine (app/controller.py)."""
+    return time.monotonic(), time.time_ns()
 
 
 def loop_cpu() -> int | None:

@@ -14,6 +14,7 @@ from PySide6 import QtCore
 
 from app.config import AppConfig
 from app.fastforward import FastForward, FastForwardTimeout
+from app.realtime import read_clocks
 from app.rigs import RigSpec, build_rig
 from control.messages import ClearFault, FaultCleared, FaultRaised
 from hardware.array_calibration import CalibratedSensor
@@ -60,11 +61,6 @@ def recording_summary(status: RecorderStatus) -> str:
             f"{status.frames_written} frames, {status.bytes_on_disk / 2**20:.1f} MB")
     lost = status.rows_lost + status.rows_dropped
     return text + (f" ({lost} rows missing)" if lost else "")
-
-
-def read_clocks() -> tuple[float, int]:
-    """The controller's loop clock (s) and UTC (ns since the epoch), read together."""
-    return time.monotonic(), time.time_ns()
 
 
 class SessionRecording(QtCore.QObject):

@@ -22,7 +22,7 @@ import logging
 
 import numpy as np
 
-from app.recording import read_clocks
+from app.realtime import read_clocks
 from hardware.crtk import dds
 from hardware.crtk.messages import ros_message_type
 from session import mcap_export as bag
