@@ -44,7 +44,7 @@ import numpy as np
 from PySide6 import QtCore
 
 from app.realtime import loop_cpu
-from session.detect import SOURCES
+from session.analysis import expected_patterns
 from session.info import SessionInfo
 from session.physics import BlockResponse
 from tissue.mechanics.progress import stage
@@ -78,12 +78,7 @@ def patterns_of(levels: np.ndarray, info: SessionInfo, extent_m: Extent | None =
             folder = cache_dir or scratch.enter_context(tempfile.TemporaryDirectory(prefix="palpation-live-"))
             tissue = BlockResponse.from_levels(levels, info, folder, stage(progress, 0.0, 0.7), extent_m=extent_m,
                                                ends_known=extent_m is not None)
-    contact = stage(progress, 0.7 if solved else 0.0, 1.0)
-    # as session.analysis.expected_patterns takes them, with the progress of each record
-    patterns = {source: tissue.pattern(levels, measured_surface=source == "stiffness",
-                                       progress=stage(contact, i / len(SOURCES), (i + 1) / len(SOURCES)))
-                for i, source in enumerate(SOURCES)}
-    return patterns, tissue.description
+    return expected_patterns(tissue, levels, stage(progress, 0.7 if solved else 0.0, 1.0)), tissue.description
 
 
 def _serve(connection, info: SessionInfo, extent_m: Extent | None, cache_dir: str | None, niceness: int) -> None:

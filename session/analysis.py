@@ -29,9 +29,10 @@ from session.detect import (
     over_each_other,
 )
 from session.flatfield import Contrast, Reference, contrast
-from session.physics import HomogeneousTissue, Pattern
+from session.physics import HomogeneousTissue, Pattern, Progress
 from session.reader import Session
 from session.stitch import StitchParams, StitchResult, stitch_session
+from tissue.mechanics.progress import stage
 
 CONTRAST_MAPS = {"stiffness": "stiffness_contrast", "force": "force_contrast"}
 
@@ -115,10 +116,14 @@ class SessionAnalysis:
         return next((m for m in self.matches if m.found and m.detection == detection), None)
 
 
-def expected_patterns(physics: HomogeneousTissue, levels: np.ndarray) -> dict[str, Pattern]:
+def expected_patterns(physics: HomogeneousTissue, levels: np.ndarray, progress: Progress | None = None
+                      ) -> dict[str, Pattern]:
     """What homogeneous tissue gives each map on every record: the stiffness map is compared with the surface
-    the onsets measured, the force map with a flat one (the face's own pattern)."""
-    return {source: physics.pattern(levels, measured_surface=source == "stiffness") for source in SOURCES}
+    the onsets measured, the force map with a flat one (the face's own pattern); ``progress(fraction, message)``
+    after each record of each map."""
+    return {source: physics.pattern(levels, measured_surface=source == "stiffness",
+                                    progress=stage(progress, i / len(SOURCES), (i + 1) / len(SOURCES)))
+            for i, source in enumerate(SOURCES)}
 
 
 def _truth_known(session: Session) -> bool:

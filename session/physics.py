@@ -203,9 +203,11 @@ class HomogeneousTissue(ABC):
         return PhantomResponse.load(session, cache_dir, progress)
 
     @abstractmethod
-    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True, progress: Progress | None = None
+                ) -> Pattern:
         """The pattern of each level record. ``measured_surface``: the surface under the face is the one
-        the record's onsets measured, else a flat one pressed evenly by the whole face."""
+        the record's onsets measured, else a flat one pressed evenly by the whole face; ``progress(fraction,
+        message)`` after each record."""
 
     def _finish(self, forces: np.ndarray) -> np.ndarray:
         if self._cover is not None:
@@ -276,7 +278,6 @@ class BlockResponse(HomogeneousTissue):
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True, progress: Progress | None = None
                 ) -> Pattern:
-        """As :meth:`HomogeneousTissue.pattern`; ``progress(fraction, message)`` after each record."""
         shape = levels["pressure_pa"].shape
         done = _records_done(progress, len(levels))
         if not measured_surface:
@@ -613,12 +614,15 @@ class PhantomResponse(HomogeneousTissue):
         return cls(tissue, _cover_of(session), session.pitch_m, shape,
                    f"the simulated phantom {phantom.name!r} without its tumours (the simulator's own model)")
 
-    def pattern(self, levels: np.ndarray, measured_surface: bool = True) -> Pattern:
+    def pattern(self, levels: np.ndarray, measured_surface: bool = True, progress: Progress | None = None
+                ) -> Pattern:
         """The phantom's own surface whatever ``measured_surface`` says: this is the exact answer."""
         from tissue.mechanics.study import height_for_force
 
         out = np.full(levels["pressure_pa"].shape, np.nan)
+        done = _records_done(progress, len(levels))
         for k, row in enumerate(levels):
+            done(k)
             x, y = (float(v) for v in row["tsi_position_m"][:2])
             # where this tissue carries the measured force (NaN: not even down at the table; no pattern then)
             z = height_for_force(self.tissue, x, y, float(row["force_measured_N"]))
