@@ -9,6 +9,7 @@ from typing import Any
 
 from app.rigs import BACKENDS, RigSpec, check_hardware, load_calibration
 from control.config import ControlConfig
+from control.safety import FORCE_RESERVE_N, blind_seek_depth_m
 from hardware.settings import ConfigError, read_toml
 
 # shipped as package data beside this module, in a checkout and in an installed wheel alike
@@ -38,6 +39,10 @@ def merge_tables(base: dict[str, Any], override: dict[str, Any]) -> dict[str, An
 
 
 SECTIONS = ("control", "rig", "sim", "hardware")
+# The share of the blind seek's depth (control.safety.blind_seek_depth_m) the scripted operator's clearance may
+# take: the rest is for the surface under the face being higher than the phantom's nominal one (micro-relief of
+# 0.1-0.3 mm, a probe tilted 1.5 degrees lifts one end of the 30 mm face 0.4 mm)
+SEEK_SHARE = 0.7
 
 
 def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConfig:
@@ -64,7 +69,13 @@ def parse_config(data: dict[str, Any], sources: tuple[str, ...] = ()) -> AppConf
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise ConfigError("rig.seed", f"must be an integer, got {seed!r}")
         sim = data.get("sim", {})
-        SimSettings.from_mapping(sim, "sim.")
+        clearance_m = SimSettings.from_mapping(sim, "sim.").operator.clearance_m
+        seek_m = blind_seek_depth_m(control.safety)
+        if clearance_m > SEEK_SHARE * seek_m:
+            raise ConfigError("sim.operator.clearance_m", (
+                f"{clearance_m * 1e3:g} mm: the seek goes no deeper than {seek_m * 1e3:.2f} mm (the force ceiling less "
+                f"{FORCE_RESERVE_N:g} N over control.safety.tissue_stiffness_max_N_m), so at most "
+                f"{SEEK_SHARE * seek_m * 1e3:.2f} mm leaves it room to find the tissue"))
         hardware = data.get("hardware", {})
         check_hardware(backend, hardware)
         calibration = rig.get("calibration", "")

@@ -57,11 +57,12 @@ from control.messages import (
     FaultKind,
     FaultRaised,
     PhaseChanged,
+    RegionAborted,
     RegionDone,
     SetGains,
     SetSz,
 )
-from control.safety import RETRACT_FAULTS
+from control.safety import RETRACT_FAULTS, blind_seek_depth_m
 from hardware.interfaces import (
     ConnectionState,
     DeviceError,
@@ -483,6 +484,7 @@ class RunResult:
     gains_applied: bool | None = None
     levels_recorded: int = 0
     region_done: bool = False
+    aborted: list = field(default_factory=list)  # (t_s, why) of each area the loop ended without region done
 
 
 class Checker:
@@ -640,7 +642,12 @@ class Run:
                             max_speed_m_s=float(rng.uniform(0.1, 0.6)), brake_m_s2=0.0,
                             reading_delay_ticks=int(rng.integers(0, 4)) if rng.uniform() < 0.5 else 0)
         servo.brake_m_s2 = float(rng.uniform(0.3, 1.0)) * servo.max_accel_m_s2
-        self.start_above = float(rng.uniform(0.0003, 0.0025))
+        # The operator begins the seek within the depth a blind seek may go (docs/console.md); one run in ten
+        # begins beyond it, where the seek must give up before it presses too hard
+        # (drawn apart, so that a seed draws everything else as it did before)
+        reach, u = blind_seek_depth_m(lim), float(rng.uniform())
+        beyond = np.random.default_rng([seed, 2]).uniform() < 0.1
+        self.start_above = reach * (1.0 + 1.5 * u) if beyond else 0.0003 + u * max(0.8 * reach - 0.0003, 0.0)
         start = (0.03, 0.015, thickness + self.start_above)
         self.plant = Plant(layer, servo, start, _sample_times(rng, rate, float(rng.uniform(0.0, 1.0 / rate))),
                            self.config.period_s)
@@ -835,6 +842,8 @@ class Run:
             elif isinstance(e, RegionDone):
                 r.region_done = True
                 r.levels_recorded = e.n_levels
+            elif isinstance(e, RegionAborted):
+                r.aborted.append((round(e.t_s, 4), e.reason))
 
     def _quiet(self, k: int, ff: FastForward, fc_started: bool) -> bool:
         """Nothing more can happen: no ramp under way or to come, no push, the trouble played out, at rest."""

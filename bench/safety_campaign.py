@@ -55,7 +55,7 @@ from app.fastforward import FastForward
 from control.config import ControlConfig, ImpedanceGains, RampSettings
 from control.loop import ControlLoop
 from control.messages import ClearFault, EStop, FaultRaised, Jog, Notice, SetGains, SetRamp, SetSz, Tare
-from control.safety import RETRACT_FAULTS
+from control.safety import RETRACT_FAULTS, blind_seek_depth_m
 from hardware.interfaces import MasterState, Phase, TactileConstraints, TactileFrame
 from hardware.settings import ConfigError
 from hardware.sim.plant import (
@@ -334,10 +334,18 @@ class _PlantRun:
             self.press_depth = float(rng.uniform(0.0, min(0.010, max(deepest, 0.0))))
             if lim.indentation_ceiling_m < self.press_depth + 1e-3:  # the ceiling lies beyond the press
                 config = config.replace(safety=lim.replace(indentation_ceiling_m=self.press_depth + 1e-3))
+        # the operator begins a seek within the depth a blind seek may go (docs/console.md); one classic run in ten
+        # begins beyond it, where the seek must give up before it presses too hard
+        # (drawn apart, so that a seed draws everything else as it did before)
+        reach, u = blind_seek_depth_m(lim), float(rng.uniform())
         if scenario == "classic":
-            start_depth = min(float(rng.uniform(-0.008, 0.003)), deepest)  # < 0: above the surface
+            highest = (0.8 if np.random.default_rng([seed, 2]).uniform() >= 0.1 else 2.5) * reach
+            start_depth = min(-highest + u * (highest + 0.003), deepest)  # < 0: above the surface
+        elif scenario == "in-contact-start":  # the operator presses the probe in by hand from there: no seek
+            start_depth = -(0.0005 + u * 0.0025)
         else:  # the operator has brought the probe down over the tissue
-            start_depth = float(rng.uniform(-0.003, -0.0005))
+            lo, hi = min(0.0005, 0.5 * reach), min(0.003, 0.8 * reach)
+            start_depth = -(lo + u * (hi - lo))
         self.config = config
         self.start_depth = start_depth
         start = (0.03, 0.015, self.thickness - start_depth)

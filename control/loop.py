@@ -236,6 +236,7 @@ class ControlLoop:
         # floor then went that much deeper (the independent campaign: a reading that carried on descending after
         # the robot had met the tissue, 0.6 mm low, and 0.6 N over the ceiling)
         self._floor_from_z = math.nan
+        self._seek_base_N = 0.0  # the force the array read as the seek began (a residual, an offset)
         self._tracked_xy: tuple[float, float] | None = None  # where the contact tracking began (position control)
         self._stopping_from: Vec3 | None = None  # where the robot was when a stop-where-it-is fault latched
         self.stop_distance_m = math.nan  # how far the robot went after the last such fault, once at rest
@@ -362,6 +363,10 @@ class ControlLoop:
                     self._carried_top_m = math.nan  # the ramp tracks this area afresh
                 sm.start(now_s, self._x_s[Z], self._thresholds, touching=touching,
                          seek_speed_m_s=sm.ramp.force_min_N / self.law.damping_N_s_m(Z))
+                # the seek's force floor counts from here (_read_frame), or from higher if a frame or the reference
+                # sent put the probe higher
+                self._floor_from_z = max(self._floor_from_z, self._x_s[Z], self.law.x_r[Z])
+                self._seek_base_N = max(self._recent_force_N, default=0.0)
                 sigma = self._noise.sigma_pa()
                 force_noise_N = float(np.sqrt(np.sum(sigma**2))) * self.sensor.element_area_m2
                 self._travel.rise_N = max(5.0 * force_noise_N, FORCE_RISE_N)
@@ -523,6 +528,19 @@ class ControlLoop:
             lowest = min(floor, z_before)
         return lowest
 
+    def _seek_reached_floor(self, now_s: float) -> None:
+        """The seek went as deep as a blind seek may without touching anything: the stiffest tissue force
+        control accepts, had it begun where the seek began, would now push back the ceiling, and an array that
+        reads nothing cannot tell that tissue from air."""
+        lim = self.safety.limits
+        depth = self.sm.seek_depth_m(self.law.x_r[Z])
+        self.sm.abort(now_s, (
+            f"no tissue found within {depth * 1e3:.1f} mm below the start height: a seek that touches nothing goes "
+            f"no deeper than where tissue of the stiffest kind force control accepts "
+            f"({lim.tissue_stiffness_max_N_m / 1e3:g} N/mm) would reach the {lim.force_ceiling_N:g} N ceiling, as a "
+            f"dead array reads air too; lower the probe to within that of the tissue and switch again"),
+            self._x_s[Z])
+
     def _approach_speed_m_s(self) -> float:
         """The approach speed, slower for tissue stiffer than APPROACH_STIFFNESS_N_M: a robot stopping short of
         the force floor goes on by a distance that grows with its speed, and the stiffer the tissue the more
@@ -595,8 +613,17 @@ class ControlLoop:
         pos = self.history.at(frame.t_s)
         self._frame_z = pos[Z]
         told = self._told.at(frame.t_s)[Z]
-        self._floor_from_z = told if told > pos[Z] else pos[Z]
         sm = self.sm
+        z_floor = told if told > pos[Z] else pos[Z]
+        # In the seek the array has not yet shown that it reads force at all: a dead one (or one stuck on an
+        # unloaded frame under fresh noise) reads air all the way down, and a floor that followed the probe would
+        # never stop it (the independent campaign: seeks through the whole layer to 47 N). So the floor follows
+        # only frames that read a rise over what the array read as the seek began (a residual, an offset): the
+        # tissue may start just below where the array last showed it reads force, or where the seek began.
+        if sm.phase != Phase.SEEK_CONTACT or self._force_N - self._seek_base_N > self._travel.rise_N:
+            self._floor_from_z = z_floor
+        elif not self._floor_from_z >= z_floor:
+            self._floor_from_z = z_floor
         sm.on_frame(frame.t_s, p, self._force_N, pos)
         fr = self.frame
         fr["tick"] = self._ticks
@@ -905,6 +932,8 @@ class ControlLoop:
         if law.x_r[Z] < lowest:  # never lifted by it: it only stops a descent
             law.x_r[Z] = lowest
             law.v_r[Z] = max(law.v_r[Z], (lowest - z_before) / dt if dt > 0 else 0.0)
+        if sm.phase == Phase.SEEK_CONTACT and not law.x_r[Z] > self._force_floor_m() + STEP_TOLERANCE_M:
+            self._seek_reached_floor(now_s)
         if self._ages[0] > self._overdue_s and law.x_r[Z] < z_before:
             # the next frame is late: what the probe presses on is unknown, so it goes no deeper until it
             # comes (lateral and upward motion go on; the stale-sensor fault follows if it never does)

@@ -122,6 +122,10 @@ class PalpationStateMachine:
         self._ft[:] = -np.inf
         self._enter(now_s, Phase.SEEK_CONTACT)
 
+    def seek_depth_m(self, tsi_z_m: float) -> float:
+        """How far below the start height of this area's seek the TSI is."""
+        return self._z_start - tsi_z_m
+
     def abort(self, now_s: float, reason: str, tsi_z_m: float, retract: bool = True) -> None:
         """End the region without "region done"; retract unless the operator takes z over in place."""
         if not self.force_control:

@@ -24,6 +24,14 @@ RETRACT_FAULTS = frozenset({
 # What the force the tissue pushes with may be short of the ceiling where the loop stops the probe descending:
 # the robot's own overshoot as its reference stops, and the array's noise
 FORCE_RESERVE_N = 0.2
+
+
+def blind_seek_depth_m(limits: SafetyLimits) -> float:
+    """How deep a seek may go before the array confirms contact: where tissue of the stiffest kind force control
+    accepts, beginning just below the seek's start, would push back the ceiling less the reserve. An array that
+    reads nothing cannot tell tissue from air (a dead one reads air all the way down), so no deeper than this
+    is safe whatever the array says; the probe must begin its seek within it of the tissue."""
+    return (limits.force_ceiling_N - FORCE_RESERVE_N) / limits.tissue_stiffness_max_N_m
 # A tared element cannot read far below zero: no contact pulls on the array, and its zero moves by less than
 # this share of full scale within a session (rest offsets of capacitive arrays move about 2 % of full scale
 # between days, so an array is tared each session). Below it, less its own noise's five standard deviations,

@@ -118,8 +118,10 @@ class SecondOrderRobot:
 
 
 class LayerPlant:
+    # the probe starts 1.5 mm above the surface, as an operator starts force control: a seek that touches nothing
+    # goes no deeper than 2.4 mm at the default limits (control.safety.blind_seek_depth_m)
     def __init__(self, surface_m=0.025, modulus_pa=60e3, frame_period_s=0.01, latency_s=0.005,
-                 start_m=(0.03, 0.015, 0.032), stiff_mask=None, stiff_factor=1.0, noise_pa=50.0,
+                 start_m=(0.03, 0.015, 0.0265), stiff_mask=None, stiff_factor=1.0, noise_pa=50.0,
                  full_scale_pa=None, robot: SecondOrderRobot | None = None):
         self.surface_m = surface_m
         self.modulus = np.full(SHAPE, modulus_pa)

@@ -161,7 +161,10 @@ class RobotSimSettings(Settings):
 class OperatorSimSettings(Settings):
     """The scripted operator of Section IV-A: heights are above the table, speeds are peak speeds."""
 
-    clearance_m: float = 0.003  # above the highest surface point under the TSI before switching S_z off
+    # above the highest surface point under the TSI before switching S_z off: within the blind seek's depth
+    # (control.safety.blind_seek_depth_m, 2.4 mm at the default ceiling and stiffest tissue), less room for a
+    # surface higher than the phantom's nominal one
+    clearance_m: float = 0.0015
     travel_height_m: float = 0.045  # for moves between areas
     lateral_speed_m_s: float = 0.02
     vertical_speed_m_s: float = 0.015

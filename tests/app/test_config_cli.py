@@ -31,6 +31,10 @@ def test_user_file_overrides_single_keys(tmp_path):
         ("[rig]\nseed = 1.5\n", "rig.seed", "integer"),
         ("[control.ramp]\nforce_max_N = true\n", "control.ramp.force_max_N", "must be a number, got True"),
         ("[control\n", "user.toml", "not valid TOML"),
+        # the scripted operator would begin every seek farther above the tissue than a seek may go (2.36 mm)
+        ("[sim.operator]\nclearance_m = 0.003\n", "sim.operator.clearance_m", "the seek goes no deeper than 2.36 mm"),
+        ("[sim.operator]\nclearance_m = 0.0015\n[control.safety]\nforce_ceiling_N = 5\n"
+         "[control.ramp]\nforce_max_N = 4\n", "sim.operator.clearance_m", "goes no deeper than 0.96 mm"),
     ],
 )
 def test_bad_config_names_the_key_and_the_problem(tmp_path, text, key, problem):

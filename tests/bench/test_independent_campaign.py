@@ -37,6 +37,23 @@ def test_an_array_dead_from_the_start_of_force_control_ends_safely(seed):
     assert result.max_indentation_over_ceiling_mm <= campaign.INDENTATION_MARGIN_M * 1e3
 
 
+# Arrays that read only their noise (49000633, 49000993) or an unloaded frame under fresh noise (49001846, 49000262)
+# from the start of the seek: nothing tells them from air, and the seek went on through the layer to 47 N
+BLIND_FROM_THE_START = [49000633, 49000993, 49001846, 49000262]
+
+
+@pytest.mark.parametrize("seed", BLIND_FROM_THE_START)
+def test_a_seek_the_array_cannot_see_ends_before_the_stiffest_tissue_would_pass_the_ceiling(seed):
+    run = campaign.Run(seed)
+    assert run.r.kind in ("dead-array", "frozen-array") and run.trigger == ("ramp", -1)
+    assert run.trouble["fault"] in ("noise", "stuck")
+    result = run.run()
+    assert result.injected and result.violations == []
+    (aborted,) = result.aborted
+    assert aborted[1].startswith("no tissue found within")
+    assert result.max_force_over_ceiling_N <= campaign.FORCE_MARGIN_N
+
+
 # A robot position reading that lies smoothly, so the jump check passes it: one that carries on descending at
 # the speed it had when it stuck, after the robot has met the tissue (288: the force floor went 0.6 mm deeper,
 # 0.6 N over the ceiling; 840: the lift started 7 mm below the robot, 28 N over), and one that creeps away (1705)

@@ -121,7 +121,7 @@ SEEDS = {
     "classic": [0, 12, 24, 36, 300],
     "dead-array": [1, 13, 25, 73, 217, 9673],
     "frozen-array": [2, 14, 26, 38],
-    "drifting-array": [3, 15, 27, 39, 255, 5451, 9135, 7779],
+    "drifting-array": [3, 15, 87, 39, 255, 5451, 9135, 7779],
     "stuck-position": [4, 16, 28, 40, 208],
     "lying-position": [5, 17, 29, 41, 149],
     "future-stamp": [6, 18, 30, 42, 210],

@@ -201,7 +201,7 @@ def test_velocity_and_workspace_limits():
     h.loop.law.v_r[0] = 0.5  # a runaway reference
     h.run(0.002)
     assert h.of(FaultRaised)[0].kind == FaultKind.VELOCITY_LIMIT
-    h2 = Harness(config=ControlConfig(safety=SafetyLimits(workspace_max_m=(0.10, 0.06, 0.034))))
+    h2 = Harness(config=ControlConfig(safety=SafetyLimits(workspace_max_m=(0.10, 0.06, 0.029))))
     h2.run(0.1)
     h2.send(Jog((0.0, 0.0, 0.005)))
     h2.run(1.0, until=lambda h: h.loop.safety.faulted)
@@ -246,7 +246,7 @@ def test_tare_is_refused_while_the_probe_presses_in_position_control():
     far less was measured. A zero is taken only with no element reading contact."""
     h = Harness()
     h.run(0.1)
-    h.send(Jog((0.0, 0.0, -0.020)))  # X_d from 7 mm above the surface to 13 mm into it
+    h.send(Jog((0.0, 0.0, -0.0145)))  # X_d from 1.5 mm above the surface to 13 mm into it
     h.run(2.5)
     assert h.plant.x[2] < 0.025 - 0.009  # the impedance yields a little to the tissue's push
     h.send(Tare())
@@ -384,7 +384,10 @@ def test_configuration_refuses_the_absurd_with_the_reason(section, key, value, s
 def test_a_residual_reading_in_air_does_not_count_the_descent_as_indentation():
     """A sensor still reading a few hundred Pa after the last area (creep) marks every element as pressed
     when force control begins; the descent through air to the tissue is not indentation."""
-    h = Harness(plant=LayerPlant(start_m=(0.03, 0.015, 0.040)))  # 15 mm above the tissue
+    # 2 mm above the tissue (as far as a seek may begin), under a ceiling the ramp's own 12.1 mm keeps under and
+    # the descent counted with it would pass
+    config = ControlConfig.from_mapping({"safety": {"indentation_ceiling_m": 0.0135}})
+    h = Harness(config=config, plant=LayerPlant(start_m=(0.03, 0.015, 0.027)))
     h.plant.extra_force_pa = 500.0  # above the 300 Pa onset threshold, in air
     start_region(h)
     h.run(60, until=lambda h: phase(h) == Phase.DONE)
@@ -402,8 +405,9 @@ def test_onsets_are_not_carried_to_the_next_area_by_a_residual_reading():
     residual[0, 0] = 500.0  # one element still reads 500 Pa, lifted clear of the tissue
     h.plant.extra_force_pa = residual
     h.plant.surface_m = 0.021  # the next area's tissue stands 4 mm lower
-    h.send(Jog((0.008, 0.0, 0.0)))
-    h.run(5, until=lambda h: h.plant.x[0] > 0.038 - 1e-6)
+    # over the next area, and down from the retract height to 1.5 mm above its tissue, as an operator begins a seek
+    h.send(Jog((0.008, 0.0, 0.0215 - h.plant.x[2])))
+    h.run(5, until=lambda h: h.plant.x[0] > 0.038 - 1e-6 and h.plant.x[2] < 0.0215 + 1e-5)
     h.send(SetSz(position_control=False))
     h.run(40, until=lambda h: h.loop.sm.region == 1 and phase(h) == Phase.DONE)
     onsets = h.of(LevelRecorded)[-1].record.onset_height_m
