@@ -69,15 +69,31 @@ def wire_recording(window, recording: SessionRecording) -> None:
     window.findings_told.connect(lambda text: recording.add_note(f"{FINDINGS_TOLD} {text}"))
 
 
-def wire_bus(bridge, rig):
+def wire_bus(window, bridge, rig):
     """Publish the palpation on the ROS 2 bus when ``rig`` is a CRTK rig that publishes
-    (:func:`app.rigs.bus_publisher`): the publisher becomes one of ``bridge``'s row sinks. Returns the publisher
-    (None: nothing published)."""
+    (:func:`app.rigs.bus_publisher`): the publisher becomes one of ``bridge``'s row sinks, and a bus that fails is
+    told in the console ``window`` as a recording that fails is. Returns the publisher (None: nothing published)."""
+    from PySide6 import QtCore
+
     from app.rigs import bus_publisher
+    from widgets.messages import Severity
 
     publisher = bus_publisher(rig)
-    if publisher is not None:
-        bridge.add_sink(publisher)
+    if publisher is None:
+        return None
+
+    class Relay(QtCore.QObject):
+        failed = QtCore.Signal(str)
+
+    def failed(message: str) -> None:
+        window.messages().add(message, Severity.ERROR)
+        window.statusBar().showMessage(message)
+
+    # made in the window's thread, so what the publisher tells in the bridge's thread is queued to the window's
+    relay = Relay(window)
+    relay.failed.connect(failed)
+    publisher.on_problem = relay.failed.emit
+    bridge.add_sink(publisher)
     return publisher
 
 
@@ -166,7 +182,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)
     wire_recording(window, recording)
-    wire_bus(bridge, rig)
+    wire_bus(window, bridge, rig)
     wire_depth_model(window, info)
     physics = LivePhysics(info, window, plan.phantom_extent_m if plan is not None else None)
     window.set_live_physics(physics)

@@ -22,6 +22,7 @@ machine) plus the offset of UTC from that clock, read afresh at every call.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -50,11 +51,13 @@ def qos(topic: str) -> dds.Qos:
 
 
 class BusPublisher:
-    """Publishes the rows of the controller on DDS domain ``domain``; a failing bus is logged once and then
-    left alone (the palpation and its recording go on)."""
+    """Publishes the rows of the controller on DDS domain ``domain``; a failing bus is logged once, told to
+    :attr:`on_problem` (called in the bridge's thread) and then left alone until the next run (the palpation
+    and its recording go on)."""
 
     def __init__(self, domain: int):
         self.domain = dds.domain_id("hardware.slave.domain", domain)
+        self.on_problem: Callable[[str], None] | None = None
         self._bus: dds.Participant | None = None
         self._writers: dict[str, dds.DataWriter] = {}
         self._state: np.ndarray | None = None
@@ -105,9 +108,12 @@ class BusPublisher:
         self.published[topic] += len(messages)
 
     def _fail(self, why: str) -> None:
-        self.problem = f"the palpation is no longer published on the ROS 2 bus: {why}"
+        self.problem = (f"The palpation is not published on the ROS 2 bus ({why}) until the controller starts "
+                        "again; control and the session's recording go on.")
         log.warning("%s", self.problem)
         self._close()
+        if self.on_problem is not None:
+            self.on_problem(self.problem)
 
     def _close(self) -> None:
         bus, self._bus = self._bus, None

@@ -1,5 +1,6 @@
 """The console publishing the palpation on the ROS 2 bus as ``run_gui`` wires it (:func:`app.gui.wire_bus`): on a
-CRTK rig that publishes, the rows the console's bridge drains go on the bus, over the loopback.
+CRTK rig that publishes, the rows the console's bridge drains go on the bus, over the loopback; a bus that fails
+is told in the window, once, while control goes on.
 
 The window is the real console on the fast-forward bridge (the real control loop on the simulated rig), as in
 test_gui_recording, so the rows published are a real palpation's; the console on the arm itself, through the
@@ -30,6 +31,7 @@ domain, listener = test_crtk.domain, test_crtk.listener
 CONFIG = ControlConfig()
 SIM = RigSpec(master="none")
 WAIT_MS = 10_000
+BUS_LINE = "not published on the ROS 2 bus"
 
 
 def crtk(domain: int, **bus) -> RigSpec:
@@ -54,15 +56,19 @@ def window(qtbot, tmp_path, bridge):
     return made
 
 
+def told(window) -> list[str]:
+    return [line for line in window.messages().lines() if BUS_LINE in line]
+
+
 def test_the_console_on_a_crtk_rig_that_publishes_puts_the_palpation_on_the_loopback(qtbot, window, bridge, domain,
                                                                                      listener):
-    assert wire_bus(bridge, SIM) is None
-    assert wire_bus(bridge, crtk(domain, publish=False)) is None
+    assert wire_bus(window, bridge, SIM) is None
+    assert wire_bus(window, bridge, crtk(domain, publish=False)) is None
     # transient-local, as the console offers it: the loop's state reaches a subscriber whenever it joins
     state = listener.reader(dds.ros_topic(STATE), M.ros_message_type(dict(bag.TOPICS)[STATE], bag.DEFINITIONS),
                             qos(STATE))
     poses = listener.reader(dds.ros_topic("/palpation/tsi_pose"), M.PoseStamped, qos("/palpation/tsi_pose"))
-    publisher = wire_bus(bridge, crtk(domain))
+    publisher = wire_bus(window, bridge, crtk(domain))
     with qtbot.waitSignal(bridge.started, timeout=WAIT_MS):
         bridge.start()
     got = {"state": [], "poses": []}
@@ -78,5 +84,25 @@ def test_the_console_on_a_crtk_rig_that_publishes_puts_the_palpation_on_the_loop
     assert got["state"][0].phase == Phase.APPROACH and got["state"][0].phase_name == "APPROACH"
     assert {pose.header.frame_id for pose in got["poses"]} == {bag.TISSUE_FRAME}
     assert publisher.published["/palpation/tsi_pose"] >= len(got["poses"])
-    assert not publisher.problem
+    assert not publisher.problem and not told(window)
 
+
+def test_a_bus_that_fails_is_told_in_the_window_once_and_control_goes_on(qtbot, window, bridge, domain,
+                                                                         monkeypatch):
+    def refused(domain: int):
+        # as Cyclone refuses a participant it cannot make (no free participant index on the host, ...)
+        raise dds.DDSException(dds.DDSException.DDS_RETCODE_ERROR,
+                               "Occurred upon initialisation of a cyclonedds.domain.DomainParticipant")
+
+    monkeypatch.setattr(dds, "Participant", refused)
+    publisher = wire_bus(window, bridge, crtk(domain))
+    bridge.start()
+    qtbot.waitUntil(lambda: bool(told(window)), timeout=WAIT_MS)
+    assert f"(cannot join DDS domain {domain}: [DDS_RETCODE_ERROR]" in told(window)[0]
+    assert window.statusBar().currentMessage() == publisher.problem
+    # the loop runs on, the console showing it, and the trouble is told once, not at every display frame
+    qtbot.waitUntil(lambda: window.latest_tick() is not None and float(window.latest_tick()["t_s"]) > 0.5,
+                    timeout=WAIT_MS)
+    assert len(told(window)) == 1
+    with qtbot.waitSignal(bridge.stopped, timeout=WAIT_MS):
+        bridge.stop()

@@ -233,7 +233,7 @@ def test_a_bus_that_fails_stops_publishing_and_says_so(domain):
                                    STATE: 1, TACTILE: 2, LEVELS: 0, EVENTS: 0}
     publisher._bus.close()  # the participant gone under it (what a DDS failure leaves)
     publisher.add_rows(ticks, frames, [])
-    assert publisher.problem.startswith("the palpation is no longer published on the ROS 2 bus: ")
+    assert publisher.problem.startswith("The palpation is not published on the ROS 2 bus (")
     assert publisher._bus is None
     publisher.driver_stopped(None)
 
