@@ -69,6 +69,34 @@ def wire_recording(window, recording: SessionRecording) -> None:
     window.findings_told.connect(lambda text: recording.add_note(f"{FINDINGS_TOLD} {text}"))
 
 
+def wire_bus(window, bridge, rig):
+    """Publish the palpation on the ROS 2 bus when ``rig`` is a CRTK rig that publishes
+    (:func:`app.rigs.bus_publisher`): the publisher becomes one of ``bridge``'s row sinks, and a bus that fails is
+    told in the console ``window`` as a recording that fails is. Returns the publisher (None: nothing published)."""
+    from PySide6 import QtCore
+
+    from app.rigs import bus_publisher
+    from widgets.messages import Severity
+
+    publisher = bus_publisher(rig)
+    if publisher is None:
+        return None
+
+    class Relay(QtCore.QObject):
+        failed = QtCore.Signal(str)
+
+    def failed(message: str) -> None:
+        window.messages().add(message, Severity.ERROR)
+        window.statusBar().showMessage(message)
+
+    # made in the window's thread, so what the publisher tells in the bridge's thread is queued to the window's
+    relay = Relay(window)
+    relay.failed.connect(failed)
+    publisher.on_problem = relay.failed.emit
+    bridge.add_sink(publisher)
+    return publisher
+
+
 def prepare_in_console(prepare: Callable[[Progress], None], title: str, terminal: Progress | None = None) -> None:
     """Run ``prepare(progress)`` (the first use of a phantom: its tissue model, tens of seconds) off the GUI
     thread while a progress dialog shows how far it is, so a new user sees the wait in the console, not
@@ -135,7 +163,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
 
     from app.bridge import ControllerBridge
     from app.live_physics import LivePhysics
-    from app.rigs import bus_publisher, plan_for_rig, prepare_rig
+    from app.rigs import plan_for_rig, prepare_rig
     from tissue.mechanics.progress import TextProgressBar
     from widgets.live_window import LiveWindow
 
@@ -154,9 +182,7 @@ def run_gui(config: AppConfig, argv: list[str] | None = None, screenshot: str | 
     window = LiveWindow(bridge, config=config.control, plan=plan, sessions_folder=sessions_dir())
     recording = SessionRecording(bridge, info)
     wire_recording(window, recording)
-    publisher = bus_publisher(rig)
-    if publisher is not None:
-        bridge.add_sink(publisher)
+    wire_bus(window, bridge, rig)
     wire_depth_model(window, info)
     physics = LivePhysics(info, window, plan.phantom_extent_m if plan is not None else None)
     window.set_live_physics(physics)

@@ -8,8 +8,11 @@ What goes on the bus is what a session's bag holds (:mod:`session.mcap_export`, 
 session as a ROS 2 bag*), on the same topics, in the same messages, encoded by the same code:
 ``/palpation/tsi_pose``, ``/palpation/force`` and ``/palpation/force_desired`` every control period,
 ``/palpation/state`` whenever the loop's state changes (transient-local, so a late subscriber has the current
-phase at once) and ``/palpation/tactile`` every frame; levels and events stay in the session file and its
-export. The topics are on the CRTK arm's DDS domain (the ROS side's ``ROS_DOMAIN_ID``), through the same
+phase at once), ``/palpation/tactile`` every frame, and ``/palpation/levels`` and ``/palpation/events`` as the
+loop's events come: the rows the session file records of them (:func:`session.format.rows_for_event`), so that
+a ``ros2 bag record`` of the bus holds what a session's export does. The operator's notes (and the findings told)
+and what the recorder itself notes (rows lost, the controller lost, the file closed) are the session file's
+alone. The topics are on the CRTK arm's DDS domain (the ROS side's ``ROS_DOMAIN_ID``), through the same
 loopback-pinned participants as the arm (:mod:`hardware.crtk.dds`).
 
 Stamps are UTC: a row's loop time (the controller's monotonic clock, the same on every process of the
@@ -19,6 +22,7 @@ machine) plus the offset of UTC from that clock, read afresh at every call.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -26,6 +30,7 @@ from app.realtime import read_clocks
 from hardware.crtk import dds
 from hardware.crtk.messages import ros_message_type
 from session import mcap_export as bag
+from session.format import EVENT_DTYPE, LEVEL_DTYPE, rows_for_event
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +39,8 @@ log = logging.getLogger(__name__)
 _HISTORY = 256
 PER_TICK = ("/palpation/tsi_pose", "/palpation/force", "/palpation/force_desired")
 STATE, TACTILE = "/palpation/state", "/palpation/tactile"
-TOPICS = {topic: type_name for topic, type_name in bag.TOPICS if topic in (*PER_TICK, STATE, TACTILE)}
+LEVELS, EVENTS = "/palpation/levels", "/palpation/events"
+TOPICS = dict(bag.TOPICS)
 
 
 def qos(topic: str) -> dds.Qos:
@@ -45,11 +51,13 @@ def qos(topic: str) -> dds.Qos:
 
 
 class BusPublisher:
-    """Publishes the rows of the controller on DDS domain ``domain``; a failing bus is logged once and then
-    left alone (the palpation and its recording go on)."""
+    """Publishes the rows of the controller on DDS domain ``domain``; a failing bus is logged once, told to
+    :attr:`on_problem` (called in the bridge's thread) and then left alone until the next run (the palpation
+    and its recording go on)."""
 
     def __init__(self, domain: int):
         self.domain = dds.domain_id("hardware.slave.domain", domain)
+        self.on_problem: Callable[[str], None] | None = None
         self._bus: dds.Participant | None = None
         self._writers: dict[str, dds.DataWriter] = {}
         self._state: np.ndarray | None = None
@@ -78,12 +86,15 @@ class BusPublisher:
         utc = utc_ns(ticks["t_s"])
         changed, self._state = bag.state_changes(ticks, self._state)
         frame_utc = utc_ns(frames["t_s"])
+        event_rows, level_rows = _session_rows(events)
         try:
             self._write("/palpation/tsi_pose", bag.encode_poses(utc, ticks["x_slave_m"]))
             self._write("/palpation/force", bag.encode_wrenches(utc, ticks["force_measured_N"]))
             self._write("/palpation/force_desired", bag.encode_wrenches(utc, ticks["force_desired_N"]))
             self._write(STATE, [bag.encode_state(int(utc[k]), ticks[k]) for k in changed])
             self._write(TACTILE, bag.encode_images(frame_utc, frames["pressure_pa"]))
+            for topic, rows, encode in ((LEVELS, level_rows, bag.encode_level), (EVENTS, event_rows, bag.encode_event)):
+                self._write(topic, [encode(int(u), row) for u, row in zip(utc_ns(rows["t_s"]), rows)])
         except (dds.DDSException, bag.McapExportError) as err:
             self._fail(str(err))
 
@@ -97,12 +108,23 @@ class BusPublisher:
         self.published[topic] += len(messages)
 
     def _fail(self, why: str) -> None:
-        self.problem = f"the palpation is no longer published on the ROS 2 bus: {why}"
+        self.problem = (f"The palpation is not published on the ROS 2 bus ({why}) until the controller starts "
+                        "again; control and the session's recording go on.")
         log.warning("%s", self.problem)
         self._close()
+        if self.on_problem is not None:
+            self.on_problem(self.problem)
 
     def _close(self) -> None:
         bus, self._bus = self._bus, None
         self._writers = {}
         if bus is not None:
             bus.close()
+
+
+def _session_rows(events: list) -> tuple[np.ndarray, np.ndarray]:
+    """The /events and /levels rows the session file records of ``events`` (the loop's health reports, also
+    handed to the sinks, give none)."""
+    rows = [rows_for_event(event) for event in events]
+    return (np.array([event for event, _ in rows if event is not None], EVENT_DTYPE),
+            np.array([level for _, level in rows if level is not None], LEVEL_DTYPE))

@@ -41,7 +41,8 @@ _RULE = "=" * 80
 _INT32_MAX = 2**31 - 1
 
 # The ROS 2 interface definitions of the messages written, and of every type they use, by "package/Type".
-# Standard types carry their fields only; ours say what each field holds.
+# Standard types carry their fields only; ours say what each field holds, and are also the .msg files of the
+# ROS 2 package a lab builds to handle them (ros/palpation_console_msgs/msg/, byte for byte: change both).
 DEFINITIONS: dict[str, str] = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
     "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",

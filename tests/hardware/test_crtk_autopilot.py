@@ -1,6 +1,8 @@
 """The console on a CRTK arm: the autopilot palpating the flat phantom through the fake dVRK arm, with the
 simulated array riding on the arm's pose, and the palpation on the ROS 2 bus as it happens."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -8,18 +10,20 @@ from app.bridge import ControllerBridge
 from app.cli import build_parser, config_overrides
 from app.controller import ControllerProcess, ControllerStartError, PacingOptions
 from app.crtk_sim import ArmPoseWorld
+from app.realtime import read_clocks
 from app.rigs import RigSpec, bus_publisher, plan_for_rig
-from app.ros_bus import STATE, TACTILE, BusPublisher, qos
+from app.ros_bus import EVENTS, LEVELS, STATE, TACTILE, BusPublisher, qos
 from control.autopilot import Autopilot, AutopilotState
 from control.config import ControlConfig, MasterMapping, RampSettings, SafetyLimits
-from control.messages import FaultKind, FaultRaised, LevelRecorded, RegionDone
-from control.telemetry import FRAME_DTYPE, TICK_DTYPE
+from control.messages import FaultKind, FaultRaised, LevelRecord, LevelRecorded, PhaseChanged, RegionDone
+from control.telemetry import FRAME_DTYPE, TICK_DTYPE, LoopHealth
 from hardware.crtk import dds
 from hardware.crtk import messages as M
 from hardware.crtk.rig import build_rig as build_crtk_rig
 from hardware.interfaces import DeviceError, Phase, SlaveConstraints, SlaveState
 from hardware.settings import ConfigError
 from session import mcap_export as bag
+from session.format import rows_for_event
 from tests.hardware import test_crtk
 
 # the fake arm on a domain of this worker's own, and a participant of the test's (test_crtk's fixtures)
@@ -72,7 +76,8 @@ def test_the_autopilot_palpates_through_the_arm_and_the_bus_carries_the_palpatio
     types = {topic: M.ros_message_type(name, bag.DEFINITIONS) for topic, name in bag.TOPICS}
     # a reader keeping everything, as `ros2 bag record` does
     keep = dds.Qos(dds.Policy.Reliability.Reliable(max_blocking_time=0), dds.Policy.History.KeepAll, dds.XCDR1)
-    readers = {topic: listener.reader(dds.ros_topic(topic), types[topic], keep) for topic in (TACTILE, STATE)}
+    readers = {topic: listener.reader(dds.ros_topic(topic), types[topic], keep)
+               for topic in (TACTILE, STATE, LEVELS, EVENTS)}
     holds = listener.reader(dds.ros_topic("PSM1/hold"), M.Empty, dds.COMMANDS)
     its_console = listener.writer(dds.ros_topic("PSM1/state_command"), M.StringStamped, dds.COMMANDS)
 
@@ -123,6 +128,15 @@ def test_the_autopilot_palpates_through_the_arm_and_the_bus_carries_the_palpatio
     changed, _ = bag.state_changes(ticks, None)
     assert [(s.phase, s.level, s.fault) for s in states] == \
         [(int(ticks["phase"][k]), int(ticks["level"][k]), int(ticks["fault"][k])) for k in changed]
+    # and every level and event as the session file records them, as they came
+    levels = dds.take(readers[LEVELS], 100)
+    recorded = [e.record for e in rows.events if isinstance(e, LevelRecorded)]
+    assert [(m.region, m.level, m.force_desired) for m in levels] == \
+        [(r.region, r.level, r.force_desired_N) for r in recorded]
+    np.testing.assert_array_equal([m.stiffness for m in levels], [r.stiffness_pa.ravel() for r in recorded])
+    kinds = [rows_for_event(e)[0][2].decode() for e in rows.events if rows_for_event(e)[0] is not None]
+    assert [m.kind for m in dds.take(readers[EVENTS], 100_000)] == kinds
+    assert {"phase", "level", "region_done", "fault"} <= set(kinds)
     assert publisher.published["/palpation/force"] == len(ticks) and not publisher.problem
 
 
@@ -216,9 +230,67 @@ def test_a_bus_that_fails_stops_publishing_and_says_so(domain):
     ticks["t_s"], frames["t_s"] = (1.0, 1.001, 1.002), (1.0, 1.01)
     publisher.add_rows(ticks, frames, [])
     assert publisher.published == {"/palpation/tsi_pose": 3, "/palpation/force": 3, "/palpation/force_desired": 3,
-                                   STATE: 1, TACTILE: 2}
+                                   STATE: 1, TACTILE: 2, LEVELS: 0, EVENTS: 0}
     publisher._bus.close()  # the participant gone under it (what a DDS failure leaves)
     publisher.add_rows(ticks, frames, [])
-    assert publisher.problem.startswith("the palpation is no longer published on the ROS 2 bus: ")
+    assert publisher.problem.startswith("The palpation is not published on the ROS 2 bus (")
     assert publisher._bus is None
     publisher.driver_stopped(None)
+
+
+def grid(value: float) -> np.ndarray:
+    return np.full((4, 15), value)
+
+
+def test_levels_and_events_go_on_the_bus_as_they_come(qtbot, domain, listener):
+    """What the session file records of the loop's events: a level as its /levels row and its /events row, other
+    events as their /events rows, each stamped with the UTC of its loop time; the health reports the sinks are
+    also handed, nothing."""
+    keep = dds.Qos(dds.Policy.Reliability.Reliable(max_blocking_time=0), dds.Policy.History.KeepAll, dds.XCDR1)
+    readers = {topic: listener.reader(dds.ros_topic(topic), M.ros_message_type(dict(bag.TOPICS)[topic],
+                                                                               bag.DEFINITIONS), keep)
+               for topic in (LEVELS, EVENTS)}
+    publisher = BusPublisher(domain)
+    publisher.driver_started()
+    try:
+        qtbot.waitUntil(lambda: all(r.get_matched_publications() for r in readers.values()), timeout=10_000)
+        now_s, now_ns = read_clocks()
+        stiffness = grid(40e3)
+        stiffness[0, 0] = math.nan  # an element not in contact
+        record = LevelRecord(region=2, level=1, t_s=now_s + 0.5, force_desired_N=2.0, force_measured_N=1.98,
+                             rmse_N=0.01, settle_time_s=0.7, tsi_position_m=(0.012, 0.004, 0.021), indentation_m=0.002,
+                             pressure_pa=grid(25e3), pressure_std_pa=grid(300.0), window_frames=30,
+                             element_force_N=grid(0.1), onset_height_m=grid(0.023), L0_m=grid(0.02), dL_m=grid(0.002),
+                             stiffness_pa=stiffness)
+        health = LoopHealth(rate_hz=1000.0, late_over_0_5ms_pct=0.0, p99_abs_jitter_us=20.0, missed_ticks=0,
+                            longest_stall_ms=0.4, rt_priority=True, cpu=1)
+        publisher.add_rows(np.zeros(0, TICK_DTYPE), np.zeros(0, FRAME_DTYPE),
+                           [PhaseChanged(now_s, Phase.SETTLING, 1, 3), health, LevelRecorded(now_s + 0.5, record)])
+        publisher.add_rows(np.zeros(0, TICK_DTYPE), np.zeros(0, FRAME_DTYPE),
+                           [FaultRaised(now_s + 1.0, FaultKind.FORCE_CEILING, "F_ts 7.6 N over the ceiling")])
+        got: dict[str, list] = {LEVELS: [], EVENTS: []}
+
+        def arrived() -> bool:
+            for topic, reader in readers.items():
+                got[topic] += dds.take(reader, 10)
+            return len(got[LEVELS]) == 1 and len(got[EVENTS]) == 3
+
+        qtbot.waitUntil(arrived, timeout=10_000)
+    finally:
+        publisher.driver_stopped(None)
+    assert publisher.published[LEVELS] == 1 and publisher.published[EVENTS] == 3 and not publisher.problem
+    events = got[EVENTS]
+    assert [(e.kind, e.region, e.level, e.code, e.text) for e in events] == [
+        ("phase", -1, 1, int(Phase.SETTLING), "SETTLING"), ("level", 2, 1, 0, ""),
+        ("fault", -1, -1, int(FaultKind.FORCE_CEILING), "F_ts 7.6 N over the ceiling")]
+    assert events[1].value == 2.0 and math.isnan(events[2].value)
+    stamps_ns = [e.header.stamp.sec * 10**9 + e.header.stamp.nanosec for e in events]
+    for stamp, after_s in zip(stamps_ns, (0.0, 0.5, 1.0)):  # UTC now, and as far after as the loop's times
+        assert abs(stamp - (now_ns + after_s * 1e9)) < 5e6
+    level = got[LEVELS][0]
+    assert (level.region, level.level, level.force_measured, level.window_frames, level.rows, level.cols) == \
+        (2, 1, 1.98, 30, 4, 15)
+    assert (level.tsi_position.x, level.tsi_position.z, level.header.frame_id) == (0.012, 0.021, bag.TISSUE_FRAME)
+    np.testing.assert_array_equal(level.stiffness, stiffness.ravel())
+    np.testing.assert_array_equal(level.pressure, record.pressure_pa.ravel())
+    assert level.header.stamp == events[1].header.stamp
