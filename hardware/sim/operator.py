@@ -59,6 +59,7 @@ class _Step:
     sz: bool
     region: int  # the area this step belongs to, -1 on the way home
     look: bool = False  # moves: first line the hand up with where the camera shows the TSI
+    look_z: bool = False  # moves: first line the hand's height up with the TSI's (its side to side is kept)
 
 
 def _min_jerk(tau: float) -> float:
@@ -120,7 +121,10 @@ class ScriptedOperator(SimDevice, MasterDevice):
             steps.append(_Step("move", (x, y, travel), 0.0, True, i, look=i > 0))
             x, y = rx, ry
             steps.append(_Step("move", (x, y, travel), 0.0, True, i))
-            steps.append(_Step("move", (x, y, z_approach), 0.0, True, i))
+            # and again before the descent: the loop hands z back once its lift is over, which may be after the
+            # first look, and a hand aimed with the offset from before it stopped millimetres short of the approach
+            # height, beyond where a seek may go (control.safety.blind_seek_depth_m)
+            steps.append(_Step("move", (x, y, z_approach), 0.0, True, i, look_z=True))
             steps.append(_Step("dwell", (x, y, z_approach), s.dwell_above_s, True, i))
             steps.append(_Step("await", (x, y, z_approach), s.region_timeout_s, False, i))
             steps.append(_Step("dwell", (x, y, z_approach), s.dwell_after_s, False, i))
@@ -163,9 +167,10 @@ class ScriptedOperator(SimDevice, MasterDevice):
     def _start_move(self, step: _Step, t0: float) -> None:
         """Aim the hand so the TSI ends at the target, as the operator would by watching the camera."""
         hand = self._hand_m
-        if step.look:
+        if step.look or step.look_z:
             tsi = self.world.state_at(t0)[0]
-            self._camera_offset_m = (tsi[0] - hand[0], tsi[1] - hand[1], tsi[2] - hand[2])
+            c = self._camera_offset_m
+            self._camera_offset_m = ((tsi[0] - hand[0], tsi[1] - hand[1]) if step.look else c[:2]) + (tsi[2] - hand[2],)
         c = self._camera_offset_m
         to = (step.target_m[0] - c[0], step.target_m[1] - c[1], step.target_m[2] - c[2])
         s = self.settings

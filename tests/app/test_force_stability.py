@@ -41,7 +41,7 @@ def palpate(stiffness_N_m: float):
     with FastForward(ControlConfig(), rig) as ff:
         ff.run_for(0.5)
         x, y, z = rig.slave.world.state_at(ff.now_s)[0]
-        ff.send(Jog((0.036 - x, 0.015 - y, 0.028 - z)))  # 3 mm above the block
+        ff.send(Jog((0.036 - x, 0.015 - y, 0.0265 - z)))  # 1.5 mm above the block, within a seek's reach
         ff.run_for(4.0)
         ff.send(SetSz(position_control=False))
         for _ in range(30000):

@@ -28,7 +28,9 @@ from widgets.sz_switch import SzSwitch
 
 RAMP = RampSettings(force_min_N=0.5, force_max_N=2.0, force_step_N=0.5)
 CONFIG = ControlConfig(ramp=RAMP, master=MasterMapping(jog_speed_m_s=0.04))
-SPEC = RigSpec(master="none")
+# the TSI starts 1.5 mm above the flat phantom, as an operator starts force control: a seek that touches nothing
+# goes no deeper than 2.4 mm (control.safety.blind_seek_depth_m)
+SPEC = RigSpec(master="none", sim={"robot": {"home_m": (0.036, 0.015, 0.0265)}})
 SPEED = 8.0
 WAIT_MS = 30_000
 

@@ -27,7 +27,9 @@ from widgets.tissue_view import WholeTissueView
 # Two force levels: the default Winkler tissue reaches them well inside the indentation ceiling.
 CONFIG = ControlConfig(ramp=RampSettings(force_min_N=0.5, force_max_N=1.0, force_step_N=0.5),
                        master=MasterMapping(jog_speed_m_s=0.04))
-SPEC = RigSpec(master="none")
+# the TSI starts 1.5 mm above the flat phantom, as an operator starts force control: a seek that touches nothing
+# goes no deeper than 2.4 mm (control.safety.blind_seek_depth_m)
+SPEC = RigSpec(master="none", sim={"robot": {"home_m": (0.036, 0.015, 0.0265)}})
 SPEED = 8.0  # simulated seconds per second: about what this machine's CPU sustains with the window open
 # For a test that must see something the rig does only briefly: at SPEED a busy window can miss all of it
 real_time = pytest.mark.parametrize("bridge", [1.0], indirect=True)

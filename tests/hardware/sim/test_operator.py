@@ -118,8 +118,8 @@ def test_visits_every_area_in_order_and_flips_the_switch_at_each():
     for i, k in enumerate(offs):
         # the TSI, not the hand: each area's re-clutch moved the hand 8 mm (the press) further from it
         assert tsi[k, :2] == pytest.approx(regions[i], abs=1e-6)
-        assert tsi[k, 2] == pytest.approx(0.025 + 0.003, abs=1e-5)  # clearance above the flat surface
-        assert pos[k, 2] == pytest.approx(0.028 + 0.008 * i, abs=1e-5)
+        assert tsi[k, 2] == pytest.approx(0.025 + 0.0015, abs=1e-5)  # clearance above the flat surface
+        assert pos[k, 2] == pytest.approx(0.0265 + 0.008 * i, abs=1e-5)
         assert np.all(pos[k:ons[i], :] == pos[k])  # the hand stays put while the loop works
     assert [o.result for o in op.outcomes] == ["done"] * 9
     assert [o.index for o in op.outcomes] == list(range(9))
@@ -173,13 +173,13 @@ def test_approaches_above_the_highest_point_under_the_tsi():
     }})
     op = make_operator(bumpy)
     heights = op.approach_heights_m
-    assert heights[:3] == pytest.approx([0.033] * 3, abs=1e-9)  # the bump's crest, 30 mm, + 3 mm
-    assert heights[3:] == pytest.approx([0.028] * 6, abs=1e-9)
+    assert heights[:3] == pytest.approx([0.0315] * 3, abs=1e-9)  # the bump's crest, 30 mm, + 1.5 mm
+    assert heights[3:] == pytest.approx([0.0265] * 6, abs=1e-9)
 
 
 def test_a_travel_height_that_does_not_clear_the_tissue_is_refused():
     with pytest.raises(ConfigError, match=r"operator\.travel_height_m.*does not clear phantom 'flat'"):
-        make_operator(travel_height_m=0.027)
+        make_operator(travel_height_m=0.026)
     with pytest.raises(ConfigError, match=r"operator\.travel_height_m.*above the robot's workspace"):
         make_operator(travel_height_m=0.2)
 
