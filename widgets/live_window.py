@@ -91,6 +91,8 @@ PRESSURE_FLOOR_FACTOR = 1.5
 STIFFNESS_FLOOR_PA = 100e3
 # The TSI may only be sent to a double-clicked point while it carries less than this (off the tissue).
 MOVE_TO_MAX_FORCE_N = 0.05
+# Tumours of the two maps closer than this are one spot under the region-done flag (one element's pitch)
+SAME_SPOT_M = 2e-3
 
 _SIDE_STYLE = """
 QScrollArea#sideScroll, QWidget#sideReadouts { background: transparent; }
@@ -932,6 +934,8 @@ class LiveWindow(QtWidgets.QMainWindow):
             self._tell([(region, t) for t in findings])
             self.findings_told.emit(text)
         self._messages.add(text, Severity.WARNING if findings else Severity.INFO)
+        if findings is not None:
+            text = _flag_text(region, findings, f_max, self._physics is not None and not self._physics.ends_known)
         self._flow.show_findings(text)
 
     def _tell(self, told: list) -> None:
@@ -1080,6 +1084,26 @@ def _bool(value, default: bool) -> bool:
     if isinstance(value, bool):
         return value
     return str(value).lower() == "true"
+
+
+def _flag_text(region: int, findings: list, f_max_N: float, so_far: bool) -> str:
+    """An area's findings in a line or two under the region-done flag: the whole sentence of each tumour (the
+    messages and the Findings tab have it) pushed F_d, F_ts and the depth out of a laptop's view."""
+    if not findings:
+        return f"Area {region + 1}: nothing significant up to {f_max_N:g} N" + (" so far" if so_far else "")
+    spots: list[list] = []  # a tumour shows on both maps: one spot
+    for t in findings:
+        spot = next((s for s in spots if math.hypot(s[0].x_m - t.x_m, s[0].y_m - t.y_m) < SAME_SPOT_M), None)
+        if spot is None:
+            spots.append([t])
+        else:
+            spot.append(t)
+    if len(spots) > 1:
+        return f"Area {region + 1}: {len(spots)} tumours, in the Findings tab and on the map"
+    t = next((t for t in spots[0] if math.isfinite(t.depth_model_m)), spots[0][0])
+    depth = (f"{depth_model_text(t)} mm deep (model)" if math.isfinite(t.depth_model_m)
+             else f"{t.depth_m * 1e3:.1f} mm deep (paper's rule)")
+    return f"Area {region + 1}: tumour at x {t.x_m * 1e3:.1f}, y {t.y_m * 1e3:.1f} mm, {depth}"
 
 
 def _finding_text(t) -> str:

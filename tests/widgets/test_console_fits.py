@@ -166,4 +166,4 @@ def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_pa
     physics.busy = False
     physics.asked = physics.asked[-1:]
     physics.answer()
-    in_view("findings told", "Area 4: stiffness map: tumour at x 36")
+    in_view("findings told", "Area 4: tumour at x 36")

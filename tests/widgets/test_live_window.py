@@ -628,8 +628,10 @@ def test_region_done_says_what_the_area_showed(window, controller):
     told = []
     window.findings_told.connect(told.append)
     push(controller, make_tick(t_s=4.0), events=area(3, 0.036, tumour=True))
-    text = label(window, "regionFindings").text()
-    assert told == [text]  # for the session: what the surgeon was told (issue 50)
+    (text,) = told  # for the session: what the surgeon was told (issue 50), whole
+    # and under the flag in a line, so that F_d, F_ts and the depth stay in a laptop's view
+    assert re.fullmatch(r"Area 4: tumour at x [\d.]+, y [\d.]+ mm, 3\.1 \[2\.2, 4\.4\] mm deep \(model\)",
+                        label(window, "regionFindings").text())
     found = re.match(r"Area 4: stiffness map: tumour at x ([\d.]+) mm, y ([\d.]+) mm, first at 1 N, depth [\d.]+ mm "
                      r"\(paper's rule\), 3\.1 \[2\.2, 4\.4\] mm \(model, 90 % interval\), z [\d.]+", text)
     assert found and math.hypot(float(found[1]) - 36.0, float(found[2]) - 15.0) < 1.0
@@ -699,7 +701,7 @@ def test_findings_wait_for_the_physics_of_the_areas_palpated_and_go_without_it_w
     physics.asked = physics.asked[-1:]
     assert tissue.spot_count() == 0  # nothing is judged without it
     physics.answer()
-    assert label(window, "regionFindings").text().startswith("Area 4: stiffness map: tumour at x 36")
+    assert label(window, "regionFindings").text().startswith("Area 4: tumour at x 36")
     assert tissue.spot_count() == 1
     told = [line.split("  ", 1)[-1].strip() for line in window.messages().lines()]
     assert sum(line.startswith("Area 4: stiffness map") for line in told) == 1
@@ -743,7 +745,7 @@ def test_while_the_tissue_model_is_computed_the_console_says_so_and_how_far(wind
     physics.asked = physics.asked[-1:]
     physics.answer()
     assert panel.progress_text() is None
-    assert label(window, "regionFindings").text().startswith("Area 4: stiffness map: tumour at x 36")
+    assert label(window, "regionFindings").text().startswith("Area 4: tumour at x 36")
 
 
 def test_a_tumour_an_area_shows_only_once_the_areas_beside_it_are_palpated_is_told_then(window, controller):
