@@ -37,6 +37,8 @@ How they are found from the data — written down once, here:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from control.config import ContactSettings
@@ -51,6 +53,12 @@ NOISE_MIN_FRAMES = 32
 ELEMENTS_PER_FRAME = 2  # elements whose noise each frame between areas brings up to date: all 60 in 30 frames
 _MAD_TO_SIGMA = 1.4826  # a normal distribution's standard deviation over its median absolute deviation
 _OUTLIER_SIGMAS = 5.0  # a frame-to-frame difference beyond this many standard deviations is not the noise
+
+
+# The summed reading's rise is followed through these multiples of its own onset threshold: the heights it
+# passes them at place the tissue's first push (see ContactTracker.first_touch_m), as an element's onset and
+# confirmation place its own
+SUM_STEPS = (1.0, 3.0)
 
 
 class ContactTracker:
@@ -75,6 +83,12 @@ class ContactTracker:
         self._floor_pa = np.empty(shape)
         self._aired = np.empty(shape, dtype=bool)
         self._prev_p = np.empty(shape)
+        # the summed reading: its lowest in this descent, its last, and where its rise over that lowest passed
+        # each of SUM_STEPS times its onset threshold (NaN: not yet)
+        self._sum_on_pa = 0.0
+        self._sum_floor_pa = math.inf
+        self._sum_prev = (math.nan, math.nan)
+        self._sum_heights_m = np.full(len(SUM_STEPS), np.nan)
         self.reset()
 
     def reset(self, thresholds: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -93,6 +107,12 @@ class ContactTracker:
         self._aired.fill(False)
         self._started = False  # no frame since the reset: the next one is the baseline
         self._prev_z = np.nan
+        # the summed reading's noise is the elements' added in quadrature, so is its onset threshold (each
+        # element's stands ONSET_NOISE_SIGMAS of its own noise up, or higher if configured so)
+        self._sum_on_pa = float(np.sqrt(np.sum(self.onset_pa**2)))
+        self._sum_floor_pa = math.inf
+        self._sum_prev = (math.nan, math.nan)
+        self._sum_heights_m.fill(np.nan)
 
     def update(self, pressure_pa: np.ndarray, tsi_z_m: float) -> None:
         p_on, p_c = self.onset_pa, self.confirm_pa
@@ -117,8 +137,45 @@ class ContactTracker:
         rising = self._blind & np.isnan(self.blind_onset_m) & (pressure_pa >= self._blind_base_pa + p_on)
         if rising.any():
             self.blind_onset_m[rising] = self._prev_z
+        self._track_sum(float(pressure_pa.sum()), tsi_z_m)
         self._prev_p[...] = reading
         self._prev_z = tsi_z_m
+
+    def _track_sum(self, total_pa: float, tsi_z_m: float) -> None:
+        """Where the summed reading's rise over its lowest in this descent passed each step of SUM_STEPS (the
+        height interpolated between frames); a rise that falls back below the first step was noise."""
+        heights = self._sum_heights_m
+        if np.isnan(heights[0]) and total_pa < self._sum_floor_pa:
+            self._sum_floor_pa = total_pa  # (a residual decaying in air, before any rise)
+        before, z0 = self._sum_prev
+        self._sum_prev = (total_pa, tsi_z_m)
+        rise, rose = total_pa - self._sum_floor_pa, before - self._sum_floor_pa
+        if not math.isfinite(rise):
+            return
+        if rise < self._sum_on_pa:
+            heights.fill(np.nan)
+            return
+        for k, step in enumerate(SUM_STEPS):
+            level = step * self._sum_on_pa
+            if np.isnan(heights[k]) and rise >= level:
+                # where between the frames it passed the level (at this frame if the last one was not known)
+                heights[k] = (z0 + (level - rose) / (rise - rose) * (tsi_z_m - z0)
+                              if math.isfinite(rose) and rose < level and math.isfinite(z0) else tsi_z_m)
+
+    def first_touch_m(self) -> float:
+        """Where the tissue began to push, by the summed reading (NaN: it has not risen through both steps yet).
+
+        The summed reading's noise is the elements' in quadrature, so it rises out of it several times sooner
+        than any one element's: on tissue whose push starts softly (force as the indentation to the power 2.2,
+        the independent campaign's softest) an element's onset came 0.8 mm below the surface, and the probe
+        went that much past the indentation ceiling. The rise's first two steps are extrapolated back to none,
+        as linear tissue's would be: exact there, and on a softer start still short of the surface (a fit of the
+        start's power to a third step was thrown far above it by the tissue's viscous push at first touch).
+        """
+        z1, z3 = self._sum_heights_m
+        if not z1 > z3:
+            return math.nan
+        return float(z1 + (z1 - z3) * SUM_STEPS[0] / (SUM_STEPS[1] - SUM_STEPS[0]))
 
     def _air_out(self, pressure_pa: np.ndarray, p_on: np.ndarray) -> None:
         """Blind elements whose reading fell below p_on, or to half of what it was, were reading creep in

@@ -54,6 +54,20 @@ def test_a_seek_the_array_cannot_see_ends_before_the_stiffest_tissue_would_pass_
     assert result.max_force_over_ceiling_N <= campaign.FORCE_MARGIN_N
 
 
+# Tissue whose push starts softly (force as the indentation to the power 2.1-2.2): the elements' onsets came
+# 0.8 mm below the surface, and the probe went that much past the indentation ceiling (49001781 started in
+# contact, 49000499 ramped towards 19 N)
+SOFT_START = [49001781, 49000499]
+
+
+@pytest.mark.parametrize("seed", SOFT_START)
+def test_on_tissue_whose_push_starts_softly_the_indentation_ceiling_holds(seed):
+    result = campaign.run(seed)
+    assert result.drawn["tissue"]["law"] == "power" and result.drawn["tissue"]["shape"] > 2.0
+    assert result.violations == [] and result.faults[0][1] == "INDENTATION_CEILING"
+    assert result.max_indentation_over_ceiling_mm <= campaign.INDENTATION_MARGIN_M * 1e3
+
+
 # A robot position reading that lies smoothly, so the jump check passes it: one that carries on descending at
 # the speed it had when it stuck, after the robot has met the tissue (288: the force floor went 0.6 mm deeper,
 # 0.6 N over the ceiling; 840: the lift started 7 mm below the robot, 28 N over), and one that creeps away (1705)

@@ -565,3 +565,14 @@ def test_a_ramp_stops_one_level_short_of_the_element_pressure_ceiling_and_the_ar
     assert done.n_levels == 3 and done.capped_N == 3.0 and h.loop.sm.region_done
     assert [e.record.force_desired_N for e in h.of(LevelRecorded)] == [1.0, 2.0, 3.0]
     assert max(e.record.pressure_pa.max() for e in h.of(LevelRecorded)) < h.config.safety.element_pressure_ceiling_pa
+
+
+@pytest.mark.parametrize("modulus_pa, noise_pa", [(20e3, 200.0), (60e3, 50.0), (200e3, 5.0)])
+def test_the_summed_reading_places_the_first_touch_on_the_surface_of_linear_tissue(modulus_pa, noise_pa):
+    """The indentation ceiling counts from where the summed reading says the tissue began to push (sooner than
+    any element on a soft start): on tissue that pushes back linearly from the first touch, that is the
+    surface, so the ceiling costs no depth there."""
+    h = Harness(plant=LayerPlant(modulus_pa=modulus_pa, noise_pa=noise_pa))
+    start_region(h)
+    h.run(10, until=lambda h: phase(h) == Phase.SETTLING and h.loop.sm.level >= 1)
+    assert h.loop.sm.tracker.first_touch_m() == pytest.approx(0.025, abs=0.15e-3)
