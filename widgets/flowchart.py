@@ -262,7 +262,8 @@ class FlowchartPanel(QtWidgets.QWidget):
             return
         self._region_done = done
         label = self._done
-        label.setText("REGION DONE\nmove to the next area" if done else "region not done")
+        # one line: the phase's hint above says what to do next, and at 1366 x 768 a second line pushed F_ts out
+        label.setText("REGION DONE" if done else "region not done")
         label.setProperty("done", done)
         label.style().unpolish(label)
         label.style().polish(label)
