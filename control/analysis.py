@@ -109,7 +109,7 @@ class ContactTracker:
         self._prev_z = np.nan
         # the summed reading's noise is the elements' added in quadrature, so is its onset threshold (each
         # element's stands ONSET_NOISE_SIGMAS of its own noise up, or higher if configured so)
-        self._sum_on_pa = float(np.sqrt(np.sum(self.onset_pa**2)))
+        self._sum_on_pa = math.sqrt(float(np.vdot(self.onset_pa, self.onset_pa)))  # (no array made: per frame in air)
         self._sum_floor_pa = math.inf
         self._sum_prev = (math.nan, math.nan)
         self._sum_heights_m.fill(np.nan)

@@ -65,7 +65,7 @@ from session.array_calibration import calibration_from_session
 from session.export import depth_model_text
 from session.flatfield import MIN_VOUCHING, FlatFieldError, Reference
 from widgets.contact import ContactPanel, contact_metrics
-from widgets.findings_table import FindingsPanel
+from widgets.findings_table import SAME_TUMOUR_M, FindingsPanel
 from widgets.flowchart import FlowchartPanel
 from widgets.glossary import GLOSSARY
 from widgets.health import VERDICT, HealthPanel, health_summary
@@ -91,8 +91,6 @@ PRESSURE_FLOOR_FACTOR = 1.5
 STIFFNESS_FLOOR_PA = 100e3
 # The TSI may only be sent to a double-clicked point while it carries less than this (off the tissue).
 MOVE_TO_MAX_FORCE_N = 0.05
-# Tumours of the two maps closer than this are one spot under the region-done flag (one element's pitch)
-SAME_SPOT_M = 2e-3
 
 _SIDE_STYLE = """
 QScrollArea#sideScroll, QWidget#sideReadouts { background: transparent; }
@@ -1091,9 +1089,9 @@ def _flag_text(region: int, findings: list, f_max_N: float, so_far: bool) -> str
     messages and the Findings tab have it) pushed F_d, F_ts and the depth out of a laptop's view."""
     if not findings:
         return f"Area {region + 1}: nothing significant up to {f_max_N:g} N" + (" so far" if so_far else "")
-    spots: list[list] = []  # a tumour shows on both maps: one spot
+    spots: list[list] = []  # a tumour shows on both maps: one spot (the detector's own merge radius)
     for t in findings:
-        spot = next((s for s in spots if math.hypot(s[0].x_m - t.x_m, s[0].y_m - t.y_m) < SAME_SPOT_M), None)
+        spot = next((s for s in spots if math.hypot(s[0].x_m - t.x_m, s[0].y_m - t.y_m) <= SAME_TUMOUR_M), None)
         if spot is None:
             spots.append([t])
         else:
