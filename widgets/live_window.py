@@ -309,7 +309,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         # The depth stays in view whatever the readouts above need on a short screen (at 1280 x 800 a fault
         # banner scrolled it away): caption and figure on one line, beside the loop's health and STOP
         depth = QtWidgets.QHBoxLayout()
-        caption = QtWidgets.QLabel("TSI indentation\ndepth", toolTip=GLOSSARY["indentation"])
+        # (the caption on three lines: on two, a 1280 px screen cut the figure's first digit, 10.0 mm read L0.0)
+        caption = QtWidgets.QLabel("TSI\nindentation\ndepth", toolTip=GLOSSARY["indentation"])
         caption.setProperty("class", "caption")
         self._indentation = QtWidgets.QLabel("—", objectName="indentation", toolTip=GLOSSARY["indentation"])
         self._indentation.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
