@@ -97,7 +97,7 @@ QScrollArea#sideScroll, QWidget#sideReadouts { background: transparent; }
 QLabel { color: #ececec; }
 QLabel[class="caption"] { color: #b0b0b0; font-size: 12pt; }
 QLabel[class="readout"] { font-size: 22pt; font-weight: bold; color: #f4f4f4; }
-QLabel#indentation { font-size: 34pt; font-weight: bold; color: #e68cff; }
+QLabel#indentation { font-size: 30pt; font-weight: bold; color: #e68cff; }
 QLabel[class="metric"] { font-size: 12pt; font-weight: bold; }
 QLabel#indentation[contact="false"] { font-size: 16pt; color: #808080; }
 QLabel#healthChip { border-radius: 4px; padding: 4px 6px; font-size: 10pt; }
@@ -309,8 +309,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         # The depth stays in view whatever the readouts above need on a short screen (at 1280 x 800 a fault
         # banner scrolled it away): caption and figure on one line, beside the loop's health and STOP
         depth = QtWidgets.QHBoxLayout()
-        # (the caption on three lines: on two, a 1280 px screen cut the figure's first digit, 10.0 mm read L0.0)
-        caption = QtWidgets.QLabel("TSI\nindentation\ndepth", toolTip=GLOSSARY["indentation"])
+        caption = QtWidgets.QLabel("TSI indentation\ndepth", toolTip=GLOSSARY["indentation"])
         caption.setProperty("class", "caption")
         self._indentation = QtWidgets.QLabel("—", objectName="indentation", toolTip=GLOSSARY["indentation"])
         self._indentation.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
