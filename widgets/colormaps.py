@@ -82,8 +82,9 @@ def contrast_range(values: np.ndarray) -> tuple[float, float]:
 
 
 def map_rgb(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """(ny, nx, 3) uint8 image of an (nx, ny) map, y upwards (row 0 is the highest y)."""
-    image = values.T[::-1]
+    """(nx, ny, 3) uint8 image of an (nx, ny) map, x upwards (row 0 is the highest x) and y to the right, the
+    orientation of every whole-tissue map (:mod:`widgets.tissue_view` says why)."""
+    image = values[::-1]
     index, finite = lut_index(image, (lo, hi))
     rgb = CONTOUR_LUT[index].copy()
     rgb[~finite] = NO_DATA_RGB

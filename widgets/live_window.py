@@ -94,27 +94,28 @@ MOVE_TO_MAX_FORCE_N = 0.05
 
 _SIDE_STYLE = """
 QScrollArea#sideScroll, QWidget#sideReadouts { background: transparent; }
+QScrollArea#sideScroll { border-bottom: 1px solid #4a4a4a; }
 QLabel { color: #ececec; }
 QLabel[class="caption"] { color: #b0b0b0; font-size: 12pt; }
-QLabel[class="readout"] { font-size: 22pt; font-weight: bold; color: #f4f4f4; }
+QLabel[class="readout"] { font-size: 20pt; font-weight: bold; color: #f4f4f4; }
 QLabel#indentation { font-size: 30pt; font-weight: bold; color: #e68cff; }
 QLabel[class="metric"] { font-size: 12pt; font-weight: bold; }
 QLabel#indentation[contact="false"] { font-size: 16pt; color: #808080; }
-QLabel#healthChip { border-radius: 4px; padding: 4px 6px; font-size: 10pt; }
+QLabel#healthChip { border-radius: 4px; padding: 2px 6px; font-size: 10pt; }
 QLabel#healthChip[level="good"] { color: #6ee07a; border: 1px solid #2e6b36; }
 QLabel#healthChip[level="watch"] { color: #ffc37a; border: 1px solid #8a6a2e; }
 QLabel#healthChip[level="bad"] { color: white; background: #a01c28; font-weight: bold; }
-QPushButton#tareButton { font-size: 12pt; padding: 6px; color: #ececec; background: #3a3a3a;
+QPushButton#tareButton { font-size: 12pt; padding: 4px; color: #ececec; background: #3a3a3a;
                          border: 1px solid #5a5a5a; border-radius: 4px; }
 QPushButton#tareButton:disabled { color: #707070; background: #2a2a2a; }
 QPushButton#estopButton { font-size: 22pt; font-weight: bold; color: white; background: #c01c28;
-                          border: 3px solid #ff8a8a; border-radius: 8px; padding: 16px; }
+                          border: 3px solid #ff8a8a; border-radius: 8px; padding: 10px; }
 QPushButton#estopButton:pressed { background: #8a0f18; }
 """
 _BANNER_STYLE = """
 QFrame#faultBanner { background: #c01c28; border-radius: 4px; }
 QLabel#faultText { color: white; font-size: 13pt; font-weight: bold; }
-QPushButton#clearFault { font-size: 12pt; padding: 6px 12px; }
+QPushButton#clearFault { font-size: 12pt; padding: 4px 12px; }
 """
 _HEALTH_STYLE = """
 QLabel#loopHealth { color: #c8c8c8; }
@@ -259,7 +260,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._clear_fault.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)  # a deliberate click, never a stray Space
         self._clear_fault.clicked.connect(lambda: self._send(ClearFault()))
         row = QtWidgets.QHBoxLayout(self._fault_banner)
-        row.setContentsMargins(10, 4, 10, 4)  # the maps below need the height more than the banner's border
+        row.setContentsMargins(10, 2, 10, 2)  # the maps below need the height more than the banner's border
         row.addWidget(self._fault_text, 1)
         row.addWidget(self._clear_fault)
         self._banner_bar.addWidget(self._fault_banner)
@@ -270,9 +271,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         panel = QtWidgets.QWidget(objectName="sidePanel")
         panel.setStyleSheet(_SIDE_STYLE)
         outer = QtWidgets.QVBoxLayout(panel)
-        outer.setContentsMargins(0, 0, 0, 8)
+        outer.setContentsMargins(0, 0, 0, 4)
         outer.setSpacing(6)
-        # On a short screen the readouts scroll; the loop's health, tare and STOP stay in view below them.
+        # On a short screen the readouts scroll, over a line; the forces, the depth, the loop's health, tare and
+        # STOP stay in view below it.
         readouts = QtWidgets.QWidget(objectName="sideReadouts")
         scroll = QtWidgets.QScrollArea(objectName="sideScroll")
         scroll.setWidgetResizable(True)
@@ -282,32 +284,32 @@ class LiveWindow(QtWidgets.QMainWindow):
         scroll.viewport().setAutoFillBackground(False)
         outer.addWidget(scroll, 1)
         col = QtWidgets.QVBoxLayout(readouts)
-        col.setContentsMargins(8, 4, 8, 0)
+        col.setContentsMargins(8, 0, 8, 0)
         col.setSpacing(6)
 
         self._sz = SzSwitch()
         self._sz.toggled.connect(lambda position_control: self._request(SetSz(position_control)))
         col.addWidget(self._sz)
-        col.addSpacing(8)
         self._flow = FlowchartPanel(self._config.ramp)
         col.addWidget(self._flow)
         col.addSpacing(8)
 
-        grid = QtWidgets.QGridLayout()
-        grid.setVerticalSpacing(2)
-        self._force_desired = self._readout(grid, 0, "F_d (desired)", "forceDesired", GLOSSARY["F_d"])
-        self._force_measured = self._readout(grid, 1, "F_ts (measured)", "forceMeasured", GLOSSARY["F_ts"])
-        col.addLayout(grid)
-        col.addSpacing(6)
         self._contact = ContactPanel()
         col.addWidget(self._contact)
         col.addStretch(1)
         col = QtWidgets.QVBoxLayout()
         col.setContentsMargins(8, 0, 8, 0)
-        col.setSpacing(6)
+        col.setSpacing(4)
         outer.addLayout(col)
-        # The depth stays in view whatever the readouts above need on a short screen (at 1280 x 800 a fault
-        # banner scrolled it away): caption and figure on one line, beside the loop's health and STOP
+        # The forces and the depth stay in view whatever the readouts above need on a short screen (at
+        # 1280 x 800 a fault banner scrolled first the depth, then F_d and F_ts away), beside the loop's health
+        # and STOP. F_d and F_ts side by side, each caption over its figure: a row each took the height the
+        # flag above needs under a fault banner at 1366 x 768.
+        forces = QtWidgets.QGridLayout()
+        forces.setVerticalSpacing(0)
+        self._force_desired = self._readout(forces, 0, "F_d (desired)", "forceDesired", GLOSSARY["F_d"])
+        self._force_measured = self._readout(forces, 1, "F_ts (measured)", "forceMeasured", GLOSSARY["F_ts"])
+        col.addLayout(forces)
         depth = QtWidgets.QHBoxLayout()
         caption = QtWidgets.QLabel("TSI indentation\ndepth", toolTip=GLOSSARY["indentation"])
         caption.setProperty("class", "caption")
@@ -342,14 +344,13 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.addDockWidget(QtCore.Qt.DockWidgetArea.RightDockWidgetArea, dock)
 
     @staticmethod
-    def _readout(grid: QtWidgets.QGridLayout, row: int, caption: str, name: str, meaning: str) -> QtWidgets.QLabel:
+    def _readout(grid: QtWidgets.QGridLayout, column: int, caption: str, name: str, meaning: str) -> QtWidgets.QLabel:
         cap = QtWidgets.QLabel(caption, toolTip=meaning)
         cap.setProperty("class", "caption")
         value = QtWidgets.QLabel("—", objectName=name, toolTip=meaning)
         value.setProperty("class", "readout")
-        value.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
-        grid.addWidget(cap, row, 0)
-        grid.addWidget(value, row, 1)
+        grid.addWidget(cap, 0, column)
+        grid.addWidget(value, 1, column)
         return value
 
     def _dock(self, title: str, name: str, widget: QtWidgets.QWidget, area: QtCore.Qt.DockWidgetArea

@@ -1,10 +1,16 @@
 """Exported pictures of a stitched session, painted with Qt: the maps of every level, and the one-page report.
 
 Images are painted (offscreen when there is no display) in the console's colour scale, with the same
-colour mapping as the screen (:mod:`widgets.colormaps`): x runs to the right, y upwards, in mm, every map
-with its own colour range (printed on its colour bar) so each level shows its own contrast. Markers: white
-rings for tumours found in that map, dashed black circles (true size) for a simulated phantom's real
-tumours. The report's words come from :func:`session.export.report_lines`.
+colour mapping as the screen (:mod:`widgets.colormaps`), every map with its own colour range (printed on its
+colour bar) so each level shows its own contrast. Markers: white rings for tumours found in that map, dashed
+black circles (true size) for a simulated phantom's real tumours. The report's words come from
+:func:`session.export.report_lines`.
+
+Every map is drawn as the console and the reviewer draw it: x upwards and y to the right, in mm, with tick
+values and the axes named on each map (:mod:`widgets.tissue_view` says why that way), so a tumour up and to
+the left on the screen is up and to the left on paper. The tissue's long side (x) then stands upright, so the
+levels run across the page in columns and the maps down it in rows: on an A4 page the seven levels of a
+0-7 N ramp keep maps about as large as the old rows of wide maps did.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from session.detect import Tumour
 from session.export import ExportError, report_lines
 from session.stitch import LevelMap, StitchResult
 from widgets.colormaps import CONTOUR_LUT, colour_range, contrast_range, map_rgb
+from widgets.tactile_map import nice_step
 
 # (LevelMap attribute, detection source, title, unit, display scale)
 # Each raw map beside its contrast (when the analysis made one): the raw map is what was measured, the
@@ -44,7 +51,8 @@ def ensure_gui_application():
 
 
 class MapPainter:
-    """Paints the per-level force and stiffness maps of a stitched session into a rectangle."""
+    """Paints the per-level maps of a stitched session into a rectangle: a column per force level (the lowest
+    on the left), a row per map (:data:`_PANELS`), every map x upwards and y to the right."""
 
     def __init__(self, stitched: StitchResult, tumours: list[Tumour], ground_truth: list[dict] | None = None):
         self.stitched = stitched
@@ -55,10 +63,10 @@ class MapPainter:
 
     def natural_size(self, px_per_mm: float) -> tuple[int, int]:
         g = self.stitched.grid
-        w_mm, h_mm = g.nx * g.cell_m * 1e3, g.ny * g.cell_m * 1e3
-        cell_w = w_mm * px_per_mm + 150
-        cell_h = h_mm * px_per_mm + 70
-        return int(len(self.panels) * cell_w + 40), int(max(1, len(self.stitched.levels)) * cell_h + 40)
+        across_mm, up_mm = g.ny * g.cell_m * 1e3, g.nx * g.cell_m * 1e3
+        cell_w = across_mm * px_per_mm + 130
+        cell_h = up_mm * px_per_mm + 150
+        return int(max(1, len(self.stitched.levels)) * cell_w + 40), int(len(self.panels) * cell_h + 100)
 
     def paint(self, painter, rect) -> None:
         levels = self.stitched.levels
@@ -66,15 +74,26 @@ class MapPainter:
         if not levels or g.nx == 0:
             painter.drawText(rect, QtCore.Qt.AlignmentFlag.AlignCenter, "No force level was recorded in this session")
             return
-        cols, rows = len(self.panels), len(levels)
-        cw, ch = rect.width() / cols, rect.height() / rows
+        cols, rows = len(levels), len(self.panels)
+        cw = rect.width() / cols
         font = QtGui.QFont("DejaVu Sans")
-        font.setPixelSize(max(8, int(min(ch * 0.075, cw * 0.03))))
-        painter.setFont(font)
-        for r, lm in enumerate(levels):
-            for c, panel in enumerate(self.panels):
-                cell = QtCore.QRectF(rect.left() + c * cw, rect.top() + r * ch, cw, ch)
-                self._panel(painter, cell, lm, panel)
+        font.setPixelSize(max(8, int(min(rect.height() / rows * 0.04, cw * 0.065))))
+        bold = QtGui.QFont(font)
+        bold.setBold(True)
+        line = QtGui.QFontMetricsF(font).height()
+        header = line * 2.4  # each column's level and TSI indentation, said once above its maps
+        ch = (rect.height() - header) / rows
+        painter.setPen(QtGui.QColor("black"))
+        for c, lm in enumerate(levels):
+            left = rect.left() + c * cw
+            painter.setFont(bold)
+            painter.drawText(QtCore.QPointF(left + 4, rect.top() + line), f"{lm.force_N:g} N")
+            painter.setFont(font)
+            if math.isfinite(lm.tsi_indentation_m):
+                painter.drawText(QtCore.QPointF(left + 4, rect.top() + line * 2),
+                                 f"TSI indentation {lm.tsi_indentation_m * 1e3:.2f} mm")
+            for r, panel in enumerate(self.panels):
+                self._panel(painter, QtCore.QRectF(left, rect.top() + header + r * ch, cw, ch), lm, panel)
 
     def _panel(self, painter, cell, lm: LevelMap, panel) -> None:
         field, source, title, unit, scale = panel
@@ -82,30 +101,33 @@ class MapPainter:
         metrics = QtGui.QFontMetricsF(painter.font())
         line = metrics.height()
         painter.setPen(QtGui.QColor("black"))
-        depth = f", TSI indentation {lm.tsi_indentation_m * 1e3:.2f} mm" if math.isfinite(lm.tsi_indentation_m) else ""
-        painter.drawText(QtCore.QPointF(cell.left() + 4, cell.top() + line), f"{lm.force_N:g} N — {title}{depth}")
-        bar_w = max(40.0, metrics.horizontalAdvance("000.0 kPa") + 16)
-        avail = QtCore.QRectF(cell.left() + 4, cell.top() + line * 1.4, cell.width() - bar_w - 12,
-                              cell.height() - line * 2.8)
-        aspect = (g.nx * g.cell_m) / (g.ny * g.cell_m)
+        painter.drawText(QtCore.QPointF(cell.left() + 4, cell.top() + line), title)
+        values = lm.quantity(field)
+        lo, hi = contrast_range(values) if field.endswith("_contrast") else colour_range(values)
+        x_min, x_max, y_min, y_max = (v * 1e3 for v in g.extent_m)
+        # room on the left for the rotated "x (mm)" and tick values of up to three digits; under the map for the
+        # y ticks, "y (mm)" and the colour bar, which lies flat: beside an upright map it would take the width
+        # the map needs on a page of seven columns
+        ticks_w = metrics.horizontalAdvance("000") + 6
+        left_w = line + ticks_w
+        avail = QtCore.QRectF(cell.left() + 4 + left_w, cell.top() + line * 1.4, cell.width() - 16 - left_w,
+                              cell.height() - line * 6.3)
+        aspect = (y_max - y_min) / (x_max - x_min)  # width over height: y across, x up
         w = min(avail.width(), avail.height() * aspect)
         h = w / aspect
         target = QtCore.QRectF(avail.left(), avail.top(), w, h)
-        values = lm.quantity(field)
-        lo, hi = contrast_range(values) if field.endswith("_contrast") else colour_range(values)
         rgb = map_rgb(values, lo, hi)
         image = QtGui.QImage(rgb.data, rgb.shape[1], rgb.shape[0], rgb.strides[0], QtGui.QImage.Format.Format_RGB888)
         painter.drawImage(target, image)
         painter.setPen(QtGui.QPen(QtGui.QColor("black"), 1))
         painter.setBrush(QtCore.Qt.BrushStyle.NoBrush)
         painter.drawRect(target)
-        x_min, x_max, y_min, y_max = g.extent_m
 
         def to_px(x_m: float, y_m: float) -> QtCore.QPointF:
-            return QtCore.QPointF(target.left() + (x_m - x_min) / (x_max - x_min) * w,
-                                  target.bottom() - (y_m - y_min) / (y_max - y_min) * h)
+            return QtCore.QPointF(target.left() + (y_m * 1e3 - y_min) / (y_max - y_min) * w,
+                                  target.bottom() - (x_m * 1e3 - x_min) / (x_max - x_min) * h)
 
-        px_per_m = w / (x_max - x_min)
+        px_per_m = w / (y_max - y_min) * 1e3
         dashed = QtGui.QPen(QtGui.QColor("black"), 1.5, QtCore.Qt.PenStyle.DashLine)
         painter.save()
         painter.setClipRect(target)  # tumours outside the palpated part of the tissue stay off the page
@@ -119,21 +141,56 @@ class MapPainter:
                 painter.setPen(ring)
                 painter.drawEllipse(to_px(t.x_m, t.y_m), 3e-3 * px_per_m, 3e-3 * px_per_m)
         painter.restore()
-        painter.setPen(QtGui.QColor("black"))
-        painter.drawText(QtCore.QPointF(target.left(), target.bottom() + line),
-                         f"x {x_min * 1e3:.0f}–{x_max * 1e3:.0f} mm, y {y_min * 1e3:.0f}–{y_max * 1e3:.0f} mm")
-        self._colour_bar(painter, QtCore.QRectF(target.right() + 8, target.top(), 12, h), lo * scale, hi * scale, unit)
+        self._axes(painter, target, (x_min, x_max), (y_min, y_max), ticks_w)
+        self._colour_bar(painter, QtCore.QRectF(target.left(), target.bottom() + line * 2.6, w, line * 0.7),
+                         lo * scale, hi * scale, unit)
+
+    @staticmethod
+    def _axes(painter, target, x_mm: tuple[float, float], y_mm: tuple[float, float], ticks_w: float) -> None:
+        """Tick values in mm along the map's left edge (x, upwards) and under it (y, to the right), and the
+        axes' names, so a map cut out of the page still says which way is which."""
+        line = QtGui.QFontMetricsF(painter.font()).height()
+        painter.setPen(QtGui.QPen(QtGui.QColor("black"), 1))
+        align = QtCore.Qt.AlignmentFlag
+        # about one tick per three lines of text, so the values never touch
+        for t in _ticks(*x_mm, max(1, int(target.height() / (3 * line)))):
+            at = target.bottom() - (t - x_mm[0]) / (x_mm[1] - x_mm[0]) * target.height()
+            painter.drawLine(QtCore.QLineF(target.left() - 3, at, target.left(), at))
+            painter.drawText(QtCore.QRectF(target.left() - ticks_w, at - line / 2, ticks_w - 4, line),
+                             align.AlignRight | align.AlignVCenter, f"{t:g}")
+        for t in _ticks(*y_mm, max(1, int(target.width() / (3 * line)))):
+            at = target.left() + (t - y_mm[0]) / (y_mm[1] - y_mm[0]) * target.width()
+            painter.drawLine(QtCore.QLineF(at, target.bottom(), at, target.bottom() + 3))
+            painter.drawText(QtCore.QRectF(at - 30, target.bottom() + 3, 60, line), align.AlignHCenter | align.AlignTop,
+                             f"{t:g}")
+        painter.drawText(QtCore.QRectF(target.left(), target.bottom() + 3 + line, target.width(), line),
+                         align.AlignHCenter | align.AlignTop, "y (mm)")
+        painter.save()
+        painter.translate(target.left() - ticks_w - line * 0.2, target.center().y())
+        painter.rotate(-90)
+        painter.drawText(QtCore.QRectF(-target.height() / 2, -line, target.height(), line),
+                         align.AlignHCenter | align.AlignBottom, "x (mm)")
+        painter.restore()
 
     @staticmethod
     def _colour_bar(painter, rect, lo: float, hi: float, unit: str) -> None:
-        strip = np.ascontiguousarray(CONTOUR_LUT[::-1][:, None, :].repeat(4, axis=1))
+        """Lowest on the left; each end's value centred under it (the labels may reach past a narrow map, into
+        the margin beside it)."""
+        strip = np.ascontiguousarray(CONTOUR_LUT[None, :, :].repeat(4, axis=0))
         image = QtGui.QImage(strip.data, strip.shape[1], strip.shape[0], strip.strides[0],
                              QtGui.QImage.Format.Format_RGB888)
         painter.drawImage(rect, image)
         painter.drawRect(rect)
         line = QtGui.QFontMetricsF(painter.font()).height()
-        painter.drawText(QtCore.QPointF(rect.right() + 4, rect.top() + line * 0.7), f"{hi:.1f} {unit}")
-        painter.drawText(QtCore.QPointF(rect.right() + 4, rect.bottom()), f"{lo:.1f}")
+        centred = QtCore.Qt.AlignmentFlag.AlignHCenter | QtCore.Qt.AlignmentFlag.AlignTop
+        for at, text in ((rect.left(), f"{lo:.1f}"), (rect.right(), f"{hi:.1f} {unit}")):
+            painter.drawText(QtCore.QRectF(at - 60, rect.bottom() + 2, 120, line), centred, text)
+
+
+def _ticks(lo: float, hi: float, count: int) -> list[float]:
+    """Round values within [lo, hi], about ``count`` intervals apart."""
+    step = nice_step(hi - lo, count)
+    return [k * step for k in range(math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9) + 1)]
 
 
 def _save_image(image, path: Path) -> None:

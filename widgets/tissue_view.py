@@ -6,10 +6,16 @@ extent is known): palpated areas fill in against the grey of what has not been t
 planned areas numbered and the TSI's footprint drawn where it is now. Double-clicking a point asks to move
 the TSI there (the window decides whether it may).
 
-It is drawn the way the live maps are: y (the TSI's long axis) to the right and x upwards, in mm in the
-tissue frame, so the TSI's footprint and a hot spot look the same here as on the live maps, and the
-phantom's long side runs up the tall dock it lives in. The colour ranges follow the data from 0 as on the
-live maps, with the same floors, so the same colour means the same value on both.
+It is drawn the way the live maps are: y (the TSI's long axis, its 15 elements) to the right and x upwards,
+in mm in the tissue frame, so the TSI's footprint and a hot spot look the same here as on the live maps, the
+jog keys move the footprint the way their arrows point (left/right along y, up/down along x), and the
+phantom's long side runs up the tall dock it lives in. That is the one orientation of every whole-tissue
+map: the reviewer's (:mod:`widgets.review.map_view`), ``stitch -o`` and the report
+(:mod:`widgets.map_painting`) draw x upwards and y to the right too, so a tumour up and to the left here is
+up and to the left there. Drawing x across instead would have kept the exported pages' rows of wide maps,
+but turned the footprint and the jog arrows a quarter turn from the live maps; the report stays readable
+upright, its levels in columns. The colour ranges follow the data from 0 as on the live maps, with the same
+floors, so the same colour means the same value on both.
 """
 
 from __future__ import annotations

@@ -232,5 +232,5 @@ def test_screen_and_exported_images_colour_a_value_alike():
     values[2, 3] = np.nan
     pixels = colour_values(values, (0.0, 100.0))
     live = np.stack([(pixels >> 16) & 0xFF, (pixels >> 8) & 0xFF, pixels & 0xFF], axis=-1).astype(np.uint8)
-    exported = map_rgb(values, 0.0, 100.0)  # (ny, nx) with y upwards
-    np.testing.assert_array_equal(exported, live.transpose(1, 0, 2)[::-1])
+    exported = map_rgb(values, 0.0, 100.0)  # (nx, ny) with x upwards
+    np.testing.assert_array_equal(exported, live[::-1])

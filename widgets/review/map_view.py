@@ -1,10 +1,13 @@
 """A colour map of any rectangular grid in the tissue frame: stitched whole-tissue maps and per-element maps
 whose unit is not a pressure (the indentation, in mm).
 
-x runs to the right and y upwards, in mm, with the real aspect ratio. The colour range is the map's own
-[2nd percentile, maximum] (see :func:`widgets.colormaps.colour_range`), or for a contrast map a range
-symmetric about healthy tissue (:func:`widgets.colormaps.contrast_range`), the same as in the exported
-images, so a spot looks alike on screen and on paper. Cells without a value are drawn in the no-data grey.
+x runs upwards and y to the right, in mm, with the real aspect ratio: the one orientation of every
+whole-tissue map, the console's, the exported images' and the report's (:mod:`widgets.tissue_view` says
+why), so a tumour the surgeon saw up and to the left on the console is up and to the left here. The colour
+range is the map's own [2nd percentile, maximum] (see :func:`widgets.colormaps.colour_range`), or for a
+contrast map a range symmetric about healthy tissue (:func:`widgets.colormaps.contrast_range`), the same as
+in the exported images, so a spot looks alike on screen and on paper. Cells without a value are drawn in
+the no-data grey.
 Markers: white rings (found tumours), dashed dark circles of the true size (a simulated phantom's tumours).
 """
 
@@ -23,14 +26,14 @@ FOUND_RING_MM = 6.0
 class GridMapView(QtWidgets.QWidget):
     """``set_map(values, extent_m)`` with values shaped (nx, ny), first index along x.
 
-    ``x_horizontal=False`` draws x upwards and y to the right, the orientation of the live tactile maps
-    (the TSI's long axis across the screen).
+    ``x_horizontal=True`` draws x to the right and y upwards instead; nothing in the console draws a map that
+    way any more (the reviewer's window still names the default for its per-element map).
 
     Child objectNames: ``title``, ``plot``; graphics items: ``mapImage``, ``foundMarkers``, ``truthMarkers``,
     ``colorBar``.
     """
 
-    def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3, x_horizontal: bool = True,
+    def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3, x_horizontal: bool = False,
                  contrast: bool = False, on_tsi: bool = False, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._unit, self._scale = unit, scale
