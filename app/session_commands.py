@@ -93,10 +93,12 @@ def analysis_params(args) -> AnalysisParams:
                           DepthParams(args.depth_model_error, args.depth_scale_error, args.depth_law_spread))
 
 
-def analyse(session: Session, args, progress: Progress | None = None) -> SessionAnalysis:
+def analyse(session: Session, args, progress: Progress | None = None, steps: Progress | None = None
+            ) -> SessionAnalysis:
     """The session analysed as the options say; raises AnalysisInputError for physics or a reference that
-    cannot be had for it (a cache hit or a finite-element solve of the rebuilt block: seconds when new, which
-    ``progress`` hears about)."""
+    cannot be had for it. ``progress`` hears about the physics (a cache hit or a finite-element solve of the
+    rebuilt block: seconds when new), ``steps`` about the analysis after it (the depth model's solves: tens of
+    seconds when new)."""
     if not len(session.levels):
         # said before any option is tried, and with what the reader found (a truncated file loses its levels)
         why = f"{session.warnings[0].rstrip('.')}; " if session.recovered and session.warnings else ""
@@ -118,7 +120,7 @@ def analyse(session: Session, args, progress: Progress | None = None) -> Session
         except DepthModelError as err:
             raise AnalysisInputError(f"{err} (--no-depth-model analyses without it)") from None
     try:
-        return SessionAnalysis.run(session, analysis_params(args), physics, reference, depth_model)
+        return SessionAnalysis.run(session, analysis_params(args), physics, reference, depth_model, steps)
     except FlatFieldError as err:
         raise AnalysisInputError(f"--reference {args.reference}: {err}") from None
     except StitchError as err:
@@ -214,8 +216,11 @@ def stitch_main(argv: list[str] | None = None) -> int:
         return EXIT_INPUT
     with session:
         try:
-            # the first analysis of a session rebuilds its tissue: tens of seconds that printed nothing
-            analysis = analyse(session, args, progress=TextProgressBar())
+            # the first analysis of a session rebuilds its tissue and solves the depth model's spheres: a
+            # minute or more that printed nothing. The build reports many times a second, drawn every tenth of
+            # one; the analysis's steps are a few hundred, each drawn: a solve is told a moment after the step
+            # that asks for it, and its line then stands for seconds
+            analysis = analyse(session, args, progress=TextProgressBar(), steps=TextProgressBar(interval_s=0.0))
         except AnalysisInputError as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_INPUT

@@ -97,6 +97,9 @@ STRAIN_BINS = 2  # the levels of an area are compared with the model in this man
 # a millimetre too shallow, their intervals short of the truth.
 LEAST_DEPTH_M = 1e-3
 REDUCED_LAW = np.array([1.0])  # the reduced finite-strain model's own law, as the simulated rig's
+# called before each finite-element solve the cache does not hold, with what is solved in words: the analysis's
+# progress, which may raise to stop the analysis there
+Solving = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -172,9 +175,10 @@ SOLVE_VERSION = 1
 
 
 def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
-                      tumour_y_m: float | None = None) -> np.ndarray:
+                      tumour_y_m: float | None = None, solving: Solving | None = None) -> np.ndarray:
     """:func:`_block_solve`, kept in the tissue model's cache: a session analysed again (a study re-analysed
-    with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case."""
+    with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case.
+    ``solving(what)`` is called before a solve the cache does not hold (not for one it loads)."""
     from tissue.mechanics.cache import default_cache_dir
     from tissue.mechanics.model import cached
 
@@ -185,8 +189,13 @@ def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[fl
         if np.shape(arrays["forces"]) != grid.face_shape:
             raise ValueError("inconsistent cache entry")
 
-    return cached(default_cache_dir(), "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24],
-                  lambda: {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m)}, check)["forces"]
+    def solve():
+        if solving is not None:
+            solving("block without a sphere" if inclusion is None else f"sphere {inclusion[0] * 1e3:.1f} mm deep")
+        return {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m)}
+
+    return cached(default_cache_dir(), "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24], solve,
+                  check)["forces"]
 
 
 def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
@@ -526,7 +535,7 @@ class DepthModel:
 
     # ---- what a tumour does to the rest of the face ----
 
-    def signature(self, tumour, levels: np.ndarray, contrast, records: np.ndarray
+    def signature(self, tumour, levels: np.ndarray, contrast, records: np.ndarray, solving: Solving | None = None
                   ) -> tuple[np.ndarray, np.ndarray] | None:
         """(contrast, its uncertainty), each (len(records), rows, cols): what the sphere that best explains
         the tumour (the posterior's mode) does to every element of each of ``records``' faces, solved where
@@ -535,7 +544,8 @@ class DepthModel:
         the near side's by 0.09, which the shifted signature puts at 0), as each record's strain mixes
         its states at rest and compressed (the module docstring), through the sensor's cover; the
         uncertainty is the model's relative error. None when the tumour has no fit; zero, fit or none, for a
-        face beyond ``SIGNATURE_REACH_M``. A finite-element solve of the block per depth and offset, cached."""
+        face beyond ``SIGNATURE_REACH_M``. A finite-element solve of the block per depth and offset, cached;
+        ``solving(what)`` before each one the cache does not hold."""
         if all(abs(float(levels["tsi_position_m"][r][0]) - tumour.x_m) > SIGNATURE_REACH_M for r in records):
             return np.zeros((len(records), *self.shape)), np.zeros((len(records), *self.shape))
         posterior = self._posterior(tumour, levels, contrast, REDUCED_LAW)
@@ -551,12 +561,12 @@ class DepthModel:
             y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
             mix = float(self._mix(np.nan_to_num(np.nanmedian(levels["dL_m"][r]) / h)))
             moved = float(self._moved_m(depth, diameter))
-            out[n] = ((1.0 - mix) * self._solved(h, depth, diameter, ratio, off_x, y_from_edge)
-                      + mix * self._solved(h, moved, diameter, ratio, off_x, y_from_edge))
+            out[n] = ((1.0 - mix) * self._solved(h, depth, diameter, ratio, off_x, y_from_edge, solving)
+                      + mix * self._solved(h, moved, diameter, ratio, off_x, y_from_edge, solving))
         return out, self.model_error * np.abs(out)
 
     def _solved(self, thickness_m: float, depth_m: float, diameter_m: float, ratio: float, offset_x_m: float,
-                tumour_y_m: float) -> np.ndarray:
+                tumour_y_m: float, solving: Solving | None = None) -> np.ndarray:
         """The contrast one sphere makes on a face ``offset_x_m`` from it (face centre minus tumour) whose
         first column's edge lies ``tumour_y_m`` from it across, the layer as wide as the face is long; none
         beyond ``SIGNATURE_REACH_M``."""
@@ -573,17 +583,18 @@ class DepthModel:
             y = min(max(y, a / 2), self.shape[1] * self.pitch_m - a / 2)
             # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
             grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
-            q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y)) / self._elements(
-                self._homogeneous_solve(t, grid))
+            q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving)
+                               ) / self._elements(self._homogeneous_solve(t, grid, solving))
             cache[key] = q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0
         out = _lerp_axis(cache[key], np.arange(len(cache[key])) * 1e-3, np.array([abs(offset_x_m)]), 0)[0]
         return out[::-1] if offset_x_m < 0 else out
 
-    def _homogeneous_solve(self, thickness_m: float, grid: LibraryGrid) -> np.ndarray:
+    def _homogeneous_solve(self, thickness_m: float, grid: LibraryGrid, solving: Solving | None = None
+                           ) -> np.ndarray:
         cache = self._homogeneous
         key = round(thickness_m, 6)
         if key not in cache:
-            cache[key] = _kept_block_solve(grid, thickness_m, None)
+            cache[key] = _kept_block_solve(grid, thickness_m, None, solving=solving)
         return cache[key]
 
 

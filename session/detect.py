@@ -53,6 +53,7 @@ from scipy import ndimage
 from session.flatfield import ACCURACY, MAPS, Contrast
 from session.stitch import level_groups
 from tissue.face import element_offsets_m
+from tissue.mechanics.progress import Progress
 
 SOURCES = MAPS
 _NULL_DRAWS = 20000  # healthy faces simulated to set the threshold: its quantile is good to ~0.1 in z
@@ -325,7 +326,7 @@ Signature = Callable[[Tumour, np.ndarray], "tuple[np.ndarray, np.ndarray] | None
 
 
 def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast, pitch_m: float,
-                   params: DetectParams, signature: Signature) -> list[Tumour]:
+                   params: DetectParams, signature: Signature, progress: Progress | None = None) -> list[Tumour]:
     """The tumours of one map less those a stronger one explains: a stiff sphere under a rigid face moves
     load across the whole face (a shallow one 11 mm from one side of the tissue lowers the near side's
     elements by 0.1 and raises the far side's by 0.07, where the flat field expects homogeneous tissue), and
@@ -335,13 +336,16 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
     of those faces (``signature``: zero where a face lies beyond a sphere's reach), the model's error added
     to its uncertainty. It stays if a spot of it still passes the threshold there, or if a stronger one
     that reaches it has no signature to explain it with. Those that stay are then placed over one another
-    (:func:`_placed_over_each_other`)."""
+    (:func:`_placed_over_each_other`). ``progress(fraction, message)`` before each tumour is tested and
+    placed."""
     limit = threshold(params.false_alarm_per_area, tuple(levels.dtype["pressure_pa"].shape), pitch_m,
                       params.kernel_widths_m)
     offsets = element_offsets_m(*levels.dtype["pressure_pa"].shape, pitch_m)
     said = _Said(signature)
     kept: list[Tumour] = []
-    for t in sorted(tumours, key=lambda t: -t.score):
+    steps = _Steps(progress, len(tumours) * (1 + _placement_sweeps(tumours)))
+    for n, t in enumerate(sorted(tumours, key=lambda t: -t.score)):
+        steps(f"tumour {n + 1} of {len(tumours)}")
         top = [spot for spot in t.spots if spot.force_N == t.levels_N[-1]]
         if not kept:
             kept.append(t)
@@ -362,7 +366,23 @@ def explained_away(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast
                 break
         if survives:
             kept.append(t)
-    return sorted(_placed_over_each_other(kept, levels, contrast, pitch_m, params, said), key=lambda t: (t.x_m, t.y_m))
+    placed = _placed_over_each_other(kept, levels, contrast, pitch_m, params, said, steps)
+    return sorted(placed, key=lambda t: (t.x_m, t.y_m))
+
+
+class _Steps:
+    """A loop's ``progress``: step k of ``total`` told as the fraction k / total, with what it is at; steps
+    a loop leaves out (an early end) are skipped over, never told back."""
+
+    def __init__(self, progress: Progress | None, total: int):
+        self._progress = progress
+        self._total = max(total, 1)
+        self._done = 0
+
+    def __call__(self, message: str) -> None:
+        if self._progress is not None:
+            self._progress(min(self._done / self._total, 1.0), message)
+        self._done += 1
 
 
 class _Said:
@@ -389,8 +409,12 @@ class _Said:
 PLACEMENT_SWEEPS = 2
 
 
+def _placement_sweeps(tumours: list[Tumour]) -> int:
+    return PLACEMENT_SWEEPS if len(tumours) > 1 else 0
+
+
 def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Contrast, pitch_m: float,
-                            params: DetectParams, said: _Said) -> list[Tumour]:
+                            params: DetectParams, said: _Said, steps: _Steps) -> list[Tumour]:
     """Each tumour placed by its own contrast over what the others' best-fitting spheres make of the faces at
     the level that placed it: a large tumour's far field slopes across a weaker one's blob and pulls its peak
     towards it (an 8.5 mm-deep tumour 9 mm from a 12 mm-wide shallow one was placed 3.4 mm off, on the side
@@ -400,8 +424,10 @@ def _placed_over_each_other(kept: list[Tumour], levels: np.ndarray, contrast: Co
     is taken again where it now lies. One that no other reaches stays where detection placed it."""
     kept = list(kept)
     groups = level_groups(levels)
-    for _ in range(PLACEMENT_SWEEPS if len(kept) > 1 else 0):
+    sweeps = _placement_sweeps(kept)
+    for sweep in range(sweeps):
         for n, t in enumerate(kept):
+            steps(f"placing tumour {n + 1} of {len(kept)} (sweep {sweep + 1} of {sweeps})")
             others = kept[:n] + kept[n + 1:]
             records = groups[_placing_spot(t.spots).level_index][1]
             by_others = said(others, list(records))
@@ -449,17 +475,22 @@ DEPTH_SWEEPS = 4
 
 
 def over_each_other(tumours: list[Tumour], levels: np.ndarray, contrast: Contrast, fitted: FittedSignature,
-                    reach_m: float) -> list[Contrast]:
+                    reach_m: float, progress: Progress | None = None) -> list[Contrast]:
     """Each tumour's ``contrast`` over the spheres of the other tumours of its map (:func:`over_the_others`),
     each of those fitted, in sweeps, to its own contrast over the others of the sweep before (the first
-    sweep fits them to ``contrast`` itself)."""
+    sweep fits them to ``contrast`` itself); ``progress(fraction, message)`` before each tumour of a sweep."""
     over = [contrast] * len(tumours)
-    for _ in range(DEPTH_SWEEPS if len(tumours) > 1 else 1):
+    sweeps = DEPTH_SWEEPS if len(tumours) > 1 else 1
+    steps = _Steps(progress, sweeps * len(tumours))
+    for sweep in range(sweeps):
         given = dict(zip(tumours, over))
         # a sphere's fit in this sweep is the same whichever tumour is read over it: solved once
         said = _Said(lambda o, records, given=given: fitted(o, given[o], records))
-        over = [_over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels, contrast,
-                                 said, reach_m) for t in tumours]
+        over = []
+        for n, t in enumerate(tumours):
+            steps(f"tumour {n + 1} of {len(tumours)} over the others (sweep {sweep + 1} of at most {sweeps})")
+            over.append(_over_the_others(t, [o for o in tumours if o.source == t.source and o is not t], levels,
+                                         contrast, said, reach_m))
         if all(np.array_equal(new.contrast, given[t].contrast) for t, new in zip(tumours, over)):
             break
     return over

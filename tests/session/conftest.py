@@ -4,12 +4,16 @@ paper's flat phantom (the first two overlap; tumours under the first and the thi
 The tissue is the Winkler model, named explicitly: it is fast, and what these tests check (recording,
 stitching, detection) must not move when the simulator's default tissue model changes. The finite-element
 physics of the flat field does not describe a Winkler bed, so detection here takes the face's pattern from
-a reference palpation of the same phantom without its tumours, as a lab would."""
+a reference palpation of the same phantom without its tumours, as a lab would.
+
+The depth model's finite-element solves (``solves``) are the test's own: quick, counted, held when it asks."""
 
 from __future__ import annotations
 
+import threading
 import tomllib
 
+import numpy as np
 import pytest
 import tomli_w
 
@@ -17,6 +21,7 @@ from app.config import load_config
 from app.recording import record_simulation
 from hardware.interfaces import TactileConstraints
 from hardware.sim.rig import build_sim_rig
+from session import depth
 from tissue.phantom import PHANTOM_DIR, load_phantom
 from tissue.winkler import WinklerTissue
 
@@ -55,3 +60,30 @@ def recorded(tmp_path_factory):
 def reference_recorded(tmp_path_factory):
     """The same three areas of the same phantom without its tumours: a reference palpation."""
     return _record(tmp_path_factory.mktemp("reference"), "reference", with_tumours=False)[0]
+
+
+class Solves:
+    """The depth model's finite-element solves, in a cache of the test's own: counted as they start, each
+    waiting for :attr:`go` (set at first: none waits) and giving a homogeneous block's forces, which are quick
+    and keep what they feed defined."""
+
+    def __init__(self):
+        self.started = 0
+        self.entered = threading.Event()
+        self.go = threading.Event()
+        self.go.set()
+
+    def __call__(self, grid, thickness_m, inclusion, tumour_y_m=None):
+        self.started += 1
+        self.entered.set()
+        assert self.go.wait(20.0)
+        return np.ones(grid.face_shape)
+
+
+@pytest.fixture
+def solves(tmp_path, monkeypatch):
+    monkeypatch.setenv("PALPATION_CACHE_DIR", str(tmp_path / "cache"))
+    made = Solves()
+    monkeypatch.setattr(depth, "_block_solve", made)
+    yield made
+    made.go.set()  # a failed test never leaves a worker waiting

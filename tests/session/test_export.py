@@ -12,6 +12,7 @@ from PySide6 import QtGui
 from app.session_commands import stitch_main
 from session.reader import open_session
 from session.stitch import StitchParams, stitch_session
+from tests.session.test_model_depth import _reference
 
 
 def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
@@ -74,6 +75,18 @@ def test_every_export(recorded, reference_recorded, tmp_path, capsys, qapp):
             "depth_scale_error", "depth_law_spread")
     assert pytest.approx([params[k] for k in keys]) == [2e-3, 0.001, 0.02, 4e-3, 5e-3, 0.3, 0.1, 0.25]
     assert params["kernel_widths_m"] == pytest.approx([2e-3, 4e-3]) and params["l0_source"] == "element"
+
+
+def test_stitch_tells_each_finite_element_solve_on_the_terminal(recorded, reference_recorded, tmp_path, capsys,
+                                                               monkeypatch, solves):
+    monkeypatch.setenv("COLUMNS", "200")  # each line in full
+    _reference(reference_recorded).save(tmp_path / "reference.json")
+    assert stitch_main([str(recorded[0]), "--physics", "none", "--reference", str(tmp_path / "reference.json")]) == 0
+    lines = capsys.readouterr().err.split("\r")
+    said = [line for line in lines if "% finite-element solve " in line]
+    assert solves.started > 1 and len(said) == solves.started
+    assert "% finite-element solve 1: sphere " in said[0] and "; depth model, stiffness map: " in said[0]
+    assert lines[-1].startswith("[" + "#" * 30 + "] 100% analysed") and lines[-1].endswith("\n")
 
 
 def test_bad_files_and_options_get_one_line_and_exit_code_2(recorded, tmp_path, capsys):

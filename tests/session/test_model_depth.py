@@ -6,7 +6,9 @@ validation study on the continuum model (app/study.py)."""
 
 from __future__ import annotations
 
+import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -49,6 +51,25 @@ def test_the_live_console_gets_the_same_model_as_the_reviewer_of_its_session(rec
             b = offline.estimate(t, session.levels, analysis.contrasts["stiffness"])
             assert np.isfinite(a).all() and a == b
     assert live.cover is not None and live.table_height_m == offline.table_height_m
+
+
+def test_an_analysis_tells_each_finite_element_solve_and_never_goes_back(recorded, reference_recorded, solves):
+    reference = _reference(reference_recorded)
+    told = []
+    with open_session(recorded[0]) as session:
+        analysis = SessionAnalysis.run(session, reference=reference, depth_model=DepthModel.for_session(session),
+                                       progress=lambda fraction, message: told.append((fraction, message)))
+        solved = solves.started
+        # the same spheres, from the cache now, and nothing told
+        again = SessionAnalysis.run(session, reference=reference, depth_model=DepthModel.for_session(session))
+    fractions = [f for f, _ in told]
+    assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] == 1.0
+    said = [m for _, m in told if "finite-element solve" in m]
+    assert solved > 1 and len(said) == solved and solves.started == solved
+    assert said[0].startswith("finite-element solve 1: sphere ") and "; depth model, stiffness map: " in said[0]
+    assert [int(re.search(r"solve (\d+):", m)[1]) for m in said] == list(range(1, solved + 1))
+    assert (json.dumps([t.to_json() for t in analysis.tumours])
+            == json.dumps([t.to_json() for t in again.tumours]))
 
 
 def _widths(analysis) -> list[float]:

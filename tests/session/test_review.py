@@ -29,8 +29,9 @@ from widgets.tactile_map import TactileMapWidget
 
 @pytest.fixture(autouse=True)
 def _analysis_worker_ended():
-    """A closed reviewer stops waiting at once, and its worker ends after the step it is in (the analysis itself
-    cannot be interrupted): each test ends once it has, before the suite checks that nothing is left running."""
+    """A closed reviewer stops waiting at once, and its worker ends after the step it is in (a physics factory
+    that reports no progress runs to its end): each test ends once it has, before the suite checks that nothing
+    is left running."""
     yield
     for thread in threading.enumerate():
         if thread.name == THREAD_NAME:

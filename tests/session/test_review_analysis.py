@@ -10,6 +10,8 @@ import pytest
 from PySide6 import QtCore, QtWidgets
 
 from session.analysis import SessionAnalysis
+from session.depth import DepthModel
+from tests.session.test_model_depth import _reference
 from tests.session.test_review import _analysis_worker_ended, child  # noqa: F401 - the fixture, for this module
 from widgets.review import ReviewWindow, analysis_worker
 from widgets.review.analysis_worker import THREAD_NAME
@@ -42,9 +44,9 @@ def slow():
     physics.release.set()  # a failed test never leaves the worker waiting
 
 
-def reviewer(qtbot, tmp_path, physics) -> ReviewWindow:
+def reviewer(qtbot, tmp_path, physics, depth_model=None) -> ReviewWindow:
     settings = QtCore.QSettings(str(tmp_path / "review.ini"), QtCore.QSettings.Format.IniFormat)
-    w = ReviewWindow(settings=settings, physics=physics)
+    w = ReviewWindow(settings=settings, physics=physics, depth_model=depth_model)
     qtbot.addWidget(w)
     w.resize(1200, 800)
     w.show()
@@ -113,7 +115,7 @@ def test_a_reviewer_who_went_elsewhere_meanwhile_is_left_there(qtbot, tmp_path, 
 
 
 def test_a_result_for_an_older_request_is_never_shown(qtbot, tmp_path, recorded, monkeypatch):
-    """The analysis itself cannot be interrupted: one overtaken while it runs still ends, and is dropped."""
+    """An analysis overtaken before it tells any progress (here, before it starts) is dropped."""
     entered, release = threading.Event(), threading.Event()
     run = SessionAnalysis.run.__func__
 
@@ -213,3 +215,41 @@ def test_closing_while_a_build_that_cannot_be_interrupted_runs_returns_at_once(q
     slow.release.set()
     qtbot.waitUntil(lambda: not worker_threads(), timeout=WAIT_MS)
     assert shown == [] and w.analysis is None
+
+
+def depth_reviewer(qtbot, tmp_path, reference_recorded) -> ReviewWindow:
+    """A reviewer with the depth model and, for the Winkler recording to show its tumours, a reference palpation."""
+    w = reviewer(qtbot, tmp_path, {}, DepthModel.for_session)
+    _reference(reference_recorded).save(tmp_path / "reference.json")
+    assert w.set_reference(tmp_path / "reference.json")
+    return w
+
+
+def test_the_reviewer_tells_each_finite_element_solve_of_the_depth_model(qtbot, tmp_path, recorded,
+                                                                         reference_recorded, solves):
+    solves.go.clear()
+    w = depth_reviewer(qtbot, tmp_path, reference_recorded)
+    assert w.open_file(recorded[0])
+    qtbot.waitUntil(solves.entered.is_set, timeout=WAIT_MS)
+    state = child(w, QtWidgets.QLabel, "analysisState")
+    progress = child(w, QtWidgets.QProgressBar, "analysisProgress")
+    qtbot.waitUntil(lambda: state.text().startswith("Analysing… (finite-element solve 1: sphere "), timeout=WAIT_MS)
+    assert " mm deep; depth model, stiffness map: " in state.text()
+    assert progress.maximum() == 100 and 0 < progress.value() < 100
+    with qtbot.waitSignal(w.analysis_done, timeout=WAIT_MS):
+        solves.go.set()
+    assert w.analysis.tumours and solves.started > 1
+
+
+def test_closing_while_the_depth_model_solves_stops_the_analysis_at_its_next_solve(qtbot, tmp_path, recorded,
+                                                                                  reference_recorded, solves):
+    solves.go.clear()
+    w = depth_reviewer(qtbot, tmp_path, reference_recorded)
+    shown = counted(w.analysis_done)
+    assert w.open_file(recorded[0])
+    qtbot.waitUntil(solves.entered.is_set, timeout=WAIT_MS)
+    w.close()
+    assert not w.analysing
+    solves.go.set()  # the solve under way ends; the analysis needs more, and starts none
+    qtbot.waitUntil(lambda: not worker_threads(), timeout=WAIT_MS)
+    assert solves.started == 1 and shown == [] and w.analysis is None

@@ -4,13 +4,16 @@ session is analysed), the depth model and :meth:`SessionAnalysis.run`, in a work
 The worker touches no Qt object: the window hands it requests and reads their progress and results on its own
 timer, so a window closed or deleted while an analysis runs leaves nothing the worker could reach. Requests are
 served newest first: a request that has not started when a newer one comes is dropped, and the one running is
-told it is superseded (it stops at its next step) and, if the newer one does not need the physics it is
-building, cancelled (the build stops at its next progress report). What cannot be interrupted (a factory that
-reports no progress, the analysis itself) runs to its end; its result then carries an old generation, and the
-window drops it.
+told it is superseded and, if the newer one does not need the physics it is building, cancelled. A cancelled
+build stops at its next progress report; a superseded analysis stops at its next one (each record of the flat
+field's pattern, each tumour the depth model takes in turn, each of its finite-element solves: a couple of
+seconds apart at most), what the depth model has solved kept for the next request. What cannot be interrupted
+(a factory that reports no progress) runs to its end; its result then carries an old generation, and the window
+drops it.
 
 The thread exists only while there are requests: it ends when none is left, so a closed window leaves no
-thread behind once its last step is over.
+thread behind once the step it was in is over. Nothing joins it: the interpreter waits for it at exit (it is
+not a daemon, which could die half-way through writing the tissue model's cache), for that step alone.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ THREAD_NAME = "review-analysis"
 
 
 class Cancelled(Exception):
-    """A physics build stopped because no request needs it any more."""
+    """A physics build or an analysis stopped because no request needs it any more."""
 
 
 class SessionModels:
@@ -133,12 +136,18 @@ class AnalysisRequest:
             return None
         self.progress = ("tumours and maps", None)
         session = models.session
+
+        def analysing(fraction: float, message: str) -> None:
+            if self.superseded.is_set():  # its result would be dropped
+                raise Cancelled
+            self.progress = (message, fraction)
+
         try:
             try:
-                analysis = SessionAnalysis.run(session, self.params, physics, self.reference, depth_model)
+                analysis = SessionAnalysis.run(session, self.params, physics, self.reference, depth_model, analysing)
             except FlatFieldError as err:
                 problems.append(f"Reference palpation not used: {err}.")
-                analysis = SessionAnalysis.run(session, self.params, physics, None, depth_model)
+                analysis = SessionAnalysis.run(session, self.params, physics, None, depth_model, analysing)
         except StitchError as err:  # the cell size is too fine for this session's extent
             return Outcome(not_applied=str(err))
         return Outcome(analysis, [p for p in problems if p])
