@@ -24,21 +24,18 @@ FOUND_RING_MM = 6.0
 
 
 class GridMapView(QtWidgets.QWidget):
-    """``set_map(values, extent_m)`` with values shaped (nx, ny), first index along x.
-
-    ``x_horizontal=True`` draws x to the right and y upwards instead; nothing in the console draws a map that
-    way any more (the reviewer's window still names the default for its per-element map).
+    """``set_map(values, extent_m)`` with values shaped (nx, ny), first index along x, drawn x upwards and y
+    to the right, as every map of the console is.
 
     Child objectNames: ``title``, ``plot``; graphics items: ``mapImage``, ``foundMarkers``, ``truthMarkers``,
     ``colorBar``.
     """
 
-    def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3, x_horizontal: bool = False,
+    def __init__(self, title: str, unit: str = "kPa", scale: float = 1e-3,
                  contrast: bool = False, on_tsi: bool = False, parent: QtWidgets.QWidget | None = None):
         super().__init__(parent)
         self._unit, self._scale = unit, scale
         self._range = contrast_range if contrast else colour_range
-        self._x_horizontal = x_horizontal
         self._values = np.full((1, 1), np.nan)
         self._title = QtWidgets.QLabel(title, objectName="title")
         font = self._title.font()
@@ -53,8 +50,7 @@ class GridMapView(QtWidgets.QWidget):
         item = self._plot.getPlotItem()
         # ``on_tsi``: coordinates from the TSI's centre, named as the live tactile maps name them
         y_name = "y on the TSI (mm)" if on_tsi else "y (mm)"
-        bottom, left = ("x (mm)", y_name) if x_horizontal else (y_name, "x (mm)")
-        self._view = map_view(self._plot, bottom, left)
+        self._view = map_view(self._plot, y_name, "x (mm)")
         self._no_data, self._image = add_map_layers(self._view, "mapImage")
         self._truth = pg.ScatterPlotItem(pxMode=False, brush=None,
                                          pen=pg.mkPen((20, 20, 20), width=2, style=QtCore.Qt.PenStyle.DashLine))
@@ -105,11 +101,9 @@ class GridMapView(QtWidgets.QWidget):
             raise ValueError(f"{self._title.text()}: empty extent {extent_m}")
         self._values = values
         lo, hi = self._range(values)
-        # row-major images put their first index upwards: (ny, nx) draws x to the right
-        shown = values.T if self._x_horizontal else values
-        image = np.ascontiguousarray(shown * self._scale, dtype=np.float32)
-        rect = (QtCore.QRectF(x0, y0, x1 - x0, y1 - y0) if self._x_horizontal
-                else QtCore.QRectF(y0, x0, y1 - y0, x1 - x0))
+        # row-major images put their first index upwards: (nx, ny) draws x upwards
+        image = np.ascontiguousarray(values * self._scale, dtype=np.float32)
+        rect = QtCore.QRectF(y0, x0, y1 - y0, x1 - x0)
         self._image.setImage(image, autoLevels=False, levels=(lo * self._scale, hi * self._scale), rect=rect)
         self._no_data.setRect(rect)
         self._bar.setLevels((lo * self._scale, hi * self._scale), update_items=False)
@@ -118,7 +112,7 @@ class GridMapView(QtWidgets.QWidget):
     def set_markers(self, found_xy_m: list[tuple[float, float]], truth: list[tuple[float, float, float]]) -> None:
         """Found tumours at (x, y); true tumours at (x, y, diameter), all in m."""
         def screen(points):
-            return [(x * 1e3, y * 1e3) if self._x_horizontal else (y * 1e3, x * 1e3) for x, y, *_ in points]
+            return [(y * 1e3, x * 1e3) for x, y, *_ in points]
 
         found = screen(found_xy_m)
         self._found.setData([p[0] for p in found], [p[1] for p in found], size=FOUND_RING_MM, symbol="o")

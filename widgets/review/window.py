@@ -175,8 +175,7 @@ class ReviewWindow(QtWidgets.QMainWindow):
         self._pressure_map.setObjectName("pressureMap")
         self._stiffness_map = TactileMapWidget("Stiffness (Eq. 1)")
         self._stiffness_map.setObjectName("stiffnessMap")
-        self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, x_horizontal=False,
-                                            on_tsi=True)
+        self._indentation_map = GridMapView("Indentation dL per element", unit="mm", scale=1e3, on_tsi=True)
         self._indentation_map.setObjectName("indentationMap")
         for record_map in (self._pressure_map, self._stiffness_map):
             record_map.findChild(QtWidgets.QCheckBox, "contrastView").clicked.connect(self._contrast_was_chosen)
