@@ -16,6 +16,9 @@ session's own measurements, never from a phantom file, so a real session gets th
   pressing a flat surface (``measured_surface=False``, the face's own pattern), the stiffness map with the
   surface the level's onsets measured, which Eq. 1 then relates to each element's own indentation and
   thickness;
+* its sides are free, or held by the frictionless walls of a mould, whichever leaves the session's areas
+  reading most alike (:func:`supported_sides`): a session does not record which, and each reads as a tumour
+  where the other is true (held, a tumour 4 mm from the side was pulled 2 mm towards it);
 * on the measured surface the tissue is pressed at finite strain: each element's force takes the reduced
   finite-strain model's factor (:class:`tissue.mechanics.model.FiniteStrain`, solved once for a
   homogeneous neo-Hookean block of the rebuilt extent and thickness) at its own nominal strain (the
@@ -67,6 +70,11 @@ EXTENT_SLACK_M = 1e-3
 SINK_IN_ERROR = 0.25
 # The onsets' own scatter (0.1-0.3 mm) is smoothed out of the block's surface, but not a bump's step.
 SMOOTHING_M = 0.5e-3
+# A block's lateral faces are free (tissue on a table, as the paper's phantoms were palpated) or held by the
+# frictionless walls of the mould it was cast in, and nothing a session records says which. Held, its ends and
+# sides read stiffer than free ones: the validation study's realistic world holds 3 phantoms in 10 in their
+# mould, and there a tumour 4 mm from a held side, under free sides, read 2.1 mm towards it (s20261125-0009).
+SIDES = ("free", "mould")
 # The rebuilt block's surface compliance is dense: 8,000 nodes (about 120 x 65 mm of palpated extent) is
 # 0.5 GB, and memory and solve time grow with its square, so a larger extent is refused up front.
 MAX_BLOCK_NODES = 8000
@@ -193,9 +201,15 @@ class HomogeneousTissue(ABC):
     @classmethod
     def reconstructed(cls, session: Session, cache_dir=None, progress: Progress | None = None,
                       ends_known: bool = True) -> BlockResponse:
-        """The block rebuilt from ``session`` (raises ValueError if no element ever touched); without
-        ``ends_known``, a session of part of a tissue, where it ends not known."""
-        return BlockResponse.from_levels(session.levels, session, cache_dir, progress, ends_known=ends_known)
+        """The block rebuilt from ``session`` (raises ValueError if no element ever touched), its sides free or
+        held in a mould as the session's own tissue says (:func:`supported_sides`); without ``ends_known``, a
+        session of part of a tissue, where it ends not known, and its sides taken to be free."""
+        if not ends_known:
+            return BlockResponse.from_levels(session.levels, session, cache_dir, progress, ends_known=False)
+        candidates = [BlockResponse.from_levels(session.levels, session, cache_dir,
+                                                stage(progress, k / len(SIDES), (k + 1) / len(SIDES)), sides=sides)
+                      for k, sides in enumerate(SIDES)]
+        return supported_sides(session.levels, candidates)
 
     @classmethod
     def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
@@ -224,12 +238,18 @@ class BlockResponse(HomogeneousTissue):
     def __init__(self, block: SurfaceBlock, origin_xy_m: tuple[float, float], compliance: np.ndarray,
                  nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int],
                  finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0,
-                 ends_known: bool = True):
+                 ends_known: bool = True, sides: str = "free"):
+        if sides not in SIDES:
+            raise ValueError(f"sides must be one of {SIDES}, got {sides!r}")
         ends = "" if ends_known else "; where the tissue ends not known"
-        super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}: the palpated extent "
-                         f"and the measured surface, finite elements{_finite(finite_strain)}{ends})",
+        held = "" if sides == "free" else ", its sides held in a mould"
+        super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}{held}: the palpated "
+                         f"extent and the measured surface, finite elements{_finite(finite_strain)}{ends})",
                          cover_spread_m, pitch_m, shape)
         self.ends_known = ends_known
+        self.sides = sides
+        # the last pattern made of each kind: choosing the sides makes the one the analysis asks for next
+        self._made: dict[bool, tuple[bytes, Pattern]] = {}
         self.block = block
         self.origin_xy_m = origin_xy_m
         self.finite_strain = finite_strain
@@ -242,22 +262,24 @@ class BlockResponse(HomogeneousTissue):
     def from_levels(cls, levels: np.ndarray, described: Session | SessionInfo, cache_dir=None,
                     progress: Progress | None = None,
                     extent_m: tuple[float, float, float, float] | None = None,
-                    ends_known: bool = True) -> BlockResponse:
+                    ends_known: bool = True, sides: str = "free") -> BlockResponse:
         """The block rebuilt from ``levels`` of the session ``described`` (recorded, or being recorded: the
         live maps ask for the areas palpated so far), reaching over ``extent_m`` too where the tissue is known
         to: the live maps' last area is not at the tissue's end, and modelled as if it were, its far edge
         rows read as a tumour (the paper's flat phantom, 8 areas of 9: a spot at x = 64 mm, z 5.9). Without
         ``ends_known`` the block's ends are not taken to be the tissue's (:meth:`_extent_modes`): the live
-        maps of a session whose tissue no plan describes, whose last area is where the operator has got to."""
+        maps of a session whose tissue no plan describes, whose last area is where the operator has got to.
+        ``sides``: the block's lateral faces free, or held by a mould's frictionless walls (:data:`SIDES`)."""
         if not len(levels):
             raise ValueError("the session recorded no level: there is no palpated area to model")
         shape = tuple(levels.dtype["pressure_pa"].shape)
         table = float(described.calibration.get("table_height_m", 0.0))
         pitch = float(described.calibration["pitch_m"])
         block, origin = measured_surface(levels, pitch, table, extent_m)
-        compliance, nodes = _block_compliance(block, cache_dir, stage(progress, 0.0, 0.6))
+        compliance, nodes = _block_compliance(block, cache_dir, stage(progress, 0.0, 0.6), sides)
         return cls(block, origin, compliance, nodes, _cover_of(described), pitch, shape,
-                   _block_stiffening(block, shape, pitch, cache_dir, stage(progress, 0.6, 1.0)), table, ends_known)
+                   _block_stiffening(block, shape, pitch, cache_dir, stage(progress, 0.6, 1.0), sides), table,
+                   ends_known, sides)
 
     def on_surface_of(self, levels: np.ndarray, extent_m: tuple[float, float, float, float] | None = None
                       ) -> BlockResponse:
@@ -271,13 +293,20 @@ class BlockResponse(HomogeneousTissue):
                                                                                    atol=GRID_M / 10):
             raise ValueError(f"the areas reach beyond the {self.block.name} whose finite elements are known")
         tissue = BlockResponse(block, origin, self._compliance, self._nodes, self.cover_spread_m, self.pitch_m,
-                               self.shape, self.finite_strain, self.table_height_m, self.ends_known)
+                               self.shape, self.finite_strain, self.table_height_m, self.ends_known, self.sides)
         if block.content_hash() != self.block.content_hash():
             tissue.description = tissue.description[:-1] + f"; its finite elements meshed on the {self.block.name})"
         return tissue
 
     def pattern(self, levels: np.ndarray, measured_surface: bool = True, progress: Progress | None = None
                 ) -> Pattern:
+        asked = levels.tobytes()
+        made = self._made.get(measured_surface)
+        if made is None or made[0] != asked:
+            made = self._made[measured_surface] = (asked, self._pattern(levels, measured_surface, progress))
+        return made[1]
+
+    def _pattern(self, levels: np.ndarray, measured_surface: bool, progress: Progress | None) -> Pattern:
         shape = levels["pressure_pa"].shape
         done = _records_done(progress, len(levels))
         if not measured_surface:
@@ -463,6 +492,30 @@ class BlockResponse(HomogeneousTissue):
         return surfaces, sink_in
 
 
+def supported_sides(levels: np.ndarray, candidates: list[BlockResponse]) -> BlockResponse:
+    """Of ``candidates``, blocks alike but for their sides, the one under which the areas of ``levels`` read
+    most like homogeneous tissue: the least scatter of their stiffness contrast, in the mean over the force
+    levels of its robust standard deviation (the flat field's own estimate of healthy tissue's scatter). A
+    tumour raises it alike under every candidate; the sides' pattern is at every area's ends of the face and at
+    the tissue's ends. Its description says which was chosen, and the scatter under each."""
+    from session.flatfield import contrast
+    from session.stitch import level_groups
+
+    scatter = []
+    for tissue in candidates:
+        pattern = tissue.pattern(levels)
+        seen = contrast(levels, "stiffness", pattern.share, pattern.sigma, share_modes=pattern.modes).contrast
+        scatter.append(float(np.mean([1.4826 * np.median(np.abs(c[np.isfinite(c)]))
+                                      for c in (seen[records] for _, records in level_groups(levels))
+                                      if np.isfinite(c).any()])))
+    best = int(np.argmin(scatter))
+    chosen = candidates[best]
+    others = ", ".join(f"{c.sides} {s:.0%}" for k, (c, s) in enumerate(zip(candidates, scatter)) if k != best)
+    chosen.description = (chosen.description[:-1] + f"; sides {chosen.sides}: the areas' stiffness contrast "
+                                                    f"scatters {scatter[best]:.0%} so, {others})")
+    return chosen
+
+
 def _records_done(progress: Progress | None, records: int) -> Callable[[int], None]:
     def done(k: int) -> None:
         if progress is not None:
@@ -631,23 +684,25 @@ class PhantomResponse(HomogeneousTissue):
         return Pattern(out, np.where(np.isfinite(out), 0.0, np.nan), np.zeros((len(out), 0) + out.shape[1:]))
 
 
-def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None
+def _block_compliance(block: SurfaceBlock, cache_dir=None, progress: Progress | None = None, sides: str = "free"
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(C, node (x, y)): the block's surface compliance and where its top nodes are
-    (:func:`tissue.mechanics.model.surface_compliance`), computed once per block and cached."""
+    (:func:`tissue.mechanics.model.surface_compliance`), its sides free or in a mould, computed once per block
+    and cached."""
     from tissue.mechanics.cache import default_cache_dir
     from tissue.mechanics.model import cached, surface_compliance
 
     def solve():
-        compliance, nodes = surface_compliance(block, progress=progress)
+        compliance, nodes = surface_compliance(block, progress=progress, sides=sides)
         return {"compliance": compliance, "nodes": nodes}
 
     def check(arrays):
         if np.shape(arrays["compliance"]) != (len(arrays["nodes"]),) * 2:
             raise ValueError("inconsistent cache entry")
 
-    arrays = cached(cache_dir if cache_dir is not None else default_cache_dir(), f"block-{block.content_hash()}",
-                    solve, check)
+    held = "" if sides == "free" else f"{sides}-"
+    arrays = cached(cache_dir if cache_dir is not None else default_cache_dir(),
+                    f"block-{held}{block.content_hash()}", solve, check)
     return arrays["compliance"], arrays["nodes"]
 
 
@@ -663,10 +718,10 @@ def _finite(finite_strain: FiniteStrain | None) -> str:
 
 
 def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None,
-                      progress: Progress | None = None) -> FiniteStrain:
+                      progress: Progress | None = None, sides: str = "free") -> FiniteStrain:
     """The finite-strain factor of the face pressed into a homogeneous neo-Hookean block of the rebuilt
-    extent and thickness (free sides: the tissue ends where the palpation ends), cached. A real tissue's law
-    is not known to the analysis: neo-Hookean is the phantom's default (docs/phantoms.md)."""
+    extent and thickness (the tissue ends where the palpation ends), its sides free or in a mould, cached. A
+    real tissue's law is not known to the analysis: neo-Hookean is the phantom's default (docs/phantoms.md)."""
     from hardware.interfaces import TactileConstraints
     from tissue.mechanics.model import homogeneous_stiffening
     from tissue.phantom import Phantom
@@ -674,7 +729,7 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
     # The factor is a ratio of forces in the same material, so the modulus drops out; a soft silicone's
     # keeps the solver in the range it is tested in.
     homogeneous = Phantom("rebuilt", "the rebuilt block, homogeneous", block.length_m, block.width_m,
-                          block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio)
+                          block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio, sides=sides)
     sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
     return homogeneous_stiffening(homogeneous, sensor, cache_dir, progress)
 

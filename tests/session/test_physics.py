@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from session.physics import BlockResponse, _block_compliance, measured_surface
+from session.physics import SIDES, BlockResponse, _block_compliance, measured_surface, supported_sides
 from session.synthetic import level_record
 from tests.session.test_stitch import levels_of
 from tissue.mechanics.model import FiniteStrain
@@ -94,13 +94,13 @@ def test_the_sink_in_the_rebuild_adds_is_itself_an_uncertainty_shared_between_el
     levels = ridge_levels((0.019, 0.017))
     block, origin = measured_surface(levels, PITCH, 0.0)
     compliance, nodes = _block_compliance(block, tmp_path)
-    response = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
-    _, sink_in = response._surfaces(levels)
+    _, sink_in = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))._surfaces(levels)
     assert sink_in[0][:, 5].min() > 1e-3 and np.all(sink_in[0][:, RIDGE] == 0.0)
     sure = {}
     for error in (0.0, session.physics.SINK_IN_ERROR):
         monkeypatch.setattr(session.physics, "SINK_IN_ERROR", error)
-        sure[error] = response.pattern(levels).sigma
+        # a block of its own each time: a block keeps the last pattern it made of the same levels
+        sure[error] = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15)).pattern(levels).sigma
     unsure = sure[session.physics.SINK_IN_ERROR] ** 2 - sure[0.0] ** 2
     beside, next_over = unsure[:, 1:3, 4], unsure[:, 1:3, 3]
     # at least a twentieth more spread beside the ridge, more the more was added (the nearer the ridge),
@@ -165,3 +165,31 @@ def test_a_block_solved_before_answers_another_surface_of_its_extent_and_refuses
     elsewhere["tsi_position_m"][:, 0] += 0.004
     with pytest.raises(ValueError, match="reach beyond the 8 x 30 mm block"):
         solved.on_surface_of(elsewhere)
+
+
+@pytest.mark.parametrize("truth", SIDES)
+def test_the_rebuilt_block_takes_the_sides_under_which_the_session_reads_most_alike(tmp_path, truth):
+    # Five flat areas along a 40 mm block, pressed at two levels, read through an array whose elements' gains
+    # spread by 5 %: the areas' tissue is homogeneous, its sides held in a mould or free.
+    records = []
+    for k, z in enumerate((0.019, 0.018)):
+        for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
+            levels = levels_of(level_record(region, k, 1.0 + k, (x, 0.015), thickness_m=BASE_M))
+            levels["tsi_position_m"][0, 2] = z
+            levels["onset_height_m"] = BASE_M
+            levels["dL_m"] = BASE_M - z
+            records.append(levels)
+    levels = np.concatenate(records)
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    blocks = [BlockResponse(block, origin, *_block_compliance(block, tmp_path, sides=sides), 0.0, PITCH, (4, 15),
+                            sides=sides) for sides in SIDES]
+    free, held = (b.pattern(levels).share for b in blocks)
+    # held by the mould's walls, the end areas' rows over the block's ends carry more than free ones
+    assert held[0, 0].mean() > 1.1 * free[0, 0].mean() and held[4, 3].mean() > 1.1 * free[4, 3].mean()
+    rng = np.random.default_rng(7)
+    gain = np.exp(0.05 * rng.standard_normal((4, 15)))
+    levels["pressure_pa"] = 2e3 * (1.0 + levels["level"])[:, None, None] * (held if truth == "mould" else free) * gain
+    chosen = supported_sides(levels, blocks)
+    assert chosen.sides == truth
+    assert f"sides {truth}: the areas' stiffness contrast scatters" in chosen.description
+    assert ("held in a mould" in chosen.description) == (truth == "mould")
