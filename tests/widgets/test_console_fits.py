@@ -54,9 +54,13 @@ def test_the_console_fits_the_screen_and_looks_as_it_did(qtbot, tmp_path, size, 
     qtbot.waitUntil(lambda: side.widget().width() == side.viewport().width())
 
     _all_in_view(window, width, height)
+    _looks_as_it_did(window, f"console_{width}x{height}")
 
+
+def _looks_as_it_did(window, name: str) -> None:
+    """The window's picture matches the reference ``golden/NAME.png`` (remade with PALPATION_UPDATE_GOLDEN)."""
     picture = _pixels(window.grab().toImage())
-    reference = GOLDEN / f"console_{width}x{height}.png"
+    reference = GOLDEN / f"{name}.png"
     if os.environ.get("PALPATION_UPDATE_GOLDEN"):
         window.grab().save(str(reference))
     stored = _pixels(QtGui.QImage(str(reference)))
@@ -83,19 +87,30 @@ def laid_out_once(qapp, tmp_path_factory):
 
 def _all_in_view(window, width: int, height: int, state: str = "idle", names=ESSENTIAL) -> None:
     """Every part an operator needs lies within the window and within whatever it sits in (a dock, a scroll
-    area's viewport): not scrolled away, not cut off."""
+    area's viewport): not scrolled away, not cut off, nor a label or button squeezed below what its text needs."""
     inside = window.rect()
     for name in names:
         widget = window.findChild(QtWidgets.QWidget, name)
         assert widget is not None and widget.isVisible(), name
         box = QtCore.QRect(widget.mapTo(window, QtCore.QPoint(0, 0)), widget.size())
         assert inside.contains(box), f"{name} at {box} is cut off by the {width} x {height} window ({state})"
+        assert widget.height() >= _needs(widget), (
+            f"{name} is squeezed to {widget.height()} px of the {_needs(widget)} its text needs ({state})")
         child = widget
         while child is not window:
             parent = child.parentWidget()
             assert parent.rect().contains(QtCore.QRect(widget.mapTo(parent, QtCore.QPoint(0, 0)), widget.size())), (
                 f"{name} is cut off by {type(parent).__name__} {parent.objectName()!r} ({state})")
             child = parent
+
+
+def _needs(widget: QtWidgets.QWidget) -> int:
+    """The height a label's or a button's text needs at its width (0: any other widget may be resized)."""
+    if isinstance(widget, QtWidgets.QLabel) and widget.wordWrap():
+        return widget.heightForWidth(widget.width())
+    if isinstance(widget, (QtWidgets.QLabel, QtWidgets.QAbstractButton)):
+        return widget.sizeHint().height()
+    return 0
 
 
 def _laptop_console(qtbot, tmp_path, size) -> tuple[LiveWindow, FakeController]:
@@ -112,9 +127,10 @@ def _laptop_console(qtbot, tmp_path, size) -> tuple[LiveWindow, FakeController]:
 
 
 @pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
-def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_path, size):
+def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_path, size, laid_out_once):
     """issue 50: at 1280 x 800 the depth figure was half cut during REGION DONE, at 1366 x 768 hidden, and a
-    fault banner scrolled it away, then F_d and F_ts; the fit test looked at the idle console only."""
+    fault banner scrolled it away, then F_d and F_ts; the fit test looked at the idle console only. Each state
+    also looks as it did."""
     width, height = size
     window, controller = _laptop_console(qtbot, tmp_path, size)
     states = {
@@ -133,17 +149,20 @@ def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_p
         push(controller, tick, events=events)
         banner = window.findChild(QtWidgets.QFrame, "faultBanner")
         qtbot.waitUntil(lambda: banner.isVisible() == (state == "fault"))  # noqa: B023 - waited on at once
-        # and the layout that follows it: the side panel's scroll bar comes and goes with its contents' height,
-        # and the contents take the width it leaves an event later
+        # and the layout that follows it (the texts' new sizes laid out: a two-line health chip, grabbed before,
+        # was squeezed to one): the side panel's scroll bar comes and goes with its contents' height, and the
+        # contents take the width it leaves an event later
+        QtWidgets.QApplication.processEvents()
         side = window.findChild(QtWidgets.QScrollArea, "sideScroll")
         qtbot.waitUntil(lambda: side.widget().width() == side.viewport().width())  # noqa: B023 - waited on at once
         _all_in_view(window, width, height, state)
         depth = window.findChild(QtWidgets.QLabel, "indentation").text()
         assert depth.endswith("mm") or (state == "seeking contact" and depth == "no contact"), state
+        _looks_as_it_did(window, f"console_{width}x{height}_{state.replace(' ', '_')}")
 
 
 @pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
-def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_path, size):
+def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_path, size, laid_out_once):
     """issue 50: nothing told the surgeon the findings were on their way; the progress and then the findings
     show under the region-done flag, beside the depth and the stop button."""
     width, height = size
@@ -168,3 +187,4 @@ def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_pa
     physics.asked = physics.asked[-1:]
     physics.answer()
     in_view("findings told", "Area 4: tumour at x 36")
+    _looks_as_it_did(window, f"console_{width}x{height}_findings")
