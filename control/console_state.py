@@ -160,7 +160,10 @@ class ConsoleState:
         if kind == 0:
             return None
         message = self._fault_texts.get(kind)
-        return kind, f"FAULT: {fault_name(kind)}" + (f" — {message}" if message else "")
+        name = fault_name(kind)
+        if message and message.lower().startswith(name.lower()):
+            return kind, f"FAULT: {message}"  # the loop's words already name it: "force ceiling — Force ceiling: …"
+        return kind, f"FAULT: {name}" + (f" — {message}" if message else "")
 
     def operator_owns_z(self) -> bool:
         """Between areas, nothing faulted: the operator may move the TSI, tare and change settings."""

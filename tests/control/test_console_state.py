@@ -34,6 +34,9 @@ def test_the_banner_says_the_loops_explanation_and_a_stopped_controller_outranks
     assert state.fault() == (FaultKind.SENSOR_STALE, "FAULT: sensor stale")  # its event was not seen
     state.on_event(FaultRaised(1.0, FaultKind.SENSOR_STALE, "no frame for 80 ms"))
     assert state.fault() == (FaultKind.SENSOR_STALE, "FAULT: sensor stale — no frame for 80 ms")
+    # the loop's words naming the fault themselves are not preceded by its name again
+    state.on_event(FaultRaised(1.5, FaultKind.SENSOR_STALE, "Sensor stale: no frame for 80 ms"))
+    assert state.fault() == (FaultKind.SENSOR_STALE, "FAULT: Sensor stale: no frame for 80 ms")
     state.on_event(FaultCleared(2.0, FaultKind.SENSOR_STALE))
     state.on_tick(tick())
     assert state.fault() is None
