@@ -217,10 +217,14 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
     import argparse
 
     from app.session_commands import analyse
+    from session.detect import threshold
     from session.reader import open_session
 
     with open_session(session_path) as session:
         analysis = analyse(session, argparse.Namespace(**options))
+        detector = analysis.params.detect
+        limit = threshold(detector.false_alarm_per_area, tuple(session.levels.dtype["pressure_pa"].shape),
+                          session.pitch_m, detector.kernel_widths_m)
         conditions = _conditions_of(session)
         tissue_pa = float(phantom["phantom"]["youngs_modulus_pa"])
         truths = [{"x_m": t["x_m"], "y_m": t["y_m"], "depth_m": t["depth_m"], "diameter_m": t["diameter_m"],
@@ -235,6 +239,7 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
             "tumours": [t.to_json() for t in analysis.tumours], "flat_field": analysis.flat_field,
             "conditions": conditions, "world": "realistic" if conditions else "ideal",
             "calibrated": session.array_calibration is not None,
+            "detection_threshold_z": limit,  # what each match's evidence_z is compared with
         }
 
 

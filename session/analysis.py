@@ -108,8 +108,8 @@ class SessionAnalysis:
                                   {CONTRAST_MAPS[s]: contrasts[s].contrast for s in SOURCES} if len(levels) else None)
         analysis = cls(session, params, stitched, contrasts, tumours, contrasts["stiffness"].description)
         if _truth_known(session):
-            analysis.matches, analysis.false_positives = match_ground_truth(tumours, session.ground_truth, levels,
-                                                                            session.pitch_m)
+            analysis.matches, analysis.false_positives = match_ground_truth(
+                tumours, session.ground_truth, levels, session.pitch_m, contrasts=contrasts, params=params.detect)
         told.part("stitch")(1.0, "analysed")
         return analysis
 

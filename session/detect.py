@@ -746,19 +746,45 @@ class TruthMatch:
     depth_low_m: float = math.nan
     depth_high_m: float = math.nan
     score: float = math.nan
+    # the detector's statistic where the tumour truly is (:func:`evidence_at`): its signal over the error of
+    # healthy tissue there, found or not; NaN when not asked for or never under the face
+    evidence_z: float = math.nan
 
 
 MATCH_RADIUS_M = 2e-3
 
 
+def evidence_at(levels: np.ndarray, contrast: Contrast, pitch_m: float, params: DetectParams, x_m: float,
+                y_m: float) -> float:
+    """The detector's statistic (:func:`evidence`, the largest over its blob widths) at the element over
+    (``x_m``, ``y_m``), the largest over every record that had the point under an element; NaN if none did.
+    What a tumour there showed above healthy tissue's error, whether or not it was reported: compared with
+    :func:`threshold` it says whether the physics let it be seen at the study's false-alarm rate (a healthy
+    point's largest over a session's ten or so records is about 1.5)."""
+    rows, cols = levels.dtype["pressure_pa"].shape
+    offsets = element_offsets_m(rows, cols, pitch_m)
+    best = -math.inf
+    for r in np.flatnonzero(_footprint_holds(levels, np.arange(len(levels)), x_m, y_m, pitch_m)):
+        tsi = levels["tsi_position_m"][r]
+        i, j = np.unravel_index(np.argmin(np.hypot(tsi[0] + offsets[..., 0] - x_m, tsi[1] + offsets[..., 1] - y_m)),
+                                (rows, cols))
+        z = evidence(contrast.contrast[r], contrast.sigma[r], pitch_m, params.kernel_widths_m,
+                     None if contrast.modes is None else contrast.modes[r])[i, j]
+        if np.isfinite(z):
+            best = max(best, float(z))
+    return best if np.isfinite(best) else math.nan
+
+
 def match_ground_truth(tumours: list[Tumour], ground_truth: list[dict], levels: np.ndarray | None = None,
-                       pitch_m: float | None = None, match_radius_m: float = MATCH_RADIUS_M
+                       pitch_m: float | None = None, match_radius_m: float = MATCH_RADIUS_M,
+                       contrasts: dict[str, Contrast] | None = None, params: DetectParams | None = None
                        ) -> tuple[list[TruthMatch], dict[str, int]]:
     """Pair each true tumour with the nearest detection (per map) within ``match_radius_m``.
 
     Returns the matches and, per map, the number of detections that matched no true tumour (false
     positives). With ``levels`` and ``pitch_m``, a true tumour no area was palpated over is marked
-    ``palpated=False``.
+    ``palpated=False``; with the maps' ``contrasts`` and the detector's ``params`` too, each match carries
+    the detector's statistic where the tumour is (:func:`evidence_at`).
     """
     matches: list[TruthMatch] = []
     false_positives: dict[str, int] = {}
@@ -779,12 +805,15 @@ def match_ground_truth(tumours: list[Tumour], ground_truth: list[dict], levels: 
             depth = float(truth.get("depth_m", math.nan))
             # a tumour centred in the gap between two areas lies under both
             palpated = groups is None or _highest_level_at(levels, groups, tx, ty, pitch_m, pitch_m / 2) is not None
+            seen = (evidence_at(levels, contrasts[source], pitch_m, params, tx, ty)
+                    if contrasts is not None and source in contrasts and params is not None else math.nan)
             if i not in assigned:
-                matches.append(TruthMatch(i, tx, ty, depth, source, False, math.nan, math.nan, math.nan, -1, palpated))
+                matches.append(TruthMatch(i, tx, ty, depth, source, False, math.nan, math.nan, math.nan, -1, palpated,
+                                          evidence_z=seen))
                 continue
             k, d = assigned[i]
             t = tumours[k]
             matches.append(TruthMatch(i, tx, ty, depth, source, True, d, t.depth_m, t.first_level_N, k, palpated,
-                                      t.depth_model_m, t.depth_low_m, t.depth_high_m, t.score))
+                                      t.depth_model_m, t.depth_low_m, t.depth_high_m, t.score, seen))
         false_positives[source] = len(found) - len(used)
     return matches, false_positives

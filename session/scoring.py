@@ -53,6 +53,18 @@ def _depth_figures(found: list[dict]) -> dict[str, float | None]:
             "depth_interval_coverage_pct": _pct(sum(covered), len(covered))}
 
 
+def _signal_figures(truths: list[tuple[dict, dict]]) -> dict[str, float | None]:
+    """What the physics let the detector see of the (case, match) ``truths``: the median of its statistic
+    where each tumour truly is (its signal over healthy tissue's error), and how many of them stood over the
+    case's detection threshold there. A band whose tumours mostly do not cannot be reached at that false-alarm
+    rate, whatever the analysis does with what it saw; one whose tumours do, and are not found, loses them in
+    the analysis. None where the cases do not record it."""
+    seen = [(m["evidence_z"], r["detection_threshold_z"]) for r, m in truths
+            if _finite(m.get("evidence_z")) and _finite(r.get("detection_threshold_z"))]
+    return {"signal_z_median": _median([z for z, _ in seen]),
+            "signal_over_threshold_pct": _pct(sum(z >= limit for z, limit in seen), len(seen))}
+
+
 def _false_positives_per_phantom(results: list[dict], source: str) -> float | None:
     return sum(r["false_positives"].get(source, 0) for r in results) / len(results) if results else None
 
@@ -67,11 +79,12 @@ def score(results: list[dict], source: str = "stiffness") -> dict[str, Any]:
     found = [(r, m, t) for r, m, t in truths if m["found"]]
     bands = {}
     for lo, hi in DEPTH_BANDS_M:
-        inside = [m for _, m, t in truths if lo <= t["depth_m"] < hi]
+        inside = [(r, m) for r, m, t in truths if lo <= t["depth_m"] < hi]
         bands[f"{lo * 1e3:.0f}-{hi * 1e3:.0f}mm"] = {
-            "tumours": len(inside), "found": sum(1 for m in inside if m["found"]),
-            "sensitivity_pct": _pct(sum(1 for m in inside if m["found"]), len(inside)),
-            **_depth_figures([m for m in inside if m["found"]])}
+            "tumours": len(inside), "found": sum(1 for _, m in inside if m["found"]),
+            "sensitivity_pct": _pct(sum(1 for _, m in inside if m["found"]), len(inside)),
+            **_depth_figures([m for _, m in inside if m["found"]]),
+            **_signal_figures(inside)}
     surfaces = {}
     for kind in SURFACES:
         phantoms = [r for r in drawn if r["surface"] == kind]
@@ -168,11 +181,13 @@ def print_summary(figures: dict[str, dict], wall_s: float, out=None) -> None:
     out = out or sys.stdout
     for source, f in figures.items():
         print(f"\n{source} map: {f['tumours']} tumours in {f['phantoms']} phantoms", file=out)
-        print("  depth band   tumours  found  sensitivity   depth error (bias), rule / model   covered", file=out)
+        print("  depth band   tumours  found  sensitivity   depth error (bias), rule / model   covered   "
+              "signal z  over threshold", file=out)
         for band, b in f["by_depth"].items():
             print(f"  {band:>10} {b['tumours']:>9} {b['found']:>6}  {_fmt(b['sensitivity_pct'], ' %'):>10}   "
                   f"{_depth_cell(b, 'rule'):>15} / {_depth_cell(b, 'model'):<15} "
-                  f"{_fmt(b['depth_interval_coverage_pct'], ' %'):>7}", file=out)
+                  f"{_fmt(b['depth_interval_coverage_pct'], ' %'):>7}   {_fmt(b.get('signal_z_median')):>8}  "
+                  f"{_fmt(b.get('signal_over_threshold_pct'), ' %'):>14}", file=out)
         print("  surface     phantoms tumours  found  sensitivity   false positives per phantom", file=out)
         for kind, s in f["by_surface"].items():
             print(f"  {kind:>10} {s['phantoms']:>9} {s['tumours']:>7} {s['found']:>6}  "

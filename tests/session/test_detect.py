@@ -18,6 +18,7 @@ from session.detect import (
     Tumour,
     detect,
     evidence,
+    evidence_at,
     evidence_by_width,
     match_ground_truth,
     significant_peaks,
@@ -113,6 +114,24 @@ def test_bad_parameters_are_named(kwargs, message):
 def test_unknown_map_is_refused():
     with pytest.raises(ValueError, match="unknown map 'colour'"):
         contrast(strip_session([1.0] * 4), "colour")
+
+
+def test_the_detectors_statistic_where_a_tumour_is_says_whether_it_stood_over_healthy_tissue():
+    params = DetectParams()
+    limit = threshold(params.false_alarm_per_area, (4, 15), PITCH, params.kernel_widths_m)
+    strong, faint = strip_session([1.6] * 4), strip_session([1.015] * 4)
+    at = {name: evidence_at(levels, contrast(levels, "stiffness"), PITCH, params, *TUMOUR)
+          for name, levels in (("strong", strong), ("faint", faint))}
+    assert at["strong"] > 2 * limit and at["faint"] < limit  # 1.5 % over a 2 % element scatter is not seen
+    healthy = evidence_at(strong, contrast(strong, "stiffness"), PITCH, params, 0.040, 0.015)
+    assert healthy < limit
+    assert math.isnan(evidence_at(strong, contrast(strong, "stiffness"), PITCH, params, 0.080, 0.015))  # never under
+    # and each match carries it, found or not
+    matches, _ = match_ground_truth(found_in(faint), [{"x_m": TUMOUR[0], "y_m": TUMOUR[1], "depth_m": 9e-3}], faint,
+                                    PITCH, contrasts={"stiffness": contrast(faint, "stiffness")}, params=params)
+    stiffness = next(m for m in matches if m.source == "stiffness")
+    assert not stiffness.found and stiffness.evidence_z == pytest.approx(at["faint"])
+    assert math.isnan(next(m for m in matches if m.source == "force").evidence_z)  # its contrast was not given
 
 
 def test_ground_truth_is_matched_within_2_mm_and_the_rest_are_false_positives():

@@ -35,7 +35,9 @@ def test_scoring_counts_what_was_palpated_bands_by_depth_and_keeps_the_paper_apa
                                       "depth_err_model_median_mm": pytest.approx(0.2),
                                       "depth_bias_rule_median_mm": pytest.approx(0.5),
                                       "depth_bias_model_median_mm": pytest.approx(0.2),
-                                      "depth_interval_coverage_pct": 100.0}
+                                      "depth_interval_coverage_pct": 100.0,
+                                      # cases from before the detector's statistic at the truth was recorded
+                                      "signal_z_median": None, "signal_over_threshold_pct": None}
     assert f["by_depth"]["3-6mm"]["depth_bias_rule_median_mm"] == pytest.approx(-3.0)  # the rule reads shallow
     assert f["by_depth"]["3-6mm"]["depth_interval_coverage_pct"] == 0.0
     assert f["by_depth"]["9-12mm"]["sensitivity_pct"] == 0.0
@@ -74,3 +76,18 @@ def test_each_case_says_where_it_missed_and_where_it_raised_a_false_positive():
     assert case_failures({"name": "d", "error": "PhantomError: bad"}) == []
     result.update(regions=11, regions_aborted={"Level timed out": 1, "Pressure ceiling exceeded": 7})
     assert case_failures(result)[0] == "8 of 11 areas aborted (pressure ceiling exceeded 7, level timed out 1)"
+
+
+def test_each_band_says_how_many_of_its_tumours_stood_over_the_detectors_threshold_where_they_are():
+    truth = {"x_m": 0.0, "y_m": 0.0, "diameter_m": 8e-3, "modulus_ratio": 5.0}
+    results = [_result(name, [{**truth, "depth_m": d} for d in depths],
+                       [{**_match(i, d, z > 4.0), "evidence_z": z} for i, (d, z) in enumerate(zip(depths, zs))],
+                       fps=0) | {"detection_threshold_z": 4.0}
+               for name, depths, zs in (("a", (4e-3, 10e-3), (9.0, 1.2)), ("b", (5e-3, 11e-3), (3.0, 4.5)))]
+    bands = score(results)["by_depth"]
+    # 3-6 mm: one tumour stood at 9, the other at 3, under the threshold: found or not, the physics decided
+    assert bands["3-6mm"]["signal_z_median"] == pytest.approx(6.0)
+    assert bands["3-6mm"]["signal_over_threshold_pct"] == 50.0
+    assert bands["9-12mm"]["signal_z_median"] == pytest.approx(2.85)
+    assert bands["9-12mm"]["signal_over_threshold_pct"] == 50.0
+    assert bands["0-3mm"]["signal_z_median"] is None and bands["0-3mm"]["signal_over_threshold_pct"] is None
