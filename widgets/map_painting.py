@@ -219,18 +219,48 @@ def render_maps_png(path: str | Path, analysis: SessionAnalysis, px_per_mm: floa
 def _draw_table(painter, left: float, top: float, width: float, rows: list[list[str]]) -> float:
     if not rows:
         return top
-    line = QtGui.QFontMetricsF(painter.font()).height() * 1.25
-    col_w = width / len(rows[0])
-    bold = QtGui.QFont(painter.font())
-    bold.setBold(True)
     normal = QtGui.QFont(painter.font())
+    bold = QtGui.QFont(normal)
+    bold.setBold(True)
+    line = QtGui.QFontMetricsF(normal).height() * 1.25
+    widths, header_lines = table_columns(rows, normal, bold, width)
+    flags = QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop
+    wrap = int(flags) | int(QtCore.Qt.TextFlag.TextWordWrap)
+    y = top
     for r, row in enumerate(rows):
         painter.setFont(bold if r == 0 else normal)
+        height = line * (header_lines if r == 0 else 1)
+        x = left
         for c, text in enumerate(row):
-            painter.drawText(QtCore.QRectF(left + c * col_w, top + r * line, col_w - 4, line),
-                             QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignVCenter, text)
+            painter.drawText(QtCore.QRectF(x, y, widths[c] - TABLE_GAP_PX, height), wrap, text)
+            x += widths[c]
+        y += height
     painter.setFont(normal)
-    return top + len(rows) * line
+    return y
+
+
+TABLE_GAP_PX = 6  # between a column's text and the next column
+
+
+def table_columns(rows: list[list[str]], normal: QtGui.QFont, bold: QtGui.QFont, width: float
+                  ) -> tuple[list[float], int]:
+    """(each column's width, the header row's lines) of a table ``width`` wide: each column as wide as its
+    widest cell, the header (``rows[0]``, bold) wrapping onto a second line at its spaces where it needs more
+    than that, and what is left shared out. Equal columns clipped the report's headers and its model depths
+    ("depth, model (m", "2.3 [1.1, 3.")). A table too wide even so is shrunk evenly."""
+    body, head = QtGui.QFontMetricsF(normal), QtGui.QFontMetricsF(bold)
+    natural = []
+    for c in range(len(rows[0])):
+        cells = max((body.horizontalAdvance(row[c]) for row in rows[1:]), default=0.0)
+        word = max(head.horizontalAdvance(w) for w in rows[0][c].split() or [""])
+        natural.append(max(cells, word) + TABLE_GAP_PX)
+    total = sum(natural)
+    if total > width:
+        widths = [w * width / total for w in natural]
+    else:
+        widths = [w + (width - total) / len(natural) for w in natural]
+    header_lines = 2 if any(head.horizontalAdvance(text) > w - TABLE_GAP_PX for text, w in zip(rows[0], widths)) else 1
+    return widths, header_lines
 
 
 def write_report(path: str | Path, analysis: SessionAnalysis) -> None:
@@ -276,7 +306,7 @@ def write_report(path: str | Path, analysis: SessionAnalysis) -> None:
             bounds = painter.boundingRect(rect, int(QtCore.Qt.TextFlag.TextWordWrap), text)
             painter.drawText(rect, int(QtCore.Qt.TextFlag.TextWordWrap), text)
             y += bounds.height() + line * 0.2
-        tables_h = (len(table) + len(truth) + 3) * line * 1.25
+        tables_h = (len(table) + len(truth) + 5) * line * 1.25  # the headers may take two lines each
         maps_h = max(height * 0.2, height - margin - y - tables_h - line)
         MapPainter(stitched, tumours, session.ground_truth).paint(painter, QtCore.QRectF(margin, y, usable, maps_h))
         painter.setFont(body)

@@ -123,3 +123,24 @@ def test_the_exported_maps_draw_x_upwards_and_y_to_the_right(qapp, tmp_path, wri
     path = tmp_path / "maps.png"
     write(path, _analysis())
     _assert_top_left(_spot_in_map(QtGui.QImage(str(path)), CONTOUR_LUT[0], CONTOUR_LUT[-1]))
+
+
+def test_the_reports_tables_give_every_cell_the_width_its_text_needs(qapp):
+    # equal columns clipped the headers ("depth, model (m") and the model depths ("2.3 [1.1, 3.")
+    from widgets.map_painting import TABLE_GAP_PX, table_columns
+
+    normal = QtGui.QFont("DejaVu Sans")
+    normal.setPixelSize(14)
+    bold = QtGui.QFont(normal)
+    bold.setBold(True)
+    rows = [["true tumour", "x, y (mm)", "depth (mm)", "map", "found", "error (mm)", "depth, rule (mm)",
+             "depth, model (mm)", "first level (N)"],
+            ["1", "12.0, 15.0", "2.0", "stiffness", "not palpated", "0.1", "1.69", "10.5 [8.2, 12.0]", "1"]]
+    width = 1116.0  # the report's table on an A4 page at 150 dpi
+    widths, header_lines = table_columns(rows, normal, bold, width)
+    assert sum(widths) == pytest.approx(width)
+    body, head = QtGui.QFontMetricsF(normal), QtGui.QFontMetricsF(bold)
+    for c, w in enumerate(widths):
+        assert body.horizontalAdvance(rows[1][c]) <= w - TABLE_GAP_PX + 1e-6, rows[1][c]
+        assert all(head.horizontalAdvance(word) <= w - TABLE_GAP_PX + 1e-6 for word in rows[0][c].split())
+    assert header_lines in (1, 2)
