@@ -17,8 +17,8 @@ session's own measurements, never from a phantom file, so a real session gets th
   surface the level's onsets measured, which Eq. 1 then relates to each element's own indentation and
   thickness;
 * its sides are free, or held by the frictionless walls of a mould, whichever leaves the session's areas
-  reading most alike (:func:`supported_sides`): a session does not record which, and each reads as a tumour
-  where the other is true (held, a tumour 4 mm from the side was pulled 2 mm towards it);
+  reading most alike (:func:`supported_sides`): a session does not record which, and the wrong one misplaces
+  what lies near a side (held sides taken for free pulled a tumour 4 mm from the side 2 mm towards it);
 * on the measured surface the tissue is pressed at finite strain: each element's force takes the reduced
   finite-strain model's factor (:class:`tissue.mechanics.model.FiniteStrain`, solved once for a
   homogeneous neo-Hookean block of the rebuilt extent and thickness) at its own nominal strain (the
@@ -48,6 +48,7 @@ import numpy as np
 from session.info import SessionInfo
 from session.reader import Session
 from tissue.face import COVER_SPREAD_M, cover_operators, cover_weight, element_offsets_m
+from tissue.mechanics.finite_strain import SIDES
 from tissue.mechanics.progress import stage
 
 if TYPE_CHECKING:
@@ -74,7 +75,7 @@ SMOOTHING_M = 0.5e-3
 # frictionless walls of the mould it was cast in, and nothing a session records says which. Held, its ends and
 # sides read stiffer than free ones: the validation study's realistic world holds 3 phantoms in 10 in their
 # mould, and there a tumour 4 mm from a held side, under free sides, read 2.1 mm towards it (s20261125-0009).
-SIDES = ("free", "mould")
+# The choices are the continuum model's own (tissue.mechanics.finite_strain.SIDES).
 # The rebuilt block's surface compliance is dense: 8,000 nodes (about 120 x 65 mm of palpated extent) is
 # 0.5 GB, and memory and solve time grow with its square, so a larger extent is refused up front.
 MAX_BLOCK_NODES = 8000
