@@ -420,10 +420,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         session_dock = self._dock("Session recording", "sessionDock", self._session_panel, bottom)
         self._findings = FindingsPanel()
         self._findings.table.move_requested.connect(self._move_to)
-        findings_dock = self._dock("Findings", "findingsDock", self._findings, left)
+        self._findings_dock = self._dock("Findings", "findingsDock", self._findings, left)
 
         self.tabifyDockWidget(jog_dock, settings_dock)
-        self.tabifyDockWidget(jog_dock, findings_dock)
+        self.tabifyDockWidget(jog_dock, self._findings_dock)
         jog_dock.raise_()
         self.splitDockWidget(history_dock, messages_dock, QtCore.Qt.Orientation.Horizontal)
         self.tabifyDockWidget(messages_dock, health_dock)
@@ -942,6 +942,10 @@ class LiveWindow(QtWidgets.QMainWindow):
         self._told += told
         self._tissue.set_told([t for _, t in self._told])
         self._findings.table.set_findings(self._told)
+        if told:
+            # a tumour told: its row (position, both depths, double-click to go there) comes into view; the jog
+            # and autopilot tab is a click away, and STOP stays in view whatever is raised
+            self._findings_dock.raise_()
 
     def _tell_later_findings(self) -> None:
         """Tumours that areas already told of show only now (the areas beside them palpated since, or the

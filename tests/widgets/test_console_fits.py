@@ -176,8 +176,15 @@ def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_pa
     physics.progress.emit(12, 0.4, "the face's contact on record 5 of 12")
     shown = window.findChild(QtWidgets.QLabel, "regionFindings")
 
+    side = window.findChild(QtWidgets.QScrollArea, "sideScroll")
+    labels = [w for w in (window.findChild(QtWidgets.QWidget, n) for n in ESSENTIAL) if _needs(w)]
+
     def in_view(state: str, text: str) -> None:
         QtWidgets.QApplication.processEvents()
+        # laid out: the side panel's width settled, and the texts given the height they need (the findings
+        # table raised lays the window out again, and the flag read 40 px of its 48 in between)
+        qtbot.waitUntil(lambda: side.widget().width() == side.viewport().width()
+                        and all(w.height() >= _needs(w) for w in labels))
         # (a long findings text, then a two-line flag, pushed F_ts out of view at 1366 x 768)
         _all_in_view(window, width, height, state, ESSENTIAL + ("regionFindings",))
         assert shown.text().startswith(text), state
@@ -187,4 +194,8 @@ def test_findings_being_computed_and_told_stay_in_view_on_a_laptop(qtbot, tmp_pa
     physics.asked = physics.asked[-1:]
     physics.answer()
     in_view("findings told", "Area 4: tumour at x 36")
+    # the table of what was told comes into view with it (it stayed behind the jog and autopilot tab)
+    table = window.findChild(QtWidgets.QTableWidget, "findingsTable")
+    assert table.isVisible() and table.rowCount() >= 1
+    _all_in_view(window, width, height, "findings told", ("findingsTable",))
     _looks_as_it_did(window, f"console_{width}x{height}_findings")
