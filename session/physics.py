@@ -499,15 +499,15 @@ def supported_sides(levels: np.ndarray, candidates: list[BlockResponse]) -> Bloc
     levels of its robust standard deviation (the flat field's own estimate of healthy tissue's scatter). A
     tumour raises it alike under every candidate; the sides' pattern is at every area's ends of the face and at
     the tissue's ends. Its description says which was chosen, and the scatter under each."""
-    from session.flatfield import contrast
+    from session.flatfield import _robust_spread, contrast
     from session.stitch import level_groups
 
     scatter = []
     for tissue in candidates:
         pattern = tissue.pattern(levels)
         seen = contrast(levels, "stiffness", pattern.share, pattern.sigma, share_modes=pattern.modes).contrast
-        scatter.append(float(np.mean([1.4826 * np.median(np.abs(c[np.isfinite(c)]))
-                                      for c in (seen[records] for _, records in level_groups(levels))
+        scatter.append(float(np.mean([_robust_spread(c, 0.0) for c in (seen[records] for _, records in
+                                                                         level_groups(levels))
                                       if np.isfinite(c).any()])))
     best = int(np.argmin(scatter))
     chosen = candidates[best]
