@@ -7,6 +7,15 @@ loop approaches and ramps the force under force control), wait for the loop to r
 (or a fault, or the phase falling back to APPROACH after an abort), switch ON, rise to travel height and
 go on to the next area. After the last area it returns home and reports :attr:`finished`.
 
+An area whose seek ended without touching anything (the loop aborted it from SEEK_CONTACT: no tissue within
+the blind seek's depth) is tried once more, from lower down: the face brought level with the highest point
+the camera shows under it where it now is. The camera samples the surface every 0.5 mm and the tissue
+touches the face at its mesh's nodes, so the end of a ridge under the face's last few tenths of a
+millimetre set an approach height the seek could not reach down from (a held-out study phantom,
+s48002-0000). Once only: a second seek that touches nothing means the camera and the array disagree, which
+going lower does not settle. A seek that starts there is as safe as one that starts on the tissue, which
+the blind seek's depth allows for (control.safety.blind_seek_depth_m).
+
 Positions are the hand's, in the master's frame, which the loop's default mapping (scale 1) carries into
 the tissue frame up to its clutch offset; they are sampled at ``rate_hz`` on the world's clock, each
 reading with its sequence number and instant. Every move is a
@@ -89,6 +98,8 @@ class ScriptedOperator(SimDevice, MasterDevice):
         self._camera_offset_m: Vec3 = (0.0, 0.0, 0.0)  # TSI seen minus hand, at the last look
         self._resolved_s: float | None = None
         self._engaged = False
+        self._touched = False  # the area being awaited got past SEEK_CONTACT
+        self._retried: set[int] = set()  # areas tried again after a seek that touched nothing
         self._faulted = False  # the loop's newest feedback says a fault is latched
         self._cleared_s = -math.inf  # when the latest fault was seen cleared
         self._last_t = -math.inf
@@ -161,6 +172,7 @@ class ScriptedOperator(SimDevice, MasterDevice):
         if step.kind == "await":
             self._resolved_s = None
             self._engaged = False
+            self._touched = False
         elif step.kind == "move":
             self._start_move(step, t0)
 
@@ -232,6 +244,8 @@ class ScriptedOperator(SimDevice, MasterDevice):
             return
         if fb.phase in _ENGAGED:
             self._engaged = True
+        if fb.phase == Phase.SETTLING:
+            self._touched = True  # the seek found the tissue
         if fb.faulted:
             result = "fault"
         elif self._engaged and fb.region_done:
@@ -241,4 +255,25 @@ class ScriptedOperator(SimDevice, MasterDevice):
         else:
             return
         # never before a reading already given out, so the script's clock only moves forwards
-        self._conclude(result, max(fb.t_s, self._last_t))
+        t = max(fb.t_s, self._last_t)
+        self._conclude(result, t)
+        if result == "aborted" and not self._touched and self.region_index not in self._retried:
+            self._try_again_lower(t)
+
+    def _try_again_lower(self, t: float) -> None:
+        """After the area's closing dwell, the area once more from the highest surface point the camera
+        shows under the TSI where it now is (the module docstring)."""
+        self._retried.add(self.region_index)
+        await_step = self._steps[self._index]
+        tsi = self.world.state_at(t)[0]
+        x, y = await_step.target_m[0], await_step.target_m[1]
+        z = self.world.phantom.highest_surface_m(tsi[0], tsi[1], self._sensor.size_m)
+        if not z < await_step.target_m[2]:
+            return
+        s, i = self.settings, self.region_index
+        again = [_Step("move", (x, y, z), 0.0, True, i, look=True),
+                 _Step("dwell", (x, y, z), s.dwell_above_s, True, i),
+                 _Step("await", (x, y, z), s.region_timeout_s, False, i),
+                 _Step("dwell", (x, y, z), s.dwell_after_s, False, i)]
+        after = self._index + 2  # the await, then its closing dwell
+        self._steps[after:after] = again

@@ -25,9 +25,11 @@ class TimetableLoop:
     fault is cleared 0.3 s after it latched, re-clutching every axis, as clearing one does.
     """
 
-    def __init__(self, world, ending="done", ramp_s=0.5, delay_ticks=3, press_m=0.008):
+    def __init__(self, world, ending="done", ramp_s=0.5, delay_ticks=3, press_m=0.008, untouched=()):
         self.robot = world.robot
         self.ending, self.ramp_s, self.delay, self.press_m = ending, ramp_s, delay_ticks, press_m
+        self.untouched = set(untouched)  # the switch-offs (counted from 0) whose seek touches nothing
+        self.switch_offs = 0
         self.phase, self.region_done, self.faulted = Phase.APPROACH, False, False
         self.offset = np.zeros(3)
         self._switch = True
@@ -47,13 +49,20 @@ class TimetableLoop:
             self._off_since = now
             self.region_done, self.faulted = False, False
             self.phase = Phase.SEEK_CONTACT
+            self._seek_only = self.switch_offs in self.untouched
+            self.switch_offs += 1
         elif self._ticks_since_edge == self.delay and self.phase != Phase.HOLD:
             self.phase = Phase.APPROACH
         reference = hand + self.offset
         if self._off_since is not None:
             t = now - self._off_since
             reference[2] -= self.press_m * min(1.0, t / self.ramp_s)
-            if 0.1 <= t < self.ramp_s:
+            if self._seek_only:
+                if t >= self.ramp_s and self.phase == Phase.SEEK_CONTACT:
+                    self.phase = Phase.RETRACT  # no tissue within the seek's depth: aborted
+                elif t >= self.ramp_s + 0.1 and self.phase == Phase.RETRACT:
+                    self.phase = Phase.APPROACH
+            elif 0.1 <= t < self.ramp_s:
                 self.phase = Phase.SETTLING
             elif t >= self.ramp_s and self.phase == Phase.SETTLING:
                 if self.ending == "done":
@@ -155,6 +164,25 @@ def test_an_area_that_ends_without_done_is_left_and_the_next_one_palpated(ending
     assert [o.result for o in op.outcomes] == [ending] * 3
     sz = np.array([s.sz_switch for s in states])
     assert np.count_nonzero(sz[:-1] & ~sz[1:]) == 3
+
+
+def test_an_area_whose_seek_touched_nothing_is_tried_once_more_from_the_highest_point_under_the_tsi():
+    """The second area's seek touches nothing, twice: it is tried once more, switched off with the face level
+    with the tissue (25 mm) instead of 1.5 mm above it, and then left; an area aborted after touching the
+    tissue is not tried again."""
+    op = make_operator(short_phantom())
+    loop = TimetableLoop(op.world, untouched={1, 2})
+    states, tsi = drive(op, loop)
+    assert op.finished
+    assert [(o.index, o.result) for o in op.outcomes] == [(0, "done"), (1, "aborted"), (1, "aborted"), (2, "done")]
+    sz = np.array([s.sz_switch for s in states])
+    offs = np.flatnonzero(sz[:-1] & ~sz[1:]) + 1
+    regions = op.regions
+    np.testing.assert_allclose(tsi[offs, :2], [regions[0], regions[1], regions[1], regions[2]], atol=1e-6)
+    assert tsi[offs, 2] == pytest.approx([0.0265, 0.0265, 0.025, 0.0265], abs=1e-5)
+    op = make_operator(short_phantom())
+    drive(op, TimetableLoop(op.world, ending="aborted"))
+    assert [o.result for o in op.outcomes] == ["aborted"] * 3
 
 
 def test_gives_up_on_an_area_the_loop_never_finishes():
