@@ -85,6 +85,12 @@ from session.detect import DepthParams
 # shipped as package data beside this module, in a checkout and in an installed wheel alike
 LIBRARY_PATH = Path(str(resources.files(__package__).joinpath("depth_library.npz")))
 GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
+SNAP_M = 0.25e-3  # spheres (and layers, and places across) within this of each other are one solve
+# A solve stands in for a sphere whose contrast the library predicts within this share of the model's error of
+# the solved one's, at most TWIN_Y_M across from it (DepthModel._twin); what they differ by is added to the
+# signature's uncertainty, in quadrature with the model's error: at most 12 % wider (sqrt(1 + 0.5^2)).
+TWIN_SHARE = 0.5
+TWIN_Y_M = 1e-3
 SIGNATURE_REACH_M = 12e-3  # a face whose centre lies farther along x from a sphere is taken not to feel it
 LIBRARY_FORMAT = "palpation-console-depth-library"
 LIBRARY_VERSION = 1
@@ -312,6 +318,7 @@ class DepthModel:
         self._set(params)
         # the finite-element solves of :meth:`signature`, shared with every copy :meth:`with_params` makes
         self._solves: dict = {}
+        self._patterns: dict = {}  # what the library predicts of each sphere asked for (:meth:`_twin`)
         self._homogeneous: dict = {}
         nx, ny = library.homogeneous.shape[-2:]
         xs, ys = np.meshgrid(np.arange(nx) * library.grid_m, np.arange(ny) * library.grid_m, indexing="ij")
@@ -543,7 +550,8 @@ class DepthModel:
         stiff sphere 11 mm from one side of the tissue raises the far side's elements by +0.05 and lowers
         the near side's by 0.09, which the shifted signature puts at 0), as each record's strain mixes
         its states at rest and compressed (the module docstring), through the sensor's cover; the
-        uncertainty is the model's relative error. None when the tumour has no fit; zero, fit or none, for a
+        uncertainty is the model's relative error, and what a twin that stands in for a sphere differs from it
+        by (:meth:`_twin`), in quadrature. None when the tumour has no fit; zero, fit or none, for a
         face beyond ``SIGNATURE_REACH_M``. A finite-element solve of the block per depth and offset, cached;
         ``solving(what)`` before each one the cache does not hold."""
         if all(abs(float(levels["tsi_position_m"][r][0]) - tumour.x_m) > SIGNATURE_REACH_M for r in records):
@@ -555,39 +563,80 @@ class DepthModel:
         _, i, j, k = np.unravel_index(int(np.argmax(log_post)), log_post.shape)
         depth, diameter, ratio = float(self.depths[i]), float(self.diameters[j]), float(self.ratios[k])
         out = np.zeros((len(records), *self.shape))
+        error = np.zeros(len(records))
         for n, r in enumerate(records):
             centre = levels["tsi_position_m"][r]
             off_x = float(centre[0]) - tumour.x_m
             y_from_edge = tumour.y_m - (float(centre[1]) - self.shape[1] * self.pitch_m / 2)
             mix = float(self._mix(np.nan_to_num(np.nanmedian(levels["dL_m"][r]) / h)))
             moved = float(self._moved_m(depth, diameter))
-            out[n] = ((1.0 - mix) * self._solved(h, depth, diameter, ratio, off_x, y_from_edge, solving)
-                      + mix * self._solved(h, moved, diameter, ratio, off_x, y_from_edge, solving))
-        return out, self.model_error * np.abs(out)
+            (at_rest, off_rest), (compressed, off_compressed) = (
+                self._solved(h, d, diameter, ratio, off_x, y_from_edge, solving) for d in (depth, moved))
+            out[n] = (1.0 - mix) * at_rest + mix * compressed
+            error[n] = max(off_rest, off_compressed)
+        return out, np.hypot(self.model_error, error)[:, None, None] * np.abs(out)
 
     def _solved(self, thickness_m: float, depth_m: float, diameter_m: float, ratio: float, offset_x_m: float,
-                tumour_y_m: float, solving: Solving | None = None) -> np.ndarray:
+                tumour_y_m: float, solving: Solving | None = None) -> tuple[np.ndarray, float]:
         """The contrast one sphere makes on a face ``offset_x_m`` from it (face centre minus tumour) whose
-        first column's edge lies ``tumour_y_m`` from it across, the layer as wide as the face is long; none
-        beyond ``SIGNATURE_REACH_M``."""
+        first column's edge lies ``tumour_y_m`` from it across, the layer as wide as the face is long (none
+        beyond ``SIGNATURE_REACH_M``), and how far off it may be relative to its largest value where a
+        twin's solve stands in for it (:meth:`_twin`; 0 for its own)."""
         from dataclasses import replace
 
         if abs(offset_x_m) > SIGNATURE_REACH_M:
-            return np.zeros(self.shape)
-        snap = 0.25e-3  # spheres within a quarter of a millimetre of each other are one
-        key = tuple(round(v / snap) for v in (thickness_m, depth_m, diameter_m, tumour_y_m)) + (round(ratio, 1),)
+            return np.zeros(self.shape), 0.0
+        key = tuple(round(v / SNAP_M) for v in (thickness_m, depth_m, diameter_m, tumour_y_m)) + (round(ratio, 1),)
         cache = self._solves
         if key not in cache:
-            t, d, a, y = (v * snap for v in key[:4])
+            t, d, a, y = (v * SNAP_M for v in key[:4])
             a = min(a, max(t - d - CLEARANCE_M, 0.5e-3))
             y = min(max(y, a / 2), self.shape[1] * self.pitch_m - a / 2)
-            # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
-            grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
-            q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving)
-                               ) / self._elements(self._homogeneous_solve(t, grid, solving))
-            cache[key] = q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0
-        out = _lerp_axis(cache[key], np.arange(len(cache[key])) * 1e-3, np.array([abs(offset_x_m)]), 0)[0]
-        return out[::-1] if offset_x_m < 0 else out
+            pattern = self._library_pattern(t, d, a, key[4], y)
+            twin = self._twin(key, pattern)
+            if twin is not None:
+                cache[key] = (cache[twin[0]][0], twin[1])
+            else:
+                # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
+                grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
+                q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving)
+                                   ) / self._elements(self._homogeneous_solve(t, grid, solving))
+                cache[key] = (q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0, 0.0)
+                if np.all(np.isfinite(pattern)):
+                    self._patterns[key] = pattern
+        solved, error = cache[key]
+        out = _lerp_axis(solved, np.arange(len(solved)) * 1e-3, np.array([abs(offset_x_m)]), 0)[0]
+        return (out[::-1] if offset_x_m < 0 else out), error
+
+    def _library_pattern(self, thickness_m: float, depth_m: float, diameter_m: float, ratio: float,
+                         tumour_y_m: float) -> np.ndarray:
+        """(library offsets, rows, cols): the contrast the library predicts of one sphere on the faces it
+        holds, NaN where it holds none."""
+        lib = self.library
+        out = []
+        for off in lib.offset_x_m:
+            p = _lerp_axis(self.predict(thickness_m, off, tumour_y_m), lib.depth_m, np.array([depth_m]), 0)
+            p = _lerp_axis(p, lib.diameter_m, np.array([diameter_m]), 1)
+            out.append(_lerp_axis(p, np.log(lib.modulus_ratio), np.array([math.log(ratio)]), 2)[0, 0, 0])
+        return np.array(out)
+
+    def _twin(self, key: tuple, pattern: np.ndarray) -> tuple[tuple, float] | None:
+        """(its key, how far apart they are relative to the largest of ``pattern``) of the sphere solved
+        already whose contrast the library predicts nearest ``key``'s (``pattern``), if within ``TWIN_SHARE``
+        of the model's error at every element, on a layer within ``SNAP_M`` as thick and at most ``TWIN_Y_M``
+        across from it: its solve stands in for this one's; else None. The posterior of a deep or wide
+        tumour is a ridge along which depth, size and stiffness trade off, and its mode moves along it from
+        one sweep of the fits to the next and from one map to the other: on s20261125-0008, two tumours asked
+        for 42 spheres, of which 18 now stand in for one another (24 solves, was 42)."""
+        if not np.all(np.isfinite(pattern)):
+            return None
+        scale = max(float(np.abs(pattern).max()), self.contrast_floor)
+        near = [(float(np.abs(seen - pattern).max()) / scale, other) for other, seen in self._patterns.items()
+                if abs(other[0] - key[0]) <= 1 and abs(other[3] - key[3]) * SNAP_M <= TWIN_Y_M + 1e-12]
+        if not near:
+            return None
+        apart, other = min(near)
+        return (other, apart) if apart <= TWIN_SHARE * self.model_error else None
 
     def _homogeneous_solve(self, thickness_m: float, grid: LibraryGrid, solving: Solving | None = None
                            ) -> np.ndarray:

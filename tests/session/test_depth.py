@@ -333,3 +333,26 @@ def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_
     for entry in tmp_path.iterdir():
         entry.write_bytes(entry.read_bytes()[:-7])
     assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first) and len(solved) == 3
+
+
+def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_solve(library, monkeypatch):
+    """The fits' sweeps move a deep tumour's best sphere along the ridge of spheres that explain it alike: one
+    a quarter of a millimetre deeper is not solved again, and what the two differ by is told with it; a
+    sphere the library tells apart (a shallow one) is solved."""
+    import session.depth as depth_model
+
+    solved = []
+
+    def solve(grid, thickness_m, inclusion, tumour_y_m=None, solving=None):
+        solved.append(inclusion)
+        return np.full(grid.face_shape, 1.0 + (0.0 if inclusion is None else inclusion[0]))
+
+    monkeypatch.setattr(depth_model, "_kept_block_solve", solve)
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    first, own = model._solved(0.027, 6e-3, 10e-3, 6.0, 0.0, 12e-3)
+    spheres = len(solved)  # the sphere and its layer without it
+    twin, apart = model._solved(0.027, 6.25e-3, 10e-3, 6.0, 0.0, 12e-3)
+    assert own == 0.0 and 0.0 < apart <= depth_model.TWIN_SHARE * model.model_error
+    assert len(solved) == spheres and np.array_equal(twin, first)
+    _, own = model._solved(0.027, 1e-3, 10e-3, 6.0, 0.0, 12e-3)
+    assert own == 0.0 and len(solved) == spheres + 1
