@@ -2,6 +2,7 @@
 
 import io
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -243,3 +244,22 @@ def test_bad_mesh_settings_are_refused():
         ContinuumTissue.load(small(), settings=MeshSettings(spacing_m=0.7e-3))
     with pytest.raises(ValueError, match="layers"):
         ContinuumTissue.load(small(), settings=MeshSettings(layers=1))
+
+
+def test_the_cache_knows_the_code_beside_the_mechanics_that_its_tables_come_from(tmp_path):
+    """A table is computed from the mechanics' own modules and from how the phantom draws its surface and the
+    face its elements: a change to any of them is other code, so the tables it made are stale."""
+    import shutil
+
+    import tissue.face
+    import tissue.phantom
+
+    assert {Path(tissue.phantom.__file__), Path(tissue.face.__file__)} <= set(cache_mod.sources())
+    copy = tmp_path / "tissue"
+    shutil.copytree(Path(tissue.phantom.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    before = cache_mod.digest_of(copy / "mechanics")
+    assert before == cache_mod.code_digest()
+    relief = copy / "phantom.py"
+    relief.write_text(relief.read_text() + "\n# another way to draw a relief\n")
+    assert cache_mod.digest_of(copy / "mechanics") != before
+

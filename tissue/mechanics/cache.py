@@ -36,13 +36,29 @@ def default_cache_dir() -> Path:
     return Path(user_cache_dir("palpation-console"))
 
 
+# The modules beside this package whose code the tables are computed from too: the phantom's surface, relief
+# and inclusions as the mesh takes them (tissue.phantom), and the sensor's face (tissue.face). Without them a
+# change to how a phantom's relief is drawn left every table of a relief phantom as the old relief gave it.
+BEYOND = ("phantom.py", "face.py")
+
+
+def sources(package: Path = Path(__file__).parent) -> list[Path]:
+    """The source files every cached table comes from, in the order the digest reads them."""
+    return sorted(package.glob("*.py")) + [package.parent / name for name in BEYOND]
+
+
+def digest_of(package: Path) -> str:
+    """The digest of the :func:`sources` of the mechanics package at ``package``."""
+    digest = hashlib.sha256()
+    for path in sources(package):
+        digest.update(path.relative_to(package.parent).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 @functools.cache
 def code_digest() -> str:
-    """The digest of this package's source: the code every cached table comes from."""
-    digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()[:16]
+    """The digest of the code every cached table comes from (:func:`sources`)."""
+    return digest_of(Path(__file__).parent)
 
 
 def cache_path(cache_dir: Path, key: str) -> Path:
