@@ -12,9 +12,11 @@ the blind seek's depth) is tried once more, from lower down: the face brought le
 the camera shows under it where it now is. The camera samples the surface every 0.5 mm and the tissue
 touches the face at its mesh's nodes, so the end of a ridge under the face's last few tenths of a
 millimetre set an approach height the seek could not reach down from (a held-out study phantom,
-s48002-0000). Once only: a second seek that touches nothing means the camera and the array disagree, which
-going lower does not settle. A seek that starts there is as safe as one that starts on the tissue, which
-the blind seek's depth allows for (control.safety.blind_seek_depth_m).
+s48002-0000; there the second seek touched that end with the face's edge and was stopped by the loop's
+"tactile force not rising" guard, so the area stays lost). Once only: a second seek that touches nothing
+means the camera and the array disagree, which going lower does not settle. A seek that starts there is
+as safe as one that starts on the tissue, which the blind seek's depth allows for
+(control.safety.blind_seek_depth_m).
 
 Positions are the hand's, in the master's frame, which the loop's default mapping (scale 1) carries into
 the tissue frame up to its clutch offset; they are sampled at ``rate_hz`` on the world's clock, each
