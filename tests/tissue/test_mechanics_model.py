@@ -2,6 +2,7 @@
 
 import io
 import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import pytest
 import scipy.linalg as sla
 from scipy.optimize import nnls
 
+import tissue.face
+import tissue.phantom
 from hardware.interfaces import TactileConstraints
 from tissue.mechanics import cache as cache_mod
 from tissue.mechanics import model as model_mod
@@ -249,11 +252,6 @@ def test_bad_mesh_settings_are_refused():
 def test_the_cache_knows_the_code_beside_the_mechanics_that_its_tables_come_from(tmp_path):
     """A table is computed from the mechanics' own modules and from how the phantom draws its surface and the
     face its elements: a change to any of them is other code, so the tables it made are stale."""
-    import shutil
-
-    import tissue.face
-    import tissue.phantom
-
     assert {Path(tissue.phantom.__file__), Path(tissue.face.__file__)} <= set(cache_mod.sources())
     copy = tmp_path / "tissue"
     shutil.copytree(Path(tissue.phantom.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
@@ -262,4 +260,3 @@ def test_the_cache_knows_the_code_beside_the_mechanics_that_its_tables_come_from
     relief = copy / "phantom.py"
     relief.write_text(relief.read_text() + "\n# another way to draw a relief\n")
     assert cache_mod.digest_of(copy / "mechanics") != before
-
