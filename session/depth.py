@@ -398,11 +398,14 @@ class DepthModel:
         scale = np.median(q.reshape(*q.shape[:-2], -1), axis=-1)[..., None, None]  # NaN where no solve
         return q / scale - 1.0
 
-    def _fine(self, coarse: np.ndarray) -> np.ndarray:
+    def _fine(self, coarse: np.ndarray, depths=None, diameters=None, ratios=None) -> np.ndarray:
+        """``coarse`` (on the library's depth, diameter and ratio axes) at the given ones (default: the fine
+        grid's)."""
         lib = self.library
-        fine = _lerp_axis(coarse, lib.depth_m, self.depths, 0)
-        fine = _lerp_axis(fine, lib.diameter_m, self.diameters, 1)
-        return _lerp_axis(fine, np.log(lib.modulus_ratio), np.log(self.ratios), 2)
+        fine = _lerp_axis(coarse, lib.depth_m, self.depths if depths is None else np.asarray(depths), 0)
+        fine = _lerp_axis(fine, lib.diameter_m, self.diameters if diameters is None else np.asarray(diameters), 1)
+        return _lerp_axis(fine, np.log(lib.modulus_ratio),
+                          np.log(self.ratios if ratios is None else np.asarray(ratios)), 2)
 
     def _moved_m(self, depth_m, diameter_m: float):
         """Where the layer compressed by ``COMPRESSED_STRAIN`` carries the top of a sphere ``depth_m`` deep at
@@ -612,13 +615,8 @@ class DepthModel:
                          tumour_y_m: float) -> np.ndarray:
         """(library offsets, rows, cols): the contrast the library predicts of one sphere on the faces it
         holds, NaN where it holds none."""
-        lib = self.library
-        out = []
-        for off in lib.offset_x_m:
-            p = _lerp_axis(self.predict(thickness_m, off, tumour_y_m), lib.depth_m, np.array([depth_m]), 0)
-            p = _lerp_axis(p, lib.diameter_m, np.array([diameter_m]), 1)
-            out.append(_lerp_axis(p, np.log(lib.modulus_ratio), np.array([math.log(ratio)]), 2)[0, 0, 0])
-        return np.array(out)
+        return np.array([self._fine(self.predict(thickness_m, off, tumour_y_m), [depth_m], [diameter_m],
+                                    [ratio])[0, 0, 0] for off in self.library.offset_x_m])
 
     def _twin(self, key: tuple, pattern: np.ndarray) -> tuple[tuple, float] | None:
         """(its key, how far apart they are relative to the largest of ``pattern``) of the sphere solved
