@@ -416,7 +416,7 @@ class BlockResponse(HomogeneousTissue):
             # phantom came out 10 % below the simulator's own with/without ratio, against 2 % without). Not
             # so where a ridge holds part of a level's areas back; the whole factor, measured again for that
             # in both worlds, gained only in the world that shares this model (docs/validation.md, "The face's
-            # pattern at finite strain").
+            # pattern at finite strain, and the onsets beside a crest").
             with np.errstate(invalid="ignore", divide="ignore"):
                 strain = (heights - z) / (heights - self.table_height_m)
             strain = np.clip(np.nan_to_num(strain, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None).ravel()
