@@ -89,14 +89,34 @@ def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done_an
         assert s.tissue_extent_m == (0.0, 0.072, 0.0, 0.030)  # what coverage is a share of
 
 
-def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(tmp_path, capsys, monkeypatch):
+@pytest.fixture(scope="module")
+def noisy_two_level_simulation(tmp_path_factory):
+    """(what ``simulate --config FILE --no-record -v`` printed, the file, the data folder it ran with): the
+    default phantom palpated once, two levels an area, with a sensor four times noisier than the default's, for
+    the two tests below, which each palpated its nine areas before. Sandboxed as the suite's own fixture
+    sandboxes a test: a module's fixture runs before it."""
+    import contextlib
+    import io
+
+    base = tmp_path_factory.mktemp("noisy")
+    config = base / "noisy.toml"
+    config.write_text("[control.ramp]\nforce_max_N = 2.0\n[sim.sensor]\nnoise_std_pa = 200.0\n")
+    printed = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setenv("PALPATION_DATA_DIR", str(base / "data"))
+        patch.setenv("XDG_CONFIG_HOME", str(base / "config"))
+        code = main(["simulate", "--config", str(config), "--no-record", "-v"])
+    assert code == 0, printed.getvalue()
+    return printed.getvalue(), config, base / "data"
+
+
+def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(noisy_two_level_simulation,
+                                                                                  monkeypatch):
     from session.info import sessions_dir
 
-    config = tmp_path / "two-levels.toml"
-    config.write_text("[control.ramp]\nforce_max_N = 2.0\n")
-    assert main(["simulate", "--config", str(config), "--no-record"]) == 0
-    out = capsys.readouterr().out
+    out, config, data = noisy_two_level_simulation
     assert out.count("done (2 levels)") == 9 and "Recording" not in out
+    monkeypatch.setenv("PALPATION_DATA_DIR", str(data))
     assert not list(sessions_dir().glob("*.h5"))
     given = []  # given before the subcommand, the file is what simulate is handed (it palpated with it above)
     monkeypatch.setattr("app.simulate.simulate", lambda config, **options: given.append(config) or 0)
@@ -104,14 +124,11 @@ def test_simulate_takes_its_config_after_the_subcommand_and_can_skip_recording(t
     assert [c.control.ramp.force_max_N for c in given] == [2.0]
 
 
-def test_a_sensor_four_times_noisier_than_the_default_still_palpates_every_area(tmp_path, capsys):
+def test_a_sensor_four_times_noisier_than_the_default_still_palpates_every_area(noisy_two_level_simulation):
     """The contact thresholds follow the noise the loop measures between areas: with the configured ones
     (300 / 900 Pa, 1.5 / 4.5 sigma at 200 Pa) the noise was taken for contact in air, and the indentation
     ceiling stopped the palpation in its first area."""
-    config = tmp_path / "noisy.toml"
-    config.write_text("[control.ramp]\nforce_max_N = 2.0\n[sim.sensor]\nnoise_std_pa = 200.0\n")
-    assert main(["simulate", "--config", str(config), "--no-record", "-v"]) == 0
-    out = capsys.readouterr().out
+    out, _, _ = noisy_two_level_simulation
     assert "9 of 9 regions done, 0 problems" in out
     assert out.count("more than the configured 300 Pa onset allows for") == 9
 
