@@ -40,8 +40,11 @@ def flat_session(tmp_path_factory):
     block["inclusions"] = block["inclusions"][:2]
     block["inclusions"][1].update(centre_xy_m=list(TUMOURS_XY_M[1]), depth_m=0.004)  # shows by 5 N
     (folder / "flat-40.toml").write_text(tomli_w.dumps(data), encoding="utf-8")
+    # the scripted operator moves between areas 3.5 mm over their approach height, not at the default 45 mm:
+    # climbing there and back was a fifth of the palpation's time, and what is judged here is the levels
     config = load_config(None, {"rig": {"phantom": str(folder / "flat-40.toml")},
-                                "control": {"ramp": {"force_max_N": 5.0}}})
+                                "control": {"ramp": {"force_max_N": 5.0}},
+                                "sim": {"operator": {"travel_height_m": 0.030}}})
     rig = build_rig(config.rig)
     info = session_info(config, rig)
     rows = []
