@@ -97,16 +97,22 @@ def noisy_two_level_simulation(tmp_path_factory):
     sandboxes a test: a module's fixture runs before it."""
     import contextlib
     import io
+    import multiprocessing
+    import threading
 
     base = tmp_path_factory.mktemp("noisy")
     config = base / "noisy.toml"
     config.write_text("[control.ramp]\nforce_max_N = 2.0\n[sim.sensor]\nnoise_std_pa = 200.0\n")
     printed = io.StringIO()
+    threads_before = {t.ident for t in threading.enumerate()}
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
         patch.setenv("PALPATION_DATA_DIR", str(base / "data"))
         patch.setenv("XDG_CONFIG_HOME", str(base / "config"))
         code = main(["simulate", "--config", str(config), "--no-record", "-v"])
     assert code == 0, printed.getvalue()
+    # the suite's check that nothing is left running starts with each test, after this run: checked here
+    assert not multiprocessing.active_children()
+    assert not [t for t in threading.enumerate() if t.ident not in threads_before and t.is_alive() and not t.daemon]
     return printed.getvalue(), config, base / "data"
 
 
