@@ -120,7 +120,10 @@ class DepthParams:
     # The part of that error all the tumour's elements share, relative: one scale on everything predicted
     # (the flat field's own scale, the sensor's cover, how much the press stiffened the tissue). 0.2 with
     # the 0.25 above: the 90 % intervals covered 89 % of the truths found in two studies (s777, s4711,
-    # 82 tumours), median 3.1 mm wide; 0.25 alone covered 80 %, and 0.6 alone was needed for 90 %.
+    # 82 tumours), median 3.1 mm wide; 0.25 alone covered 80 %, and 0.6 alone was needed for 90 %. Both were
+    # chosen before the depth model counted the error an element's levels share (session.depth), which they
+    # then stood in for in part: with it, the intervals of the validation study's seed and of a held-out one
+    # cover 95-100 %, so both may now be smaller.
     scale_error: float = 0.2
     # How unsure the model is of the tissue's law, relative: how fast a tumour's contrast grows as the press
     # thins the tissue over it is taken anywhere from 1 - law_spread to 1 + law_spread times what the reduced

@@ -17,7 +17,9 @@ from session.depth import (
     LibraryGrid,
     _block_solve,
     _kept_block_solve,
+    _level_mean,
     build_library,
+    level_correlation,
     load_library,
 )
 from session.detect import DepthParams
@@ -222,22 +224,93 @@ def test_the_sphere_that_made_the_contrast_explains_it_best(library):
         assert np.unravel_index(int(np.argmax(log_post)), log_post.shape) == (0, i, j, k)
 
 
-def test_the_shared_scale_error_is_the_whole_covariance_of_the_model_errors(library):
-    """The likelihood with a scale error shared by every element, group and area (Sherman-Morrison) is
-    the Gaussian one with the whole covariance, D + s^2 p p^T, up to a constant the spheres share."""
+def _whole_covariance(model, terms, mode):
+    """The Gaussian's whole covariance of the areas' level groups ``terms``, flattened area by area, group by
+    group, element by element, and the residuals on the grid: D, the shared error of each element's levels,
+    and the scale error on what the sphere at ``mode`` predicts."""
+    diagonal, shared, p, residual = [], [], [], []
+    size = sum(len(area[0][0]) * len(area) for area in terms)
+    start = 0
+    for area in terms:
+        groups, elements = len(area), len(area[0][0])
+        for measured, own, _, predicted in area:
+            pm = predicted[mode]
+            diagonal.append(own**2 + groups * ((model.model_error * pm) ** 2 + model.contrast_floor**2))
+            p.append(pm)
+            residual.append(measured - predicted)
+        for e in range(elements):
+            vector = np.zeros(size)
+            for b, (_, _, u, _) in enumerate(area):
+                vector[start + b * elements + e] = u[e]
+            shared.append(vector)
+        start += groups * elements
+    p = np.concatenate(p)
+    covariance = np.diag(np.concatenate(diagonal)) + sum(np.outer(v, v) for v in shared)
+    return covariance, p, np.concatenate(residual, axis=-1)
+
+
+def _areas(rng):
+    """Three areas' level groups: (measured, own error, shared error, predicted on a small grid) each."""
+    out = []
+    for n, groups in ((5, 2), (4, 2), (7, 1)):
+        out.append([(rng.normal(0.2, 0.1, n), rng.uniform(0.01, 0.05, n), rng.uniform(0.0, 0.05, n),
+                     rng.normal(0.2, 0.1, (3, 2, 2, n))) for _ in range(groups)])
+    return out
+
+
+def test_the_likelihood_is_the_gaussian_with_the_whole_covariance_of_the_errors(library):
+    """The likelihood with each element's levels sharing part of their error, and a scale error shared by every
+    element, group and area (Sherman-Morrison twice) is the Gaussian one with the whole covariance, up to a
+    constant the spheres share."""
     model = DepthModel(library, SHAPE, PITCH, 0.0, params=DepthParams(0.25, 0.3))
-    rng = np.random.default_rng(3)
+    terms = _areas(np.random.default_rng(3))
     mode = (1, 0, 1)
-    terms = [(rng.normal(0.2, 0.1, n), rng.uniform(0.01, 0.05, n), rng.normal(0.2, 0.1, (3, 2, 2, n)), groups)
-             for n, groups in ((5, 2), (5, 2), (7, 1))]
-    p = np.concatenate([t[2][mode] for t in terms])
-    diagonal = np.concatenate([sigma**2 + groups * ((0.25 * t[mode]) ** 2 + model.contrast_floor**2)
-                               for _, sigma, t, groups in terms])
-    inverse = np.linalg.inv(np.diag(diagonal) + 0.3**2 * np.outer(p, p))
-    residual = np.concatenate([m - t for m, _, t, _ in terms], axis=-1)
+    covariance, p, residual = _whole_covariance(model, terms, mode)
+    inverse = np.linalg.inv(covariance + 0.3**2 * np.outer(p, p))
     whole = -0.5 * np.einsum("...i,ij,...j->...", residual, inverse, residual)
     got = model._log_like(terms, mode)
     np.testing.assert_allclose(got - got[mode], whole - whole[mode], rtol=1e-9, atol=1e-9)
+
+
+def test_the_first_pass_is_the_gaussian_with_each_spheres_own_covariance(library):
+    """Each sphere's own likelihood (its own prediction setting the model's error, no scale error) is the
+    Gaussian's, its determinant included, with the levels' shared error."""
+    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    terms = _areas(np.random.default_rng(5))
+    got = model._own_log_like(terms)
+    for index in np.ndindex(got.shape):
+        covariance, _, residual = _whole_covariance(model, terms, index)
+        r = residual[index]
+        want = -0.5 * (r @ np.linalg.solve(covariance, r) + np.linalg.slogdet(covariance)[1])
+        assert got[index] == pytest.approx(want, rel=1e-9, abs=1e-9)
+
+
+def test_an_error_every_level_shares_does_not_average_away():
+    """Ten levels that share all their error know the element's contrast no better than one does; ten that
+    share none know it three times better."""
+    contrast, sigma = np.full((10, 3), 0.1), np.full((10, 3), 0.04)
+    _, own, shared, weights = _level_mean(contrast, sigma, 0.0)
+    assert np.allclose(own, 0.04 / np.sqrt(10)) and np.allclose(shared, 0.0) and np.allclose(weights, 0.1)
+    _, own, shared, _ = _level_mean(contrast, sigma, 0.95)
+    assert np.allclose(np.hypot(own, shared), 0.04 * np.sqrt(0.95 + 0.05 / 10))
+
+
+def test_how_much_of_its_error_an_element_shares_between_levels_is_read_from_the_healthy_tissue():
+    """Contrasts made of an element's offset kept through its area's ramp (a share rho of the variance) and
+    an error of each level: the correlation of consecutive levels comes back as rho, and a tumour's elements,
+    far from homogeneous tissue, do not count."""
+    rng = np.random.default_rng(11)
+    regions, per_region, shape = 40, 6, (4, 15)
+    for rho in (0.0, 0.5, 0.8):
+        kept = rng.normal(0, 1, (regions, 1, *shape))
+        z = np.sqrt(rho) * kept + np.sqrt(1 - rho) * rng.normal(0, 1, (regions, per_region, *shape))
+        z = z.reshape(-1, *shape)
+        z[:per_region, 1:3, 5:8] += 8.0  # a tumour under the first area
+        levels = np.zeros(len(z), dtype=[("region", "i4")])
+        levels["region"] = np.repeat(np.arange(regions), per_region)
+        sigma = np.full(z.shape, 0.03)
+        measured = level_correlation(levels, SimpleNamespace(contrast=0.03 * z, sigma=sigma))
+        assert measured == pytest.approx(rho, abs=0.05)
 
 
 def test_deeper_tumours_read_deeper(library):
