@@ -709,7 +709,8 @@ def _level_mean(contrast: np.ndarray, sigma: np.ndarray, rho: float):
 def level_correlation(levels: np.ndarray, contrast) -> float:
     """How much of a healthy element's error one level of an area shares with the next: the correlation of
     the standardised contrasts of the same element at consecutive levels of an area, over the session's
-    elements that read as healthy tissue at both (|z| < ``HEALTHY_Z``), within [0, 1). A real array's errors
+    elements that read as healthy tissue at both (|z| < ``HEALTHY_Z``), within [0, ``MAX_LEVEL_CORRELATION``];
+    0, every level's error its own as before, with fewer than 30 such pairs to read it from. A real array's errors
     are mostly of the press, not of the frame (an element's offset is drawn when it is loaded and kept
     through the area's ramp), and the rebuilt tissue's errors are of the place: averaging levels does not
     average them away."""
