@@ -193,3 +193,30 @@ def test_the_rebuilt_block_takes_the_sides_under_which_the_session_reads_most_al
     assert chosen.sides == truth
     assert f"sides {truth}: the areas' stiffness contrast scatters" in chosen.description
     assert ("held in a mould" in chosen.description) == (truth == "mould")
+
+
+@pytest.mark.parametrize("rough_m", [0.0, 2e-5, 3e-4])
+def test_the_faces_contact_meets_the_contact_conditions(tmp_path, rough_m):
+    # a flat face on a rough surface: from every node touching (rough 0) to a few peaks carrying it all, so
+    # that both ways of solving the nodes in contact are taken (few nodes left out, or most)
+    levels = ridge_levels((0.019,))
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    compliance, nodes = _block_compliance(block, tmp_path)
+    tissue = BlockResponse(block, origin, compliance, nodes, 0.0, PITCH, (4, 15))
+    face = tissue._face(*(int(np.floor(c)) for c in tissue._face_lo(levels[0])))
+    rng = np.random.default_rng(7)
+    gap = 1e-4 + rough_m * rng.standard_normal(len(face.nodes))
+    gap[:5] = np.nan  # never reaching the face
+    f = face.contact(gap)
+    pushed = face.compliance @ f
+    carrying = f > 0
+    scale = np.nanmax(np.abs(gap))
+    assert np.all(f >= 0) and not np.any(f[:5])
+    np.testing.assert_allclose(pushed[carrying], gap[carrying], atol=1e-9 * scale)  # exactly its gap
+    reaching = np.isfinite(gap) & ~carrying
+    assert np.all(pushed[reaching] >= gap[reaching] - 1e-9 * scale)  # the rest at or below the face
+    assert 0 < carrying.sum() <= len(f) - 5
+    if rough_m == 0.0:
+        assert carrying.sum() == len(f) - 5
+    if rough_m == 3e-4:
+        assert carrying.sum() < (len(f) - 5) / 2
