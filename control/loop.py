@@ -154,7 +154,7 @@ class ControlLoop:
         self.law = HybridImpedanceLaw(config.gains)
         self.safety = SafetySupervisor(config.safety)
         self.sm = PalpationStateMachine(config.ramp, config.contact, sensor.shape, sensor.element_area_m2,
-                                        config.safety.element_pressure_ceiling_pa)
+                                        config.safety.element_pressure_ceiling_pa, config.safety.indentation_ceiling_m)
         self.history = PoseHistory(config.contact.pose_history_s, config.rate_hz)
         self._told = PoseHistory(config.contact.pose_history_s, config.rate_hz)  # the references sent, per tick
         self.tick = empty_tick()

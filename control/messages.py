@@ -169,8 +169,9 @@ class RegionDone:
     region: int
     n_levels: int  # levels recorded
     # the force of the last level when the ramp stopped short of F_max because the next level would have pressed
-    # an element past the pressure ceiling (NaN: the ramp reached F_max)
+    # an element past the pressure ceiling or the face past the indentation ceiling (NaN: the ramp reached F_max)
     capped_N: float = math.nan
+    capped_why: str = ""  # which, in words (control.palpation's CAPPED_BY_...)
 
 
 @dataclass(frozen=True, slots=True)

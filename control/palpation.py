@@ -8,7 +8,8 @@ APPROACH (S_z = 1, the operator positions the TSI above an area)
      element averaged over the window and each element's scatter over it, L0, dL, stiffness, TSI
      indentation) and go to level k + 1
   -> after the F_max level, or earlier when the next level would press an element near the pressure ceiling
-     (the ramp capped: every level so far kept, the cap recorded with "region done"): set "region done" and
+     or take the face near the indentation ceiling (the ramp capped: every level so far kept, the cap and its
+     reason recorded with "region done"): set "region done" and
      RETRACT (S_z = 1, lift the TSI) -> DONE
 A level that does not settle within the level timeout, a seek that finds no tissue, or an operator abort
 ends the region without "region done" (RETRACT -> APPROACH). A fault (from the safety supervisor) goes to
@@ -30,9 +31,13 @@ from hardware.interfaces import Phase
 
 FRAME_BUFFER = 512  # frames held for the settle window: 5 s at 100 frames/s
 # A ramp goes on to the next level only if no element is predicted to read more than this share of the element
-# pressure ceiling there: the ceiling would fault the area and lose it, where stopping one level short keeps
-# every level recorded (a gentle slope, or a large stiff tumour near the surface, tripped it at 5-7 N)
+# pressure ceiling there, nor the face to go more than this share of the indentation ceiling below the first
+# touch: a ceiling would fault the area and lose it, where stopping one level short keeps every level recorded
+# (a gentle slope, or a large stiff tumour near the surface, tripped the pressure ceiling at 5-7 N; soft
+# phantoms of the study's held-out seeds tripped the indentation ceiling)
 CAP_FRACTION = 0.95
+CAPPED_BY_PRESSURE = "the next level would press an element past the pressure ceiling"
+CAPPED_BY_DEPTH = "the next level would take the face past the indentation ceiling"
 
 
 # A level this shallow says little about the tissue's stiffness (an onset a few noise steps off is a large share)
@@ -41,12 +46,14 @@ MIN_SECANT_INDENTATION_M = 0.1e-3
 
 class PalpationStateMachine:
     def __init__(self, ramp: RampSettings, contact: ContactSettings, shape: tuple[int, int], element_area_m2: float,
-                 pressure_ceiling_pa: float = math.inf):
+                 pressure_ceiling_pa: float = math.inf, indentation_ceiling_m: float = math.inf):
         self.ramp = ramp
         self.contact = contact
         self.area = element_area_m2
         self.pressure_ceiling_pa = pressure_ceiling_pa
-        self._last_level: tuple[float, np.ndarray] | None = None  # (force, pressure) of this area's last level
+        self.indentation_ceiling_m = indentation_ceiling_m
+        # (force N, pressure Pa, depth below the first touch m) of this area's last level
+        self._last_level: tuple[float, np.ndarray, float] | None = None
         # (force N, face height m, N per m of indentation) of the level of this area that measured the tissue
         # stiffest (force over indentation): tissue stiffens with depth, so the force it pushes back with deeper
         # is at least that level's and that stiffness times the travel since; a reading that drifts down makes
@@ -242,32 +249,53 @@ class PalpationStateMachine:
             secant = record.force_measured_N / record.indentation_m
             if self.settled is None or secant >= self.settled[2]:
                 self.settled = (record.force_measured_N, z, secant)
-        capped = self.level + 1 < self.n_levels and self._next_level_too_hard(record.force_measured_N, pressure)
+        depth = self._depth_below_first_touch_m(z)
+        capped = "" if self.level + 1 >= self.n_levels else self._cap(record.force_measured_N, pressure, depth)
         if self.level + 1 >= self.n_levels or capped:
             self.region_done = True
             self._events.append(RegionDone(t_s, self.region, self.level + 1,
-                                           self.force_desired_N if capped else math.nan))
+                                           self.force_desired_N if capped else math.nan, capped))
             self._finish_ramp()
             self.begin_retract(t_s, z, then=Phase.DONE)
             return
-        self._last_level = (record.force_measured_N, pressure)
+        self._last_level = (record.force_measured_N, pressure, depth)
         self.level += 1
         self.force_desired_N = self.ramp.level_force_N(self.level)
         self.rmse_N = math.nan
         self._t_level = t_s
         self._enter(t_s, Phase.SETTLING)
 
-    def _next_level_too_hard(self, force_N: float, pressure_pa: np.ndarray) -> bool:
-        """Whether the next level would press an element past CAP_FRACTION of the pressure ceiling: each element's
-        reading carried on from this level along the line through the last one (an element over a stiff spot
-        or a bump rises faster than the force), or in proportion to the force at the first level."""
+    def _cap(self, force_N: float, pressure_pa: np.ndarray, depth_m: float) -> str:
+        """Why the ramp stops at this level ("" if it goes on): the next level would press an element past
+        CAP_FRACTION of the pressure ceiling, or take the face past that share of the indentation ceiling.
+        Each reading is carried on from this level along the line through the last one (an element over a stiff
+        spot or a bump rises faster than the force; the face goes in less with each newton as tissue stiffens,
+        so the line over-predicts its depth), or in proportion to the force at the first level."""
         next_N = self.ramp.level_force_N(self.level + 1)
         if self._last_level is not None and force_N > self._last_level[0]:
-            before_N, before_pa = self._last_level
-            predicted = pressure_pa + (pressure_pa - before_pa) * (next_N - force_N) / (force_N - before_N)
+            before_N, before_pa, before_m = self._last_level
+            along = (next_N - force_N) / (force_N - before_N)
+            predicted_pa = pressure_pa + (pressure_pa - before_pa) * along
+            predicted_m = depth_m + (depth_m - before_m) * along
         else:
-            predicted = pressure_pa * next_N / max(force_N, 1e-9)
-        return bool(np.nanmax(predicted) > CAP_FRACTION * self.pressure_ceiling_pa)
+            predicted_pa = pressure_pa * next_N / max(force_N, 1e-9)
+            predicted_m = depth_m * next_N / max(force_N, 1e-9)
+        if np.nanmax(predicted_pa) > CAP_FRACTION * self.pressure_ceiling_pa:
+            return CAPPED_BY_PRESSURE
+        if predicted_m > CAP_FRACTION * self.indentation_ceiling_m:
+            return CAPPED_BY_DEPTH
+        return ""
+
+    def _depth_below_first_touch_m(self, z_m: float) -> float:
+        """How far the face at ``z_m`` is below where this area's tissue was first touched: the highest onset
+        tracked, or the summed reading's first rise where sooner (the loop's indentation ceiling's measure;
+        NaN: no touch tracked, and no cap by depth)."""
+        onsets = self.tracker.onset_height_m
+        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else math.nan
+        touched = self.tracker.first_touch_m()
+        if not top >= touched:
+            top = touched
+        return top - z_m
 
     def on_tick(self, now_s: float, tsi_z_m: float) -> None:
         """Time-outs of the ramp; called every tick while in force control."""

@@ -65,7 +65,7 @@ def describe_event(event) -> tuple[str, Severity] | None:
     if isinstance(event, RegionDone):
         if event.capped_N == event.capped_N:
             return (f"Region {event.region + 1} done, capped at {event.capped_N:g} N: {event.n_levels} levels "
-                    f"recorded, the next would have pressed an element past the pressure ceiling"), Severity.WARNING
+                    f"recorded; {event.capped_why}"), Severity.WARNING
         return f"Region {event.region + 1} done: all {event.n_levels} levels recorded", Severity.OK
     if isinstance(event, RegionAborted):
         return f"Region {event.region + 1} aborted: {event.reason}", Severity.WARNING

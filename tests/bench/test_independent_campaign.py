@@ -56,7 +56,8 @@ def test_a_seek_the_array_cannot_see_ends_before_the_stiffest_tissue_would_pass_
 
 # Tissue whose push starts softly (force as the indentation to the power 2.1-2.2): the elements' onsets came
 # 0.8 mm below the surface, and the probe went that much past the indentation ceiling (49001781 started in
-# contact, 49000499 ramped towards 19 N)
+# contact, 49000499 ramped towards 19 N). The ramp now stops a level short of where it predicts the ceiling, by
+# the same depth the ceiling is held to; either way the probe goes no further past it than the margin.
 SOFT_START = [49001781, 49000499]
 
 
@@ -64,7 +65,8 @@ SOFT_START = [49001781, 49000499]
 def test_on_tissue_whose_push_starts_softly_the_indentation_ceiling_holds(seed):
     result = campaign.run(seed)
     assert result.drawn["tissue"]["law"] == "power" and result.drawn["tissue"]["shape"] > 2.0
-    assert result.violations == [] and result.faults[0][1] == "INDENTATION_CEILING"
+    assert result.violations == []
+    assert result.region_done or result.faults[0][1] == "INDENTATION_CEILING"
     assert result.max_indentation_over_ceiling_mm <= campaign.INDENTATION_MARGIN_M * 1e3
 
 

@@ -555,6 +555,8 @@ def test_a_ramp_stops_one_level_short_of_the_element_pressure_ceiling_and_the_ar
     """Issue 48: a gentle slope, or a 12 mm tumour 16 times stiffer 3 mm deep, tripped the 95 kPa element
     ceiling at 5-7 N, and simulate stopped after 1 of 9 or 7 of 9 areas. One element eight times stiffer
     than the rest reads 95 kPa at about 3.2 N here: the ramp records 1, 2 and 3 N and is done, capped."""
+    from control.palpation import CAPPED_BY_PRESSURE
+
     stiff = np.zeros((4, 15), bool)
     stiff[1, 7] = True
     h = Harness(plant=LayerPlant(stiff_mask=stiff, stiff_factor=8.0))
@@ -563,8 +565,26 @@ def test_a_ramp_stops_one_level_short_of_the_element_pressure_ceiling_and_the_ar
     assert not h.of(FaultRaised)
     (done,) = h.of(RegionDone)
     assert done.n_levels == 3 and done.capped_N == 3.0 and h.loop.sm.region_done
+    assert done.capped_why == CAPPED_BY_PRESSURE
     assert [e.record.force_desired_N for e in h.of(LevelRecorded)] == [1.0, 2.0, 3.0]
     assert max(e.record.pressure_pa.max() for e in h.of(LevelRecorded)) < h.config.safety.element_pressure_ceiling_pa
+
+
+def test_a_ramp_stops_one_level_short_of_the_indentation_ceiling_and_the_area_is_done():
+    """Soft phantoms of the validation study's held-out seeds took the face past the indentation ceiling, and
+    the area was lost with the fault. Here the 60 kPa layer takes the face about 1.7 mm in per newton: under an
+    8 mm ceiling the 5 N level would go 8.6 mm in, so the ramp records 1 to 4 N and is done, capped."""
+    from control.palpation import CAPPED_BY_DEPTH
+
+    h = Harness(config=ControlConfig.from_mapping({"safety": {"indentation_ceiling_m": 0.008}}), plant=LayerPlant())
+    start_region(h)
+    h.run(40, until=lambda h: phase(h) == Phase.DONE or h.loop.safety.faulted)
+    assert not h.of(FaultRaised)
+    (done,) = h.of(RegionDone)
+    assert done.n_levels == 4 and done.capped_N == 4.0 and done.capped_why == CAPPED_BY_DEPTH
+    depths = [e.record.indentation_m for e in h.of(LevelRecorded)]
+    assert [e.record.force_desired_N for e in h.of(LevelRecorded)] == [1.0, 2.0, 3.0, 4.0]
+    assert 0.95 * 0.008 < depths[-1] * 5 / 4 and depths[-1] < 0.008
 
 
 @pytest.mark.parametrize("modulus_pa, noise_pa", [(20e3, 200.0), (60e3, 50.0), (200e3, 5.0)])
