@@ -1,5 +1,6 @@
 """Suite-wide guards: headless Qt, sandboxed settings and caches, nothing left running after a test."""
 
+import contextlib
 import multiprocessing
 import os
 import threading
@@ -49,26 +50,40 @@ def _default_tissue_model():
         prepare_rig(RigSpec())
 
 
-@pytest.fixture(autouse=True)
-def _sandbox(tmp_path_factory, monkeypatch):
-    base = tmp_path_factory.mktemp("sandbox")
-    monkeypatch.setenv("PALPATION_DATA_DIR", str(base / "data"))
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(base / "config"))
-    yield
+@contextlib.contextmanager
+def sandboxed(base: Path):
+    """The console's data and settings folders under ``base`` while inside."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PALPATION_DATA_DIR", str(base / "data"))
+        patch.setenv("XDG_CONFIG_HOME", str(base / "config"))
+        yield
 
 
-@pytest.fixture(autouse=True)
-def _nothing_left_running():
+@contextlib.contextmanager
+def nothing_left_running():
+    """Fails, and stops what was left, if a process or a thread started inside is still running at the end."""
     threads_before = {t.ident for t in threading.enumerate()}
     yield
     children = multiprocessing.active_children()
     for child in children:
         child.kill()
         child.join(5)
-    assert not children, f"test left processes running: {children}"
+    assert not children, f"left processes running: {children}"
     leftover = [t for t in threading.enumerate() if t.ident not in threads_before and t.is_alive()
                 and not t.daemon]
-    assert not leftover, f"test left threads running: {leftover}"
+    assert not leftover, f"left threads running: {leftover}"
+
+
+@pytest.fixture(autouse=True)
+def _sandbox(tmp_path_factory):
+    with sandboxed(tmp_path_factory.mktemp("sandbox")):
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _nothing_left_running():
+    with nothing_left_running():
+        yield
 
 
 @pytest.fixture

@@ -93,26 +93,20 @@ def test_simulate_palpates_every_region_of_the_default_phantom_to_region_done_an
 def noisy_two_level_simulation(tmp_path_factory):
     """(what ``simulate --config FILE --no-record -v`` printed, the file, the data folder it ran with): the
     default phantom palpated once, two levels an area, with a sensor four times noisier than the default's, for
-    the two tests below, which each palpated its nine areas before. Sandboxed as the suite's own fixture
-    sandboxes a test: a module's fixture runs before it."""
+    the two tests below, which each palpated its nine areas before. Sandboxed and checked as the suite's own
+    fixtures do a test (tests/conftest.py): a module's fixture runs before them."""
     import contextlib
     import io
-    import multiprocessing
-    import threading
+
+    from tests.conftest import nothing_left_running, sandboxed
 
     base = tmp_path_factory.mktemp("noisy")
     config = base / "noisy.toml"
     config.write_text("[control.ramp]\nforce_max_N = 2.0\n[sim.sensor]\nnoise_std_pa = 200.0\n")
     printed = io.StringIO()
-    threads_before = {t.ident for t in threading.enumerate()}
-    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
-        patch.setenv("PALPATION_DATA_DIR", str(base / "data"))
-        patch.setenv("XDG_CONFIG_HOME", str(base / "config"))
+    with nothing_left_running(), sandboxed(base), contextlib.redirect_stdout(printed):
         code = main(["simulate", "--config", str(config), "--no-record", "-v"])
     assert code == 0, printed.getvalue()
-    # the suite's check that nothing is left running starts with each test, after this run: checked here
-    assert not multiprocessing.active_children()
-    assert not [t for t in threading.enumerate() if t.ident not in threads_before and t.is_alive() and not t.daemon]
     return printed.getvalue(), config, base / "data"
 
 
