@@ -190,7 +190,8 @@ def test_the_interval_covers_a_tumour_in_tissue_whose_law_is_not_the_models(libr
     """Levels pressed to 10, 20 and 30 % of a 25 mm layer over a sphere 6 mm across, its contrast at rest and
     where a layer compressed by 30 % carries it (two independent solves), but grown with the press 1.5 or 0.5
     times as fast as the reduced model's law grows it (a stiffening or a softer tissue). Trusting that law
-    (law spread 0) the interval misses the sphere; weighing the laws around it, it covers it."""
+    (law spread 0) the interval misses the sphere; weighing the laws around it, it covers it. At a model error
+    of 0.25: at the default 0.10 the stiffening tissue's sphere is read close enough for either to cover it."""
     thickness, strains = 0.025, np.array([0.1, 0.2, 0.3])
     grid = replace(LibraryGrid(), offset_x_m=(2e-3,))
     nodal_without = _block_solve(grid, thickness, None)[0]
@@ -202,9 +203,9 @@ def test_the_interval_covers_a_tumour_in_tissue_whose_law_is_not_the_models(libr
     grown = growth * (strains / 0.3)[:, None, None] * (states[1] - states[0])
     rows, measured, tumour = _one_area(states[0] + grown, 0.02, thickness, 0.030, SHAPE[1] * PITCH / 2, 0.032,
                                        pressed_m=strains * thickness)
-    _, low, high = model.with_params(DepthParams(law_spread=0.0)).estimate(tumour, rows, measured)
+    _, low, high = model.with_params(DepthParams(model_error=0.25, law_spread=0.0)).estimate(tumour, rows, measured)
     assert not low <= depth <= high
-    _, low, high = model.estimate(tumour, rows, measured)
+    _, low, high = model.with_params(DepthParams(model_error=0.25)).estimate(tumour, rows, measured)
     assert low <= depth <= high
 
 
@@ -410,8 +411,9 @@ def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_
 
 def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_solve(library, monkeypatch):
     """The fits' sweeps move a deep tumour's best sphere along the ridge of spheres that explain it alike: one
-    a quarter of a millimetre deeper is not solved again, and what the two differ by is told with it; a
-    sphere the library tells apart (a shallow one) is solved."""
+    a quarter of a millimetre deeper is not solved again at a model error of 0.25 (twins differ by less than
+    half of it; at the default 0.10 the library tells these two apart), and what the two differ by is told with
+    it; a sphere the library tells apart (a shallow one) is solved."""
     import session.depth as depth_model
 
     solved = []
@@ -421,7 +423,7 @@ def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_sol
         return np.full(grid.face_shape, 1.0 + (0.0 if inclusion is None else inclusion[0]))
 
     monkeypatch.setattr(depth_model, "_kept_block_solve", solve)
-    model = DepthModel(library, SHAPE, PITCH, 0.0)
+    model = DepthModel(library, SHAPE, PITCH, 0.0).with_params(DepthParams(model_error=0.25))
     first, own = model._solved(0.027, 6e-3, 10e-3, 6.0, 0.0, 12e-3)
     spheres = len(solved)  # the sphere and its layer without it
     twin, apart = model._solved(0.027, 6.25e-3, 10e-3, 6.0, 0.0, 12e-3)
