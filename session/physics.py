@@ -635,7 +635,6 @@ class _Face:
         and unilateral (f >= 0, each node pushed down at least its gap, exactly where it carries force), found
         by active sets."""
         gap = np.where(np.isfinite(gap_m), gap_m, -np.inf)
-        f = np.zeros(len(self.nodes))
         active = gap > 0
         for _ in range(4 * len(self.nodes) + 4):
             f = self._forces(active, gap)
