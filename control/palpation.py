@@ -272,8 +272,8 @@ class PalpationStateMachine:
         spot or a bump rises faster than the force, and the face goes in less with each newton as tissue
         stiffens, so the line over-predicts its depth. After the first level an element's pressure is taken in
         proportion to the force, but not the depth: how fast it grows is not known yet, and where the face
-        first touched a crest it was 9 mm in at 1 N and went 2-2.5 mm further per newton (held-out seed 48001:
-        so predicted, 4 of 8 areas stopped at 1 N that had reached 4 N under the ceiling)."""
+        first touched a crest it was 9 mm in at 1 N and went 2-2.5 mm further per newton (held-out s48001-0001:
+        so predicted, 4 of its 8 areas stopped at 1 N, three of which had reached 4 N under the ceiling)."""
         next_N = self.ramp.level_force_N(self.level + 1)
         if self._last_level is not None and force_N > self._last_level[0]:
             before_N, before_pa, before_m = self._last_level
