@@ -197,6 +197,9 @@ def test_locked_colour_range_holds_while_frames_stream(qtbot, console, bridge):
     assert not pressure.is_locked() and pressure.levels_pa()[1] != pytest.approx(1e3)
 
 
+# in real time: the two-level region lasts about 3 s, at SPEED 0.4 s, and a make study beside the suite made
+# the console miss it (the apply, meant to be refused, landed after the region and was applied)
+@real_time
 def test_settings_are_refused_during_a_region_and_applied_between_regions(qtbot, console):
     status = find(console, QtWidgets.QLabel, "rampStatus")
     f_max = find(console, QtWidgets.QDoubleSpinBox, "force_max_N")
