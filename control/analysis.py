@@ -177,6 +177,14 @@ class ContactTracker:
             return math.nan
         return float(z1 + (z1 - z3) * SUM_STEPS[0] / (SUM_STEPS[1] - SUM_STEPS[0]))
 
+    def top_m(self) -> float:
+        """Where this contact was first touched: the highest onset tracked, or the summed reading's first rise
+        (:meth:`first_touch_m`) where higher; -inf before either. What the indentation ceiling counts from."""
+        onsets = self.onset_height_m
+        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else -math.inf
+        touched = self.first_touch_m()
+        return touched if touched > top else top
+
     def _air_out(self, pressure_pa: np.ndarray, p_on: np.ndarray) -> None:
         """Blind elements whose reading fell below p_on, or to half of what it was, were reading creep in
         air: from here they are tracked as elements that had not yet touched, on their reading above its

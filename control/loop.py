@@ -668,11 +668,7 @@ class ControlLoop:
             elif self._clear_z == -math.inf or (pos[Z] > self._clear_z and (p < self._thresholds[0]).all()):
                 self._clear_z = pos[Z]
         self._deepest_m = self._carried_top_m - pos[Z]
-        onsets = tracker.onset_height_m
-        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else -math.inf
-        touched = tracker.first_touch_m()  # by the summed reading: sooner than any element on a soft start
-        if touched > top:
-            top = touched
+        top = tracker.top_m()  # by the summed reading where sooner than any element (a soft start)
         if top > -math.inf:
             if not self._deepest_m >= top - pos[Z]:
                 self._deepest_m = top - pos[Z]

@@ -290,15 +290,10 @@ class PalpationStateMachine:
         return ""
 
     def _depth_below_first_touch_m(self, z_m: float) -> float:
-        """How far the face at ``z_m`` is below where this area's tissue was first touched: the highest onset
-        tracked, or the summed reading's first rise where sooner (the loop's indentation ceiling's measure;
-        NaN: no touch tracked, and no cap by depth)."""
-        onsets = self.tracker.onset_height_m
-        top = float(np.nanmax(onsets)) if np.isfinite(onsets).any() else math.nan
-        touched = self.tracker.first_touch_m()
-        if not top >= touched:
-            top = touched
-        return top - z_m
+        """How far the face at ``z_m`` is below where this area's tissue was first touched, as the loop's
+        indentation ceiling counts it (NaN where nothing was touched: no cap by depth)."""
+        top = self.tracker.top_m()
+        return top - z_m if top > -math.inf else math.nan
 
     def on_tick(self, now_s: float, tsi_z_m: float) -> None:
         """Time-outs of the ramp; called every tick while in force control."""

@@ -1,5 +1,7 @@
 """Contact onset, L0, dL and Eq. 1 stiffness."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -74,6 +76,18 @@ def test_onset_extrapolated_back_to_zero_pressure_on_a_linear_rise():
     for z in np.arange(0.030, 0.018, -0.00037):  # frames every 0.37 mm of descent
         tracker.update(slope * np.clip(surface - z, 0, None), z)
     np.testing.assert_allclose(tracker.onset_height_m, surface, atol=1e-9)
+
+
+def test_the_top_is_the_highest_onset_until_the_summed_reading_places_the_first_touch_higher():
+    """What the indentation ceiling and the ramp's cap by depth count from: -inf before any touch, the highest
+    onset once one is tracked even while the summed reading has not risen through both of its steps (NaN),
+    and the summed reading's first touch where that lies higher."""
+    tracker = ContactTracker(ContactSettings(onset_threshold_pa=300, confirm_threshold_pa=900), SHAPE)
+    assert tracker.top_m() == -math.inf
+    tracker.onset_height_m[0, 0] = 0.025
+    assert math.isnan(tracker.first_touch_m()) and tracker.top_m() == 0.025
+    tracker._sum_heights_m[:] = (0.0262, 0.0258)  # risen through both steps: placed above the onsets
+    assert tracker.first_touch_m() > 0.0262 and tracker.top_m() == tracker.first_touch_m()
 
 
 def test_element_in_contact_before_tracking_stays_unknown():
