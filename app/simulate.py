@@ -101,8 +101,7 @@ def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool,
                     print(_level_line(event.record))
                 elif isinstance(event, RegionDone):
                     done += 1
-                    capped = (f", capped at {event.capped_N:g} N: {event.capped_why}"
-                              if event.capped_N == event.capped_N else "")
+                    capped = f", {event.cap_text()}" if event.cap_text() else ""
                     print(f"  region {event.region + 1} done ({event.n_levels} levels{capped})")
                 elif isinstance(event, (FaultRaised, LevelTimedOut, RegionAborted)):
                     failures += 1

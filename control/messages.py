@@ -173,6 +173,10 @@ class RegionDone:
     capped_N: float = math.nan
     capped_why: str = ""  # which, in words (control.palpation's CAPPED_BY_...)
 
+    def cap_text(self) -> str:
+        """"capped at F N: why", or "" where the ramp reached F_max (the session's event text says it so)."""
+        return f"capped at {self.capped_N:g} N: {self.capped_why}" if self.capped_N == self.capped_N else ""
+
 
 @dataclass(frozen=True, slots=True)
 class RegionAborted:

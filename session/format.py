@@ -266,8 +266,7 @@ def rows_for_event(event) -> tuple[tuple | None, tuple | None]:
                         value=event.force_desired_N, text=event.message)
     elif isinstance(event, RegionDone):
         row = event_row(event.t_s, k.REGION_DONE, region=event.region, code=event.n_levels, value=event.capped_N,
-                        text=f"capped at {event.capped_N:g} N: {event.capped_why}" if event.capped_N == event.capped_N
-                        else "")
+                        text=event.cap_text())
     elif isinstance(event, RegionAborted):
         row = event_row(event.t_s, k.REGION_ABORTED, region=event.region, text=event.reason)
     elif isinstance(event, FaultRaised):
