@@ -193,6 +193,10 @@ def test_the_rebuilt_block_takes_the_sides_under_which_the_session_reads_most_al
     assert chosen.sides == truth
     assert f"sides {truth}: the areas' stiffness contrast scatters" in chosen.description
     assert ("held in a mould" in chosen.description) == (truth == "mould")
+    if truth == "mould":  # the sides are told on linear patterns, then finite strain is solved for those alone
+        final = chosen.at_finite_strain(tmp_path)
+        assert final.sides == "mould" and final.finite_strain is not None and chosen.finite_strain is None
+        assert "finite strain" in final.description and chosen.sides_why in final.description
 
 
 @pytest.mark.parametrize("rough_m", [0.0, 2e-5, 3e-4])
