@@ -25,6 +25,12 @@ VERDICT = {"good": "Loop OK", "watch": "Loop: check", "bad": "LOOP / DEVICE PROB
 AGE_REFRESH_EVERY = 6  # update the age readouts every this many ticks shown (10 Hz at 60 Hz)
 
 
+def _whole(figure: str) -> str:
+    """``figure`` kept on one line where the chip wraps its text: a narrow column breaks it between figures
+    only ("late 3.27 %" is not split from its number)."""
+    return figure.replace(" ", "\u00a0")
+
+
 def health_summary(health: LoopHealth) -> str:
     """One line for the status bar."""
     return (f"loop {health.rate_hz:.0f} Hz · late > 0.5 ms: {health.late_over_0_5ms_pct:.2f} % · "
@@ -97,7 +103,7 @@ class HealthPanel(QtWidgets.QWidget):
         Every figure counts but real-time priority, whose absence is normal on a desktop machine; the
         reason it was refused does."""
         if self._controller_problem is not None:  # its figures are as old as its last report
-            return "bad", f"{VERDICT['bad']} · {self._controller_problem}"
+            return "bad", f"{_whole(VERDICT['bad'])} · {self._controller_problem}"
         names = ("loopRate", "lateTicks", "jitter", "missedTicks", "sensorAge", "masterAge", "slaveAge")
         levels = [self.level(n) for n in names if n in self._short]
         if not levels:
@@ -106,11 +112,10 @@ class HealthPanel(QtWidgets.QWidget):
             levels.append("watch")
         worst = "bad" if "bad" in levels else "watch" if "watch" in levels else "good"
         shown = ["loopRate", "lateTicks"] + (["missedTicks"] if self.level("missedTicks") != "good" else [])
-        loop = " · ".join(self._short[n] for n in shown if n in self._short)
-        head = VERDICT[worst]
-        ages = " · ".join(f"{device} {self._short[n]}" for n, device in
+        loop = " · ".join(_whole(self._short[n]) for n in shown if n in self._short)
+        ages = " · ".join(_whole(f"{device} {self._short[n]}") for n, device in
                           (("sensorAge", "sensor"), ("slaveAge", "robot"), ("masterAge", "master")) if n in self._short)
-        return worst, f"{head} · {loop}" + (f"\n{ages}" if ages else "")
+        return worst, f"{_whole(VERDICT[worst])} · {loop}" + (f"\n{ages}" if ages else "")
 
     def show_controller_problem(self, problem: str | None) -> None:
         """The controller itself stopped or stopped answering (``problem`` in a few words), or None again."""

@@ -18,6 +18,7 @@ import pytest
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from control.messages import FaultKind, FaultRaised
+from control.telemetry import LoopHealth
 from hardware.interfaces import Phase
 from tests.widgets.test_live_window import CONFIG, PLAN, FakeController, Physics, area, make_tick, push
 from widgets.live_window import LiveWindow
@@ -159,6 +160,31 @@ def test_the_depth_and_stop_stay_in_view_in_every_state_on_a_laptop(qtbot, tmp_p
         depth = window.findChild(QtWidgets.QLabel, "indentation").text()
         assert depth.endswith("mm") or (state == "seeking contact" and depth == "no contact"), state
         _looks_as_it_did(window, f"console_{width}x{height}_{state.replace(' ', '_')}")
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
+def test_a_late_loop_is_told_whole_on_a_laptop(qtbot, tmp_path, size, laid_out_once):
+    """The health chip of a loop in trouble ("LOOP / DEVICE PROBLEM · 987 Hz · late 3.27 % · missed 128 (stall 45
+    ms)") was cut after "late 3.2" at 1280 x 800: what it says of a late loop reads whole, a figure to a line at
+    most, and everything else stays in view."""
+    width, height = size
+    window, controller = _laptop_console(qtbot, tmp_path, size)
+    late = LoopHealth(rate_hz=987.0, late_over_0_5ms_pct=3.27, p99_abs_jitter_us=640.0, missed_ticks=128,
+                      longest_stall_ms=45.0, rt_priority=False, cpu=None)
+    push(controller, make_tick(phase=Phase.SETTLING, sz=0, level=2, n_levels=7, force_desired_N=3.0,
+                               force_measured_N=2.9, indentation_m=0.006), health=late)
+    chip = window.findChild(QtWidgets.QLabel, "healthChip")
+    side = window.findChild(QtWidgets.QScrollArea, "sideScroll")
+    qtbot.waitUntil(lambda: chip.property("level") == "bad" and side.widget().width() == side.viewport().width()
+                    and chip.height() >= _needs(chip))
+    _all_in_view(window, width, height, "loop late")
+    assert "missed 128 (stall 45 ms)" in chip.text().replace("\u00a0", " ")
+    # what cannot be broken must fit: a line unless the chip wraps, else the words between its plain spaces
+    lines = chip.text().split("\n")
+    runs = [run for line in lines for run in line.split(" ")] if chip.wordWrap() else lines
+    room = chip.contentsRect().width() - 2 * chip.margin()
+    bold = QtGui.QFontMetrics(chip.font())
+    assert all(bold.horizontalAdvance(run) <= room for run in runs), (room, runs)
 
 
 @pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
