@@ -59,6 +59,29 @@ def test_element_stiffness_is_symmetric_and_blind_to_rigid_motion():
         assert np.abs(k @ mode.ravel()).max() < 1e-9 * scale
 
 
+def test_a_block_of_repeated_element_shapes_is_worked_out_per_shape_as_element_by_element(monkeypatch):
+    # a flat block (one shape per layer) with a stiff sphere cutting through elements, so that the material
+    # differs between an element's Gauss points; the same block with every node line moved by a hair has no
+    # two elements alike, and is worked out element by element
+    from tissue.mechanics import fem
+
+    def sphere(p):
+        inside = np.sum((p - np.array([3e-3, 2e-3, 2e-3])) ** 2, axis=-1) <= (1.3e-3) ** 2
+        return np.where(inside, 160e3, 20e3), np.full(p.shape[:-1], 0.49)
+
+    x, y = np.linspace(0, 6e-3, 7), np.linspace(0, 4e-3, 5)
+    flat = HexGrid(x, y, graded_levels(4, 0.1), np.full((7, 5), 4e-3))
+    rng = np.random.default_rng(3)
+    hair = HexGrid(x + 1e-10 * rng.random(7), y + 1e-10 * rng.random(5), graded_levels(4, 0.1), np.full((7, 5), 4e-3))
+    worked_out = []
+    geometry = fem._element_geometry
+    monkeypatch.setattr(fem, "_element_geometry", lambda xe, *a: worked_out.append(len(xe)) or geometry(xe, *a))
+    per_shape, per_element = element_stiffness(flat, sphere), element_stiffness(hair, sphere)
+    assert worked_out == [4, 6 * 4 * 4]
+    np.testing.assert_allclose(per_shape, per_element, rtol=0, atol=1e-6 * np.abs(per_element).max())
+    assert np.ptp(per_element[:, 0, 0]) > 1.0 * per_element[:, 0, 0].min()  # the sphere is in it
+
+
 def test_a_uniform_strain_leaves_interior_nodes_in_equilibrium_on_a_distorted_mesh():
     # The patch test: any linear displacement field is reproduced exactly, with zero residual
     # at nodes that are not on the block's boundary, however distorted the elements.

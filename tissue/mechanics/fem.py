@@ -125,41 +125,66 @@ class HexGrid:
 def element_stiffness(grid: HexGrid, material: MaterialFn) -> np.ndarray:
     """(nel, 24, 24) Q1/P0 element stiffness matrices, dofs ordered (node a, component i) -> 3a + i."""
     coords = grid.node_coords().reshape(-1, 3)
-    conn = grid.element_nodes()
-    xe = coords[conn]  # (nel, 8, 3)
+    xe = coords[grid.element_nodes()]  # (nel, 8, 3)
     pts, wts = _gauss_2x2x2()
+    n = (1.0 + pts[:, None, :] * _REF[None, :, :]).prod(axis=2) / 8.0  # (nq, 8) shape functions
+    young, nu = material(np.einsum("qa,eai->eqi", n, xe))
+    young = np.broadcast_to(young, (len(xe), len(pts)))
+    nu = np.broadcast_to(nu, young.shape)
+    mu = young / (2.0 * (1.0 + nu))
+    kappa = young / (3.0 * (1.0 - 2.0 * nu))
+    # A block meshed under a flat surface is a few element shapes repeated, one per layer: their geometry is
+    # worked out once per shape (a solve of the depth model's spent a third of its time here otherwise).
+    shapes, which = np.unique(np.round(xe - xe[:, :1], 12).reshape(len(xe), -1), axis=0, return_inverse=True)
+    if len(shapes) * 8 > len(xe):
+        grad, wdet = _element_geometry(xe, pts, wts)
+        return _deviatoric(grad, wdet * mu) + _volumetric(grad, wdet, kappa)
+    grad, wdet = _element_geometry(shapes.reshape(-1, 8, 3), pts, wts)
+    k = np.empty((len(xe), 24, 24))
+    for s in range(len(shapes)):
+        members = np.flatnonzero(which.ravel() == s)
+        # the deviatoric part is linear in the shear modulus at each Gauss point: one operator per point
+        per_point = np.stack([_deviatoric(grad[s:s + 1], wdet[s:s + 1] * (np.arange(len(pts)) == q))[0]
+                              for q in range(len(pts))]).reshape(len(pts), -1)
+        k[members] = (mu[members] @ per_point).reshape(-1, 24, 24)
+        k[members] += _volumetric(grad[s:s + 1], wdet[s:s + 1], kappa[members])
+    return k
+
+
+def _element_geometry(xe: np.ndarray, pts: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dN_a/dx_i at each Gauss point, (n, nq, 8, 3); the points' weights times the Jacobian, (n, nq)) of the
+    elements whose nodes are ``xe`` (n, 8, 3)."""
     # dN/dxi at each Gauss point: (nq, 8, 3)
     fac = 1.0 + pts[:, None, :] * _REF[None, :, :]
     dn = np.empty((len(pts), 8, 3))
     dn[..., 0] = _REF[None, :, 0] * fac[..., 1] * fac[..., 2] / 8.0
     dn[..., 1] = _REF[None, :, 1] * fac[..., 0] * fac[..., 2] / 8.0
     dn[..., 2] = _REF[None, :, 2] * fac[..., 0] * fac[..., 1] / 8.0
-    n = fac.prod(axis=2) / 8.0  # (nq, 8) shape functions
     jac = np.einsum("eai,qaj->eqij", xe, dn)  # dx_i/dxi_j
     det = np.linalg.det(jac)
     if np.any(det <= 0):
         raise ValueError("inverted or degenerate element in the mesh (non-positive Jacobian)")
-    grad = np.einsum("qaj,eqji->eqai", dn, np.linalg.inv(jac))  # dN_a/dx_i
-    wdet = det * wts[None, :]
-    xq = np.einsum("qa,eai->eqi", n, xe)
-    young, nu = material(xq)
-    young = np.broadcast_to(young, wdet.shape)
-    nu = np.broadcast_to(nu, wdet.shape)
-    mu = young / (2.0 * (1.0 + nu))
-    kappa = young / (3.0 * (1.0 - 2.0 * nu))
-    # 2 mu dev(eps(N_a e_i)) : dev(eps(N_b e_j)) = mu [d_ij g_a.g_b + g_aj g_bi - 2/3 g_ai g_bj], all three
-    # terms from one batched product m[e, (a,i), (b,j)] = sum_q mu w g_ai g_bj.
-    g = grad.reshape(len(grad), len(pts), 24)
-    m = np.matmul((g * (wdet * mu)[:, :, None]).transpose(0, 2, 1), g).reshape(-1, 8, 3, 8, 3)
+    return np.einsum("qaj,eqji->eqai", dn, np.linalg.inv(jac)), det * wts[None, :]
+
+
+def _deviatoric(grad: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(n, 24, 24): the sum over the Gauss points of ``weight`` (n, nq) times [d_ij g_a.g_b + g_aj g_bi - 2/3 g_ai
+    g_bj] = 2 dev(eps(N_a e_i)) : dev(eps(N_b e_j)), the deviatoric stiffness for a weight of mu times the
+    Jacobian; all three terms from one batched product m[e, (a,i), (b,j)] = sum_q weight g_ai g_bj."""
+    g = grad.reshape(len(grad), grad.shape[1], 24)
+    m = np.matmul((g * weight[:, :, None]).transpose(0, 2, 1), g).reshape(-1, 8, 3, 8, 3)
     k = m.transpose(0, 1, 4, 3, 2) - (2.0 / 3.0) * m
     gg = np.einsum("eakbk->eab", m)
     k += gg[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-    # Mean dilatation: the element's pressure is eliminated, K_vol = b b^T / integral(1/kappa).
+    return k.reshape(-1, 24, 24)
+
+
+def _volumetric(grad: np.ndarray, wdet: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+    """Mean dilatation: the element's pressure is eliminated, K_vol = b b^T / integral(1/kappa) ((n, 24, 24), or
+    broadcast over ``kappa``'s elements where ``grad`` and ``wdet`` are one shape's)."""
     b = np.einsum("eq,eqai->eai", wdet, grad).reshape(-1, 24)
-    inv_bulk = np.einsum("eq,eq->e", wdet, 1.0 / kappa)
-    k = k.reshape(-1, 24, 24)
-    k += b[:, :, None] * b[:, None, :] / inv_bulk[:, None, None]
-    return k
+    inv_bulk = (wdet / kappa).sum(axis=1)
+    return b[:, :, None] * b[:, None, :] / inv_bulk[:, None, None]
 
 
 def element_dofs(grid: HexGrid) -> np.ndarray:
