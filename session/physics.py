@@ -210,9 +210,9 @@ class HomogeneousTissue(ABC):
         # The sides are told apart on the linear patterns: finite strain only scales each element by its strain
         # against the record's typical one, alike under either side (the choice was the same on 46 of 46 study
         # sessions), and its fit takes about as long as the block's finite elements: solved for one side only.
-        share = 0.7 / len(SIDES)
+        step = 0.7 / len(SIDES)  # of the progress: the fit takes the rest
         candidates = [BlockResponse.from_levels(session.levels, session, cache_dir,
-                                                stage(progress, k * share, (k + 1) * share), sides=sides,
+                                                stage(progress, k * step, (k + 1) * step), sides=sides,
                                                 finite_strain=False)
                       for k, sides in enumerate(SIDES)]
         return supported_sides(session.levels, candidates).at_finite_strain(cache_dir, stage(progress, 0.7, 1.0))
