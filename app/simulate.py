@@ -101,8 +101,8 @@ def _palpate(config: AppConfig, rig, operator, max_time_s: float, verbose: bool,
                     print(_level_line(event.record))
                 elif isinstance(event, RegionDone):
                     done += 1
-                    capped = f", {event.cap_text()}" if event.cap_text() else ""
-                    print(f"  region {event.region + 1} done ({event.n_levels} levels{capped})")
+                    cap = event.cap_text()
+                    print(f"  region {event.region + 1} done ({event.n_levels} levels{', ' + cap if cap else ''})")
                 elif isinstance(event, (FaultRaised, LevelTimedOut, RegionAborted)):
                     failures += 1
                     print(f"  ! {getattr(event, 'message', None) or getattr(event, 'reason', '')}")
