@@ -77,6 +77,9 @@ class TactileConstraints(Face):
     full_scale_pa: float = 100e3
     frame_rate_hz: float = 100.0
     latency_s: float = 0.010  # from a frame's sampling instant to its being readable: the force loop's lag
+    # How far the array's elastomer cover spreads an element's load sideways, as the array is specified (0: not
+    # stated). Sessions record it as the array's calibration, and the analysis's physics takes it from there.
+    cover_spread_m: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

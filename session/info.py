@@ -38,6 +38,7 @@ def calibration_of(sensor, table_height_m: float) -> dict[str, Any]:
         "full_scale_pa": sensor.full_scale_pa,
         "frame_rate_hz": sensor.frame_rate_hz,
         "table_height_m": table_height_m,
+        "cover_spread_m": sensor.cover_spread_m,
     }
 
 

@@ -782,7 +782,9 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
 
 
 def _cover_of(session: Session | SessionInfo) -> float:
-    """The sensor cover's lateral spread the session records (its simulated array's setting), else none."""
+    """The sensor cover's lateral spread as the session's calibration states it (the array's specification,
+    not a simulated array's actual cover); for a session recorded before calibrations stated it, its
+    simulated array's setting, else none."""
     value = session.calibration.get("cover_spread_m")
     if value is None:
         value = ((session.config.get("sim") or {}).get("sensor") or {}).get("cover_spread_m")

@@ -62,7 +62,7 @@ class SimTactileSensor(SimDevice, TactileSensor):
         s = world.settings.sensor
         self.settings = s
         self.constraints = TactileConstraints(full_scale_pa=s.full_scale_pa, frame_rate_hz=s.frame_rate_hz,
-                                              latency_s=s.latency_s)
+                                              latency_s=s.latency_s, cover_spread_m=s.stated_cover_spread_m)
         shape = self.constraints.shape
         self._cover_rows, self._cover_cols = cover_operators(
             cover_weight(s.cover_spread_m, self.constraints.pitch_m), shape)

@@ -62,6 +62,10 @@ class SensorSimSettings(Settings):
     # 8:705662, 2022, Table 2), so the default is a pessimistic 5 %, not zero.
     hysteresis_fraction: float = 0.05
     cover_spread_m: float = COVER_SPREAD_M  # the elastomer cover spreads load sideways by about its thickness
+    # The cover the array is specified with, which its sessions record and the analysis uses: a real array's
+    # cover is what it is, and the analysis knows only what its maker states (the study's realistic world
+    # makes it thicker than stated)
+    stated_cover_spread_m: float = COVER_SPREAD_M
     # What a real array does besides white noise (docs/phantoms.md, section 2): none of it by default ("ideal"),
     # the measured figures with ``model = "realistic"`` (SENSOR_MODELS). Each press of an element reads as if
     # the face stood deeper by an offset drawn for that press, common to the face and the element's own
@@ -91,7 +95,8 @@ class SensorSimSettings(Settings):
             object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("latency_s", "noise_std_pa", "quantisation_pa", "gain_spread", "zero_offset_pa",
                      "zero_offset_spread_pa", "creep_fraction", "hysteresis_fraction", "cover_spread_m",
-                     "press_offset_m", "press_offset_element_m", "first_press_m", "session_offset_fraction"):
+                     "stated_cover_spread_m", "press_offset_m", "press_offset_element_m", "first_press_m",
+                     "session_offset_fraction"):
             object.__setattr__(self, name, non_negative(name, getattr(self, name)))
         object.__setattr__(self, "first_press_recovery_s", positive("first_press_recovery_s",
                                                                     self.first_press_recovery_s))
@@ -108,7 +113,8 @@ class SensorSimSettings(Settings):
         bounded("creep_fraction", self.creep_fraction, hi=0.5, why="capacitive arrays creep by a few %")
         bounded("hysteresis_fraction", self.hysteresis_fraction, hi=0.25,
                 why="beyond that the reading is not a pressure")
-        bounded("cover_spread_m", self.cover_spread_m, hi=2e-3, why="a cover thicker than an element blurs beyond it")
+        for name in ("cover_spread_m", "stated_cover_spread_m"):
+            bounded(name, getattr(self, name), hi=2e-3, why="a cover thicker than an element blurs beyond it")
         bounded("quantisation_pa", self.quantisation_pa, hi=self.full_scale_pa / 16,
                 why="at least 4 bits over full scale")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:

@@ -327,6 +327,21 @@ def test_the_cover_spreads_an_edge_peak_to_its_neighbours_and_keeps_the_total_fo
     assert seen[1, 0] == pytest.approx(10e3 - w * 8e3)  # lost to the neighbour column, none across rows
 
 
+def test_a_cover_thicker_than_stated_blurs_the_frames_and_the_array_states_the_stated_one():
+    """issue 48: the analysis knows the cover the array is specified with (its calibration), not the one it has."""
+    def edge_column(sensor):
+        sensor.world.tissue.force_N[:] = 0.02
+        sensor.world.tissue.force_N[:, 0] = 0.1
+        frames, _ = run(sensor, T0, 0.05)
+        return frames[-1].pressure_pa[:, 0].mean()
+
+    bare = make_sensor(**IDEAL)
+    thicker = make_sensor(**{**IDEAL, "cover_spread_m": 1e-3})
+    assert edge_column(thicker) < edge_column(bare) * 0.9  # the peak spreads into the next column
+    specified = SensorSimSettings().stated_cover_spread_m
+    assert bare.constraints.cover_spread_m == thicker.constraints.cover_spread_m == specified
+
+
 class Layer:
     """Tissue double: every element a linear spring on a flat surface at 25 mm, ``k_N_m`` each."""
 
