@@ -57,7 +57,7 @@ def travel_height_m(phantom, settings: dict[str, Any]) -> float:
 # simulator share the mechanics, and the array's only fast error is white noise. "realistic": the array has
 # the errors a real capacitive array has (hardware/sim/settings.py, SENSOR_MODELS), and each phantom is
 # palpated under conditions drawn for it (tissue.generator.draw_conditions: law, sides, micro-relief, probe
-# tilt); the analysis knows of none of it.
+# tilt, a thicker cover than the array is specified with); the analysis knows of none of it.
 WORLDS: dict[str, dict[str, Any]] = {
     "ideal": {"sim": {"sensor": {"model": "ideal"}}},
     "realistic": {"sim": {"sensor": {"model": "realistic"}}},
@@ -178,7 +178,7 @@ def _run_case(case: StudyCase, folder: Path, keep_session: bool, settings: dict[
     phantom = load_phantom(phantom_path)
     config = load_config(None, merge_tables(merge_tables(settings, WORLDS[case.world]), {
         "rig": {"backend": "sim", "phantom": str(phantom_path), "seed": case.rig_seed},
-        "sim": {"sensor": {"seed": case.sensor_seed}, "tissue": case.tissue,
+        "sim": {"sensor": {"seed": case.sensor_seed, **_cover(case.conditions)}, "tissue": case.tissue,
                 "probe_tilt_deg": list(case.conditions.get("probe_tilt_deg", (0.0, 0.0))),
                 "operator": {"travel_height_m": travel_height_m(phantom, settings)}},
         "control": {"ramp": {"force_max_N": case.force_max_N}}}))
@@ -243,6 +243,11 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
         }
 
 
+def _cover(conditions: dict[str, Any]) -> dict[str, float]:
+    """The simulated array's actual cover the realistic world drew (its stated one stays the default)."""
+    return {"cover_spread_m": conditions["cover_spread_m"]} if "cover_spread_m" in conditions else {}
+
+
 def _conditions_of(session) -> dict[str, Any]:
     """What the realistic world drew for a case (tissue.generator.draw_conditions), as its session recorded
     it; empty for a case of the ideal world."""
@@ -254,7 +259,8 @@ def _conditions_of(session) -> dict[str, Any]:
     return {"law": material.get("law", "neo_hookean"), "c2_over_c1": material.get("c2_over_c1", 0.0),
             "c3_over_c1": material.get("c3_over_c1", 0.0), "sides": table.get("sides", "free"),
             "relief_rms_m": relief[0]["rms_m"], "relief_wavelength_m": relief[0]["wavelength_m"],
-            "probe_tilt_deg": list((session.config.get("sim") or {}).get("probe_tilt_deg", [0.0, 0.0]))}
+            "probe_tilt_deg": list((session.config.get("sim") or {}).get("probe_tilt_deg", [0.0, 0.0])),
+            **_cover(((session.config.get("sim") or {}).get("sensor") or {}))}
 
 
 def _areas_started(session) -> int:
@@ -510,8 +516,9 @@ def study_parser():
     parser.add_argument("--world", choices=[*WORLDS, "both"],
                         help="ideal: the analysis shares the simulator's mechanics and the array's only fast "
                              "error is white noise; realistic: the errors a real capacitive array has and "
-                             "conditions drawn for each phantom (law, sides, micro-relief, probe tilt), none of "
-                             "which the analysis knows of; both: the same phantoms in each (default ideal)")
+                             "conditions drawn for each phantom (law, sides, micro-relief, probe tilt, a thicker "
+                             "cover), none of which the analysis knows of; both: the same phantoms in each (default "
+                             "ideal)")
     parser.add_argument("--calibrated", action="store_true",
                         help="calibrate every case's array on the simulated cushion before palpating with it, as "
                              "a lab calibrates its array (palpation-console calibrate); its session is kept")

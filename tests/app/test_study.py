@@ -238,6 +238,12 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
         assert session.phantom["phantom"]["sides"] == conditions["sides"]
         assert session.phantom["phantom"]["surface"][-1]["rms_m"] == conditions["relief_rms_m"]
         assert session.config["sim"]["probe_tilt_deg"] == conditions["probe_tilt_deg"] != [0.0, 0.0]
+        # a thicker cover than the array is specified with: the session's calibration states the specified one,
+        # which is what the analysis reads
+        from session.physics import _cover_of
+
+        assert sensor.cover_spread_m == conditions["cover_spread_m"] != sensor.stated_cover_spread_m
+        assert session.calibration["cover_spread_m"] == sensor.stated_cover_spread_m == _cover_of(session)
     capsys.readouterr()
     config.write_text("[control.ramp]\nforce_step_N = -1.0\n")
     assert study_main(["-n", "1", "--out", str(out), "--config", str(config)]) == 2
