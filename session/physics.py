@@ -790,7 +790,9 @@ def _cover_of(session: Session | SessionInfo) -> float:
         value = ((session.config.get("sim") or {}).get("sensor") or {}).get("cover_spread_m")
         if value is None and session.simulated:
             value = COVER_SPREAD_M
-    return float(value) if isinstance(value, (int, float)) else 0.0
+    # a file's value that is no spread (text, NaN, negative) states none: it would blur every element into NaN
+    usable = isinstance(value, (int, float)) and not isinstance(value, bool) and float(value) >= 0.0
+    return float(value) if usable and np.isfinite(value) else 0.0
 
 
 def cover_for(described: Session | SessionInfo, shape: tuple[int, int], pitch_m: float

@@ -224,3 +224,16 @@ def test_the_faces_contact_meets_the_contact_conditions(tmp_path, rough_m):
         assert carrying.sum() == len(f) - 5
     if rough_m == 3e-4:
         assert carrying.sum() < (len(f) - 5) / 2
+
+
+@pytest.mark.parametrize("stated, used", [(0.8e-3, 0.8e-3), (float("nan"), 0.0), (-1e-3, 0.0), ("thick", 0.0),
+                                          (True, 0.0)])
+def test_the_cover_is_the_one_the_calibration_states_and_a_value_that_is_no_spread_states_none(stated, used):
+    """issue 48: the analysis takes the array's cover from its calibration, never from the simulated array's
+    actual one, and a crafted file's cover cannot blur the pattern into NaN."""
+    from session.info import SessionInfo
+    from session.physics import _cover_of
+
+    info = SessionInfo(config={"sim": {"sensor": {"cover_spread_m": 1.5e-3}}},
+                       calibration={"cover_spread_m": stated}, rig={"backend": "sim"})
+    assert _cover_of(info) == used
