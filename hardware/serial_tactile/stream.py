@@ -47,6 +47,9 @@ class TactileSettings(Settings):
     tare_on_open: bool = True  # the first frame after opening is zero (never after a reconnection)
     frame_rate_hz: float = 100.0  # what the device sends
     full_scale_pa: float = 100e3
+    # how far the array's elastomer cover spreads an element's load sideways, as its maker states it (0: not
+    # stated); sessions record it, and the analysis's expected pattern is blurred by it
+    cover_spread_m: float = 0.0
     frame_timeout_s: float = 0.25  # no good frame for this long: LOST
     reconnect_interval_s: float = 0.5
 
@@ -56,13 +59,15 @@ class TactileSettings(Settings):
         self._set("tare_on_open", boolean("tare_on_open", self.tare_on_open))
         self._set("frame_rate_hz", bounded("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
         self._set("full_scale_pa", bounded("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
+        self._set("cover_spread_m", bounded("cover_spread_m", self.cover_spread_m, 0.0, 2e-3))
         self._set("frame_timeout_s", bounded("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
         self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         if self.frame_timeout_s * self.frame_rate_hz < 2:
             raise ConfigError("frame_timeout_s", f"must span at least two frames at {self.frame_rate_hz:g} frames/s")
 
     def constraints(self) -> TactileConstraints:
-        return TactileConstraints(full_scale_pa=self.full_scale_pa, frame_rate_hz=self.frame_rate_hz)
+        return TactileConstraints(full_scale_pa=self.full_scale_pa, frame_rate_hz=self.frame_rate_hz,
+                                  cover_spread_m=self.cover_spread_m)
 
     def load_calibration(self) -> Calibration:
         """The calibration the settings name (with its equilibration), or the uncalibrated default."""

@@ -212,11 +212,22 @@ def test_open_failures_are_sentences_a_user_can_act_on(emulator, tmp_path):
     ({"port": "/dev/ttyACM0", "bauds": 9600}, "hardware.sensor.bauds", "unknown key"),
     ({"port": "/dev/ttyACM0", "frame_timeout_s": 0.01}, "hardware.sensor.frame_timeout_s", "two frames"),
     ({"port": "/dev/ttyACM0", "tare_on_open": "yes"}, "hardware.sensor.tare_on_open", "true or false"),
+    ({"port": "/dev/ttyACM0", "cover_spread_m": 0.005}, "hardware.sensor.cover_spread_m", "between 0 and 0.002"),
 ])
 def test_bad_settings_name_the_key(table, key, problem):
     with pytest.raises(ConfigError, match=problem) as err:
         SerialTactileSettings.from_mapping(table, "hardware.sensor.")
     assert err.value.key == key
+
+
+def test_the_cover_the_array_is_specified_with_goes_into_its_sessions_calibration():
+    """issue 48: a lab states its array's cover, and the analysis's physics reads it from the session."""
+    from session.info import calibration_of
+
+    stated = SerialTactileSettings.from_mapping({"port": "/dev/ttyACM0", "cover_spread_m": 0.8e-3}, "hardware.sensor.")
+    assert calibration_of(stated.constraints(), 0.0)["cover_spread_m"] == 0.8e-3
+    unstated = SerialTactileSettings.from_mapping({"port": "/dev/ttyACM0"}, "hardware.sensor.")
+    assert calibration_of(unstated.constraints(), 0.0)["cover_spread_m"] == 0.0
 
 
 def test_the_stream_of_frames_is_the_documented_encoding(emulator, sensor):
