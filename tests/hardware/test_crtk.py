@@ -188,8 +188,10 @@ def test_commands_reach_the_arm_in_its_base_frame_through_its_dynamics(domain, f
         seen = []
         until(lambda: math.dist(slave.latest().position_m, target) < 1e-6, 5.0, "the arm at the target",
               lambda: (pump(slave, target)(), seen.append(slave.latest().position_m[2])))
-        between = [z for z in seen if 0.085 + 1e-4 < z < 0.09 - 1e-4]
-        assert len(between) >= 10, "the arm reached the goal without moving through the space between"
+        # a few distinct places on the way: how many the polls catch depends on how busy the machine is (five,
+        # with a study running on both cores), not on the arm; an arm that jumps to the goal shows none
+        between = {z for z in seen if 0.085 + 1e-4 < z < 0.09 - 1e-4}
+        assert len(between) >= 3, "the arm reached the goal without moving through the space between"
         tool = dds.take(measured, 1000)[-1].pose.position  # x_base = -y_tissue + 0.01, y_base = x_tissue
         assert (tool.x, tool.y, tool.z) == pytest.approx((-0.003, 0.002, -0.105), abs=1e-6)
         assert slave.force_N == 0.0
