@@ -243,9 +243,10 @@ def _analysed(name: str, paper: bool, phantom: dict[str, Any], session_path: Pat
         }
 
 
-def _cover(conditions: dict[str, Any]) -> dict[str, float]:
-    """The simulated array's actual cover the realistic world drew (its stated one stays the default)."""
-    return {"cover_spread_m": conditions["cover_spread_m"]} if "cover_spread_m" in conditions else {}
+def _cover(drawn: dict[str, Any]) -> dict[str, float]:
+    """The simulated array's actual cover, from what the realistic world drew for a case or from its
+    session's ``[sim.sensor]`` table (the stated cover stays the default)."""
+    return {"cover_spread_m": drawn["cover_spread_m"]} if "cover_spread_m" in drawn else {}
 
 
 def _conditions_of(session) -> dict[str, Any]:
@@ -256,11 +257,12 @@ def _conditions_of(session) -> dict[str, Any]:
     if not relief:
         return {}
     material = table.get("material", {})
+    sim = session.config.get("sim") or {}
     return {"law": material.get("law", "neo_hookean"), "c2_over_c1": material.get("c2_over_c1", 0.0),
             "c3_over_c1": material.get("c3_over_c1", 0.0), "sides": table.get("sides", "free"),
             "relief_rms_m": relief[0]["rms_m"], "relief_wavelength_m": relief[0]["wavelength_m"],
-            "probe_tilt_deg": list((session.config.get("sim") or {}).get("probe_tilt_deg", [0.0, 0.0])),
-            **_cover(((session.config.get("sim") or {}).get("sensor") or {}))}
+            "probe_tilt_deg": list(sim.get("probe_tilt_deg", [0.0, 0.0])),
+            **_cover(sim.get("sensor") or {})}
 
 
 def _areas_started(session) -> int:

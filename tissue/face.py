@@ -19,6 +19,7 @@ ROWS, COLS, PITCH_M = 4, 15, 2e-3  # the paper's TSI: 15 x 4 capacitive elements
 # The elastomer cover over the elements spreads load sideways by about its thickness; 0.5 mm is that of thin
 # capacitive skins (docs/phantoms.md, section 2). A session records the value its array had.
 COVER_SPREAD_M = 0.5e-3
+MAX_COVER_SPREAD_M = 2e-3  # a cover that spreads load further blurs an element beyond its neighbours
 
 
 def element_offsets_m(rows: int, cols: int, pitch_m: float) -> np.ndarray:

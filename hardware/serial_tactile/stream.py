@@ -34,6 +34,7 @@ from hardware.serial_tactile.clock import DeviceClock
 from hardware.serial_tactile.config import boolean, optional_path
 from hardware.serial_tactile.driver import U32, FrameParser, RawFrame
 from hardware.settings import ConfigError, Settings, bounded
+from tissue.face import MAX_COVER_SPREAD_M
 
 CONVERTER_BITS = 12  # an uncalibrated device: full scale over a 12-bit converter
 
@@ -59,7 +60,7 @@ class TactileSettings(Settings):
         self._set("tare_on_open", boolean("tare_on_open", self.tare_on_open))
         self._set("frame_rate_hz", bounded("frame_rate_hz", self.frame_rate_hz, 1.0, 1000.0))
         self._set("full_scale_pa", bounded("full_scale_pa", self.full_scale_pa, 1e3, 10e6))
-        self._set("cover_spread_m", bounded("cover_spread_m", self.cover_spread_m, 0.0, 2e-3))
+        self._set("cover_spread_m", bounded("cover_spread_m", self.cover_spread_m, 0.0, MAX_COVER_SPREAD_M))
         self._set("frame_timeout_s", bounded("frame_timeout_s", self.frame_timeout_s, 0.01, 10.0))
         self._set("reconnect_interval_s", bounded("reconnect_interval_s", self.reconnect_interval_s, 0.05, 60.0))
         if self.frame_timeout_s * self.frame_rate_hz < 2:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from hardware.settings import ConfigError, Settings, bounded, non_negative, positive, vec3
-from tissue.face import COVER_SPREAD_M
+from tissue.face import COVER_SPREAD_M, MAX_COVER_SPREAD_M
 from tissue.mechanics.model import MAX_TILT_RAD, RIG_FINITE_STRAIN
 
 Vec3 = tuple[float, float, float]
@@ -114,7 +114,8 @@ class SensorSimSettings(Settings):
         bounded("hysteresis_fraction", self.hysteresis_fraction, hi=0.25,
                 why="beyond that the reading is not a pressure")
         for name in ("cover_spread_m", "stated_cover_spread_m"):
-            bounded(name, getattr(self, name), hi=2e-3, why="a cover thicker than an element blurs beyond it")
+            bounded(name, getattr(self, name), hi=MAX_COVER_SPREAD_M,
+                    why="a cover thicker than an element blurs beyond it")
         bounded("quantisation_pa", self.quantisation_pa, hi=self.full_scale_pa / 16,
                 why="at least 4 bits over full scale")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
