@@ -11,6 +11,7 @@ Schema (all lengths in m, moduli in Pa)::
     youngs_modulus_pa = 20e3
     poisson_ratio = 0.49
     sides = "free"            # optional: "free" (default) or "mould" (lateral faces on frictionless walls)
+    face_friction = 0.0       # optional: Coulomb's coefficient of the probe's face on the tissue (0: none)
 
     [phantom.material]        # optional: the law at finite strain; small strain is set by the modulus
     law = "neo_hookean"       # default; or "yeoh", W = C1 (I1-3) + C2 (I1-3)^2 + C3 (I1-3)^3, C1 = mu/2,
@@ -86,6 +87,9 @@ FACE_SAMPLE_M = 0.5e-3
 SIDES = ("free", "mould")
 LAWS = ("neo_hookean", "yeoh")
 MAX_YEOH_RATIO = 100.0
+# silicone on a sensor sheet is 0.2-1 (the realistic world's range, tissue.generator); rubber on a dry rough
+# face reaches 2, and past that the face grips the tissue outright, as it already does at 1 (flat phantom)
+MAX_FACE_FRICTION = 2.0
 
 
 class PhantomError(ValueError):
@@ -166,6 +170,7 @@ class Phantom:
     regions: tuple[tuple[float, float], ...] = ()
     sides: str = "free"  # "mould": the lateral faces slide on frictionless walls (a phantom in its casting tray)
     material: Hyperelastic = Hyperelastic()
+    face_friction: float = 0.0  # Coulomb's coefficient of the probe's face on the tissue
     source: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def surface_height_m(self, x, y) -> np.ndarray:
@@ -204,6 +209,8 @@ class Phantom:
         it came from. A phantom built in code has no file: hashed by its file, every block the analysis
         rebuilds shared one cached finite-strain solve, whichever a machine had made first."""
         content = {k: v for k, v in asdict(self).items() if k != "source"}
+        if not self.face_friction:
+            del content["face_friction"]  # a frictionless phantom keeps the hash it had before friction existed
         blob = json.dumps(content, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
@@ -248,6 +255,9 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
     if not 0.0 <= nu < 0.5:
         p.fail("poisson_ratio", f"must be in [0, 0.5), got {nu:g} (use 0.49-0.499 for nearly incompressible)")
     surface = tuple(_feature(f) for f in p.list_of_tables("surface", MAX_FEATURES))
+    friction = p.number("face_friction", default=0.0, bound=MAX_FACE_FRICTION)
+    if friction < 0:
+        p.fail("face_friction", f"must be >= 0 (0: frictionless), got {friction:g}")
     base = Phantom(
         name=p.string("name"),
         description=p.string("description", default=""),
@@ -260,6 +270,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
         surface=surface,
         sides=p.choice("sides", SIDES, default="free"),
         material=_material(p.optional_table("material")),
+        face_friction=friction,
     )
     lowest = float(base.surface_height_m(*_footprint_grid(base)).min())
     if lowest < MIN_SURFACE_HEIGHT_M:
@@ -276,7 +287,7 @@ def parse_phantom(data: dict[str, Any], src: str = "<phantom>") -> Phantom:
     inclusions = tuple(inclusions)
     regions = tuple(_region(r, base) for r in p.list_of_tables("regions", MAX_REGIONS))
     p.no_unknown({"name", "description", "length_m", "width_m", "thickness_m", "youngs_modulus_pa",
-                  "poisson_ratio", "surface", "inclusions", "regions", "sides", "material"})
+                  "poisson_ratio", "surface", "inclusions", "regions", "sides", "material", "face_friction"})
     return Phantom(**{**base.__dict__, "inclusions": inclusions, "regions": regions, "source": data})
 
 

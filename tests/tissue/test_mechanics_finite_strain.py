@@ -204,3 +204,34 @@ def test_a_compressed_layer_carries_an_inclusion_nearer_its_surface_but_never_ou
     # 1 mm would thin to 0.1 mm: the shallow one's top reaches 9.9 mm
     assert modulus(0.008, 0.0098) == 160e3 and modulus(0.008, 0.00995) == 20e3
     assert compressed_material(phantom, 0.9)(np.array([[0.008, 0.015, 0.00999]]))[0][0] == 160e3  # at the surface
+
+
+def test_a_face_that_grips_the_tissue_stiffens_it_from_the_first_touch_and_its_fit_follows(monkeypatch):
+    """issue 48: Coulomb friction at the face (the realistic world's; the analysis assumes none). A gripped
+    layer cannot spread under the face: it is stiffer from the first touch and its pattern changes (the face's
+    ends, where a free layer bulges out, carry more), and the fit starts from that, not from one."""
+    from tissue.mechanics import finite_strain
+    from tissue.mechanics.model import _stiffening
+
+    solve, solved = finite_strain.punch, []
+
+    def kept(*args, **kwargs):
+        solved.append(solve(*args, **kwargs))
+        return solved[-1]
+
+    monkeypatch.setattr(finite_strain, "punch", kept)
+    sensor = TactileConstraints()
+    gripped = FiniteStrain.from_arrays(_stiffening(parse_phantom({"phantom": {**BLOCK, "face_friction": 1.0}}),
+                                                   sensor, None))
+    free = FiniteStrain.from_arrays(_stiffening(parse_phantom({"phantom": BLOCK}), sensor, None))
+    grip_solve, free_solve = solved
+    assert grip_solve.all_compressive and len(grip_solve.indentation_m) == 6  # it got all the way
+    for k in (1, -1):
+        expected = grip_solve.nonlinear_N[k] / grip_solve.linear_N()[k]
+        fitted = gripped.scale(np.full(60, grip_solve.indentation_m[k] / BLOCK["thickness_m"]))
+        assert np.allclose(fitted.reshape(expected.shape), expected, rtol=0.02)
+    assert np.all(free.scale(np.zeros(60)) == 1.0) and gripped.scale(np.zeros(60)).mean() > 1.05
+    first = [s.nonlinear_N[1] / s.linear_N()[1] for s in (grip_solve, free_solve)]
+    assert first[0].sum() > 1.05 * first[1].sum()
+    ends = [r[:, [0, -1]].mean() / r[:, 6:9].mean() for r in first]
+    assert ends[0] > ends[1] + 0.1

@@ -65,6 +65,17 @@ def test_the_sides_and_the_law_default_to_free_and_neo_hookean_and_can_be_chosen
     assert chosen.content_hash() != parse_phantom(base()).content_hash()  # a new model, not a cached one
 
 
+def test_friction_at_the_face_defaults_to_none_and_a_frictionless_phantom_keeps_its_hash():
+    """issue 48: a phantom states its face's friction; without it, its cached mechanics and the hash its
+    sessions recorded stay what they were (the flat phantom's, as of before friction existed)."""
+    flat = load_phantom("flat")
+    assert flat.face_friction == 0.0 and flat.content_hash() == "335954298b3a7c69"
+    gripped = parse_phantom(base(face_friction=0.6))
+    assert gripped.face_friction == 0.6
+    assert gripped.content_hash() != parse_phantom(base()).content_hash() == parse_phantom(
+        base(face_friction=0.0)).content_hash()
+
+
 def test_the_content_hash_follows_the_content_only():
     a = parse_phantom(base(inclusions=[sphere(depth_m=0.007)]))
     b = parse_phantom(copy.deepcopy(base(inclusions=[sphere(depth_m=0.007)])))
@@ -125,6 +136,9 @@ def test_the_content_hash_follows_the_content_only():
      "stops rising"),
     (base(material={"law": "yeoh", "c3_over_c1": -0.1}), "phantom.material.c2_over_c1", "stops rising"),
     (base(material="yeoh"), "phantom.material", "must be a table"),
+    (base(face_friction=-0.1), "phantom.face_friction", ">= 0"),
+    (base(face_friction=5.0), "phantom.face_friction", "within +-2"),
+    (base(face_friction=float("nan")), "phantom.face_friction", "finite number"),
     # issue 49: too small, too soft, too many (3,000 inclusions took 272 s and 4.8 GB; 4,000 features, the
     # parser alone more than 15 min)
     (base(length_m=1e-9), "phantom.length_m", "at least 0.004"),

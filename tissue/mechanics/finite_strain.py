@@ -11,7 +11,8 @@ the table, geometrically and materially nonlinear:
 * elements: the same trilinear hexahedra, total Lagrangian, with the volumetric energy evaluated on
   the element's mean dilatation ``J_bar`` (the finite-strain form of the Q1/P0 element of Simo, Taylor
   & Pister 1985), so it does not lock either;
-* contact: the nodes under the face follow it down and slide freely (frictionless), material drawn in
+* contact: the nodes under the face follow it down and slide freely (frictionless) or, with Coulomb
+  friction, stick until the drag needed to hold them exceeds mu times their push; material drawn in
   under the face's edge joins the contact and a node that pulls on the face leaves it;
 * the face's edge: hexahedra have straight top edges, so as the tissue beside the face rises the element
   across the edge cut through the face's corner (by up to 2.5 mm at 8 mm on a 2 mm mesh), rolled about
@@ -31,6 +32,7 @@ sensor element's force, linear and nonlinear, at each indentation (:class:`Punch
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -106,6 +108,10 @@ class HyperelasticBlock:
         j_bar = np.einsum("...eq,eq->...e", det, self.w0) / self.v0
         p = p_iso + (self.kappa * (j_bar - 1.0))[..., None, None, None] * cof  # kappa (J_bar - 1) J F^-T
         return np.einsum("...eqij,eqaj,eq->...eai", p, self.g0, self.w0)
+
+    def forces(self, u: np.ndarray) -> np.ndarray:
+        fe = self.element_forces(u[self.edofs].reshape(-1, 8, 3))
+        return np.bincount(self.edofs.ravel(), weights=fe.reshape(-1), minlength=self.n_dofs)
 
     def forces_and_tangent(self, u: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
         ue = u[self.edofs].reshape(-1, 8, 3)
@@ -188,15 +194,17 @@ class _Contact:
     on_side: np.ndarray  # (n,) held outside the face's side plane, above its bottom
     corner: np.ndarray  # (rows,) the corner presses on the row's segment across the edge
     corner_N: np.ndarray  # (rows,) the multiplier: the corner's force, along the segment's normal
+    gripped: np.ndarray  # (n,) on the face's bottom, not at its edge: the face drags it (with friction)
+    anchor: np.ndarray  # (n, 2) the x and y displacement it sticks at (see _Grip)
 
     @classmethod
     def initial(cls, surface: _Surface) -> "_Contact":
         n, rows = len(surface.top), len(surface.rows)
         return cls(surface.initially_under.copy(), np.zeros(n, bool), np.zeros(n, bool), np.zeros(rows, bool),
-                   np.zeros(rows))
+                   np.zeros(rows), np.zeros(n, bool), np.zeros((n, 2)))
 
 
-def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
+def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface, friction: float = 0.0):
     """Newton iterations with the contact set updated in the deformed configuration.
 
     A top node is held on the face while it is under the face (its current x and y within the face's
@@ -212,11 +220,26 @@ def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
     * a node beside the face, above its bottom plane, stays outside its side plane while the side
       pushes on it.
 
+    With ``friction`` (Coulomb's mu) the face drags each node on its bottom, but not at its edge, back to
+    where it touched down or last stopped, up to mu times its push, and the node slides where that does not
+    hold it (:class:`_Grip`). The slide is taken over the whole step (backward Euler).
+
     Returns the converged displacements and contact, the face's force on each top node it holds, and
     each row's corner force (vertical components; both > 0 pushing down).
     """
     top, hx = surface.top, surface.half_face[0]
-    xdof, zdof = 3 * top, 3 * top + 2
+    xdof, ydof, zdof = 3 * top, 3 * top + 1, 3 * top + 2
+    # a node on a symmetry plane is dragged across it as much as its mirror image the other way: not at all
+    draggable = ~np.stack([fixed[xdof], fixed[ydof]], axis=1)
+    # A stuck node is held by a stiff spring rather than exactly: the drag is then a continuous function of
+    # the displacements and Newton converges, where an exact stick/slip switch cycled between the two
+    # (flat phantom, mu 0.5: 60 iterations and the step halved). 1000 times a node's own lateral stiffness:
+    # it gives a few micrometres at the full drag.
+    stiffness = 1e3 * float(np.median(block.mu)) * surface.spacing_m
+
+    def disp(v):
+        return np.stack([v[xdof], v[ydof]], axis=1)
+
     tol = 1e-9 * surface.spacing_m
     in_rows = np.zeros(len(top), bool)
     in_rows[surface.rows] = True
@@ -258,6 +281,11 @@ def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
         # iterate still has the last step's shape under the lowered face: it tells no new cut.
         corner = crossing & ~on_face[pair].all(axis=1) & ((contact.corner & (lam >= 0))
                                                           | ((gap < -tol) & (iteration > 0)))
+        scale = max(1e-12, float(np.abs(f[zdof[on_face]]).max(initial=0.0)))
+        gripped = on_face & ~at_corner if friction > 0 else np.zeros(len(top), bool)
+        grip = _Grip(friction, stiffness, gripped, np.where((gripped & ~contact.gripped)[:, None], disp(u),
+                                                              contact.anchor),
+                     disp(u), reaction, draggable, (xdof, ydof, zdof), block.n_dofs)
         held = np.concatenate([zdof[on_face], xdof[at_corner | on_side]])
         target = np.concatenate([np.full(on_face.sum(), -depth), hx - surface.xy[at_corner | on_side, 0]])
         fixed_now = fixed.copy()
@@ -265,33 +293,33 @@ def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
         free = np.flatnonzero(~fixed_now)
         step = np.zeros(block.n_dofs)
         step[held] = target - u[held]
-        scale = max(1e-12, float(np.abs(f[zdof[on_face]]).max(initial=0.0)))
-        same = all(np.array_equal(a, b) for a, b in zip((on_face, at_corner, on_side, corner),
+        same = all(np.array_equal(a, b) for a, b in zip((on_face, at_corner, on_side, corner, gripped),
                                                         (contact.on_face, contact.at_corner, contact.on_side,
-                                                         contact.corner)))
-        if (same and not step.any() and np.abs(net[free]).max() < 1e-9 * scale
+                                                         contact.corner, contact.gripped)))
+        if (same and not step.any() and np.abs(grip.balance(net)[free]).max() < 1e-9 * scale
                 and np.abs(gap[corner]).max(initial=0.0) < tol):
             down = -lam * (grad[:, 1] + grad[:, 3])
-            return u, contact, np.where(on_face, reaction, 0.0), down
+            # the next step's slide starts where this one ends
+            return u, dataclasses.replace(contact, anchor=grip.anchor_after), np.where(on_face, reaction, 0.0), down
         # Newton on the Lagrangian f(u) - sum lam grad g(u): the corner's curvature joins the tangent.
         c = np.flatnonzero(corner)
         rows, cols = gdofs[c][:, :, None], gdofs[c][:, None, :]
         curvature = sp.csr_matrix(((lam[c, None, None] * hess[c]).ravel(),
                                    (np.broadcast_to(rows, hess[c].shape).ravel(),
                                     np.broadcast_to(cols, hess[c].shape).ravel())), shape=kt.shape)
-        kt = kt - curvature
+        kt = grip.tangent_of(kt - curvature)
         g_rows = sp.csr_matrix((grad[c].ravel(), (np.repeat(np.arange(len(c)), 4), gdofs[c].ravel())),
                                shape=(len(c), block.n_dofs))
-        rhs = np.concatenate([-(f + kt @ step)[free], gap[c] + g_rows @ step])
+        rhs = np.concatenate([-(grip.balance(f) + kt @ step)[free], gap[c] + g_rows @ step])
         g_free = g_rows[:, free]
-        system = sp.bmat([[kt[free][:, free], -g_free.T], [-g_free, None]], format="csc") if len(c) else \
-            kt[free][:, free].tocsc()
+        system = sp.bmat([[kt[free][:, free], -grip.spread(g_rows.T)[free]], [-g_free, None]], format="csc") if len(c) \
+            else kt[free][:, free].tocsc()
         sol = spla.spsolve(system, rhs)
         du = step.copy()
         du[free] = sol[:len(free)]
         corner_N = np.zeros(len(corner))
         corner_N[c] = sol[len(free):]
-        contact = _Contact(on_face, at_corner, on_side, corner, corner_N)
+        contact = _Contact(on_face, at_corner, on_side, corner, corner_N, gripped, grip.anchor)
         # Backtrack if the full Newton step would invert an element (the energy has no meaning there).
         for _ in range(20):
             trial = u + du
@@ -301,8 +329,81 @@ def _contact_step(block, u, depth, contact: _Contact, fixed, surface: _Surface):
             du[free] *= 0.5
         else:
             raise _NoConvergence
+        if grip.active and not step.any():
+            # A node's drag turns round as it slides past its anchor, and full steps swung a whole row of
+            # sliding nodes back and forth by 0.1 mm without end (flat phantom, mu 0.5): take the longest
+            # step along Newton's direction that lowers the out-of-balance force.
+            corner_forces = np.bincount(gdofs.ravel(), (corner_N[:, None] * grad).ravel(), minlength=block.n_dofs)
+            now = float(np.abs(grip.balance(net)[free]).max())
+            for _ in range(8):
+                net_trial = block.forces(trial) - corner_forces
+                if np.abs(grip.moved(disp(trial), -net_trial[zdof]).balance(net_trial)[free]).max() < now:
+                    break
+                du[free] *= 0.5
+                trial = u + du
+                trial[held] = target
         u = trial
     raise _NoConvergence
+
+
+class _Grip:
+    """The face's drag on the nodes it grips (regularised Coulomb friction, a return map as in plasticity).
+
+    A node a displacement ``s`` from its ``anchor`` (along the face) is dragged back by ``-k s`` while that
+    is within ``mu N`` (N its push, minus its vertical net force), else by ``mu N`` along ``-s``: it slides,
+    and its anchor follows to ``mu N / k`` behind it. The node's equation is its net force less the drag
+    (:meth:`balance`), whose tangent (:meth:`tangent_of`) takes in the drag's dependence on the push and on
+    the slide's direction."""
+
+    def __init__(self, friction, k, gripped, anchor, disp, reaction, draggable, dofs, n_dofs):
+        xdof, ydof, zdof = dofs
+        self._given = (friction, k, gripped, anchor)
+        self._fixed = (draggable, dofs, n_dofs)
+        self.anchor = anchor
+        self.anchor_after = anchor
+        self.active = bool(gripped.any())
+        if not self.active:  # frictionless: the solve stays exactly what it was, at no cost
+            return
+        s = np.where(draggable & gripped[:, None], disp - anchor, 0.0)
+        length = np.hypot(s[:, 0], s[:, 1])
+        cap = friction * np.maximum(reaction, 0.0)
+        slides = gripped & (k * length > cap)
+        sticks = gripped & ~slides
+        unit = s / np.maximum(length, 1e-300)[:, None]
+        self.anchor_after = np.where(slides[:, None], disp - unit * (cap / k)[:, None], anchor)
+        self.extra = np.zeros(n_dofs)
+        for axis, dof in enumerate((xdof, ydof)):
+            self.extra[dof[sticks]] = k * s[sticks, axis]
+        pushed = slides & (reaction > 0)
+        rows = np.concatenate([xdof[pushed], ydof[pushed]])
+        self.mix = sp.identity(n_dofs, format="csr") + sp.csr_matrix(
+            (-friction * unit[pushed].T.ravel(), (rows, np.tile(zdof[pushed], 2))), shape=(n_dofs, n_dofs))
+        # sticking: k on the diagonal; sliding: mu N / |s| (I - s s^T / |s|^2), the turn of the drag's direction
+        on = draggable & sticks[:, None]
+        turn = (cap / np.maximum(length, 1e-300))[slides]
+        u_s = unit[slides]
+        blocks = turn[:, None, None] * (np.eye(2)[None] - u_s[:, :, None] * u_s[:, None, :])
+        d_s = np.stack([xdof[slides], ydof[slides]], axis=1)
+        self.tangent = sp.csr_matrix(
+            (np.concatenate([np.full(on[:, 0].sum(), k), np.full(on[:, 1].sum(), k), blocks.ravel()]),
+             (np.concatenate([xdof[on[:, 0]], ydof[on[:, 1]], np.repeat(d_s, 2, axis=1).ravel()]),
+              np.concatenate([xdof[on[:, 0]], ydof[on[:, 1]], np.tile(d_s, (1, 2)).ravel()]))),
+            shape=(n_dofs, n_dofs))
+
+    def moved(self, disp: np.ndarray, reaction: np.ndarray) -> "_Grip":
+        """The same grip with the nodes moved to ``disp`` and pushed by ``reaction``."""
+        return _Grip(*self._given, disp, reaction, *self._fixed)
+
+    def balance(self, net: np.ndarray) -> np.ndarray:
+        """Each dof's out-of-balance force, the drag taken off the gripped nodes' ``net`` forces."""
+        return self.mix @ net + self.extra if self.active else net
+
+    def tangent_of(self, k: sp.csr_matrix) -> sp.csr_matrix:
+        return self.mix @ k + self.tangent if self.active else k
+
+    def spread(self, columns: sp.spmatrix) -> sp.spmatrix:
+        """Constraint gradients as the balance sees them (a vertical force on a sliding node drags it too)."""
+        return self.mix @ columns if self.active else columns
 
 
 SIDES = ("free", "mould")
@@ -338,18 +439,19 @@ SAME_WIDTH_M = 1e-6  # a face this close to the block's width is as wide as the 
 def punch(length_m: float, width_m: float, thickness_m: float, material: MaterialFn,
           face_m: tuple[float, float] = (8e-3, 30e-3), pitch_m: float = 2e-3, max_indentation_m: float = 12e-3,
           step_m: float = 0.5e-3, spacing_m: float = 1e-3, y_spacing_m: float | None = None, layers: int = 8,
-          sides: str = "free", law: Hyperelastic = Hyperelastic(),
+          sides: str = "free", law: Hyperelastic = Hyperelastic(), friction: float = 0.0,
           progress: Progress | None = None) -> PunchSolution:
     """A level face of ``face_m`` (along x, y) pressed into the centre of a block bonded to the table,
     linear and at finite strain; element forces of a ``pitch_m`` array covering the face.
 
     ``material`` gives (E, nu) at points in coordinates centred on the face (x, y from its centre, z up
     from the table); it must be symmetric about x = 0 and y = 0, for only a quarter is meshed. ``sides``:
-    "free", or "mould" (the block's lateral faces slide on frictionless walls). A load step that does not
-    converge is halved, down to a sixteenth; the solution ends where even that fails. On the flat phantom
-    (25 mm) a 2 mm mesh and a 1 mm one, both with nodes 2 mm apart along the face's long side, reach 10 mm;
-    finer meshes stop where the face's edge meets the block's free side (1 mm along both sides: 9.3 mm
-    deep; 0.5 mm along x: 6.7 mm).
+    "free", or "mould" (the block's lateral faces slide on frictionless walls). ``friction``: Coulomb's
+    coefficient of the face on the tissue (0: frictionless; the linear model stays frictionless). A load
+    step that does not converge is halved, down to a sixteenth; the solution ends where even that fails. On
+    the flat phantom (25 mm) a 2 mm mesh and a 1 mm one, both with nodes 2 mm apart along the face's long
+    side, reach 10 mm; finer meshes stop where the face's edge meets the block's free side (1 mm along both
+    sides: 9.3 mm deep; 0.5 mm along x: 6.7 mm).
     """
     if sides not in SIDES:
         raise ValueError(f"sides must be one of {SIDES}, got {sides!r}")
@@ -407,7 +509,8 @@ def punch(length_m: float, width_m: float, thickness_m: float, material: Materia
             # A singular tangent or an inverted trial element means the step went too far.
             warnings.simplefilter("error", spla.MatrixRankWarning)
             try:
-                u_new, contact_new, on_face_N, corner_N = _contact_step(block, u, trial, contact, fixed, surface)
+                u_new, contact_new, on_face_N, corner_N = _contact_step(block, u, trial, contact, fixed, surface,
+                                                                        friction)
             except (spla.MatrixRankWarning, _NoConvergence):
                 if step < step_m / 16:
                     break

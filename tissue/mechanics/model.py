@@ -283,26 +283,33 @@ def _stiffening(phantom: Phantom, sensor: Face, progress: Progress | None) -> di
                      homogeneous(phantom.youngs_modulus_pa, phantom.poisson_ratio), face_m=sensor.size_m,
                      pitch_m=sensor.pitch_m, max_indentation_m=FIT_STRAIN * phantom.thickness_m,
                      step_m=FIT_STRAIN / 5 * phantom.thickness_m, spacing_m=2e-3, y_spacing_m=sensor.pitch_m, layers=6,
-                     sides=phantom.sides, law=phantom.material, progress=progress)
+                     sides=phantom.sides, law=phantom.material, friction=phantom.face_friction, progress=progress)
     if len(solution.indentation_m) < 3:
         raise RuntimeError("the finite-strain solution did not get past its second step")
     # A solve that stops short is fitted as far as it got and held beyond (FiniteStrain.scale): a quadratic
     # through three points within 4 % strain, extrapolated to 32 %, once took a block's force to 0.28 of
     # its linear value.
     s = solution.indentation_m[1:] / phantom.thickness_m
-    basis = np.stack([s, s * s], axis=1)
+    # A face that grips the tissue is stiffer than a frictionless one from the first touch (flat phantom at
+    # 6 % strain: 1.04 frictionless, 1.06-1.10 with mu 0.2-1), so with friction the fit starts from its own
+    # value at rest; without, the two models are one at rest by construction and the fit stays as it was.
+    gripped = phantom.face_friction > 0
+    basis = np.stack(([np.ones_like(s)] if gripped else []) + [s, s * s], axis=1)
     linear = solution.linear_N()[1:].reshape(len(s), -1)
     nonlinear = solution.nonlinear_N[1:].reshape(len(s), -1)
     loaded = linear[-1] > 0
     excess = np.divide(nonlinear, linear, out=np.ones_like(linear), where=linear > 0) - 1.0
     per_element, *_ = np.linalg.lstsq(basis, excess[:, loaded], rcond=None)
-    coeffs = np.zeros((2, linear.shape[1]))  # elements off the phantom carry nothing to scale
+    coeffs = np.zeros((basis.shape[1], linear.shape[1]))  # elements off the phantom carry nothing to scale
     coeffs[:, loaded] = per_element
     total, *_ = np.linalg.lstsq(basis, solution.curve().ratio()[1:] - 1.0, rcond=None)
     # (FIT_STRAIN t) / t is FIT_STRAIN only to rounding (0.31999999999999995 for t = 12.9 mm), and a rebuilt
     # block whose solve got all the way was described as "solved to 32 % of 32 % and held beyond"
     reached = FIT_STRAIN if s[-1] >= FIT_STRAIN * (1.0 - 1e-9) else float(s[-1])
-    return {"element_ab": coeffs, "total_ab": total, "fit_strain": np.array(reached)}
+    fit = {"element_ab": coeffs[-2:], "total_ab": total[-2:], "fit_strain": np.array(reached)}
+    if gripped:
+        fit.update(element_at_rest=coeffs[0], total_at_rest=total[0])
+    return fit
 
 
 # The strain at which the inclusions are tabulated where the compressed layer has carried them (see
@@ -336,11 +343,15 @@ class FiniteStrain:
     element_ab: np.ndarray  # (2, elements): each element's (a, b)
     total_ab: tuple[float, float]  # the total force's (a, b)
     fit_strain: float = FIT_STRAIN  # as far as the solve got, and the fit goes
+    # with a face that grips the tissue, each element's and the total's excess at rest (c: c + a s + b s^2)
+    element_at_rest: np.ndarray | float = 0.0
+    total_at_rest: float = 0.0
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> FiniteStrain:
         return cls(np.asarray(arrays["element_ab"], dtype=float), tuple(float(v) for v in arrays["total_ab"]),
-                   float(arrays["fit_strain"]))
+                   float(arrays["fit_strain"]), np.asarray(arrays.get("element_at_rest", 0.0), dtype=float),
+                   float(arrays.get("total_at_rest", 0.0)))
 
     def scale(self, strain: np.ndarray) -> np.ndarray:
         """Each element's nonlinear over linear force at its nominal strain (flat, one per element)."""
@@ -350,12 +361,13 @@ class FiniteStrain:
         # homogeneous layer only stiffens as it is pressed, so a fit that bends down is held at its top.
         held = np.minimum(strain, self.fit_strain)
         a, b = self.element_ab
-        out = 1.0 + held * (a + b * held)
+        out = 1.0 + self.element_at_rest + held * (a + b * held)
         if strain.max() > self.fit_strain:
             a_total, b_total = self.total_ab
             top = -a_total / (2.0 * b_total) if b_total < 0 else np.inf
             beyond = np.minimum(strain, max(top, self.fit_strain))
-            out *= (1.0 + beyond * (a_total + b_total * beyond)) / (1.0 + held * (a_total + b_total * held))
+            c = self.total_at_rest
+            out *= (1.0 + c + beyond * (a_total + b_total * beyond)) / (1.0 + c + held * (a_total + b_total * held))
         return out
 
 
@@ -386,7 +398,9 @@ def _stiffening_key(phantom: Phantom, sensor: Face) -> str:
 
 def _check_stiffening(arrays: dict[str, np.ndarray]) -> None:
     if (np.asarray(arrays["element_ab"]).ndim != 2 or len(arrays["element_ab"]) != 2
-            or np.asarray(arrays["total_ab"]).shape != (2,) or not 0 < float(arrays["fit_strain"]) <= FIT_STRAIN):
+            or np.asarray(arrays["total_ab"]).shape != (2,) or not 0 < float(arrays["fit_strain"]) <= FIT_STRAIN
+            or np.shape(arrays.get("element_at_rest", np.zeros(np.shape(arrays["element_ab"])[1:])))
+            != np.shape(arrays["element_ab"])[1:] or np.shape(arrays.get("total_at_rest", 0.0)) != ()):
         raise ValueError("inconsistent cache entry")
 
 
@@ -532,7 +546,8 @@ class ContinuumTissue:
 
     @property
     def stiffening(self) -> tuple[float, float] | None:
-        """(a, b) of the total force's finite-strain factor 1 + a s + b s^2 (for reports), or None."""
+        """(a, b) of the total force's finite-strain factor 1 + c + a s + b s^2 (for reports; c, non-zero only
+        with friction at the face, is ``finite_strain.total_at_rest``), or None."""
         return None if self.finite_strain is None else self.finite_strain.total_ab
 
     @classmethod
