@@ -260,6 +260,7 @@ def _conditions_of(session) -> dict[str, Any]:
     sim = session.config.get("sim") or {}
     return {"law": material.get("law", "neo_hookean"), "c2_over_c1": material.get("c2_over_c1", 0.0),
             "c3_over_c1": material.get("c3_over_c1", 0.0), "sides": table.get("sides", "free"),
+            "face_friction": table.get("face_friction", 0.0),
             "relief_rms_m": relief[0]["rms_m"], "relief_wavelength_m": relief[0]["wavelength_m"],
             "probe_tilt_deg": list(sim.get("probe_tilt_deg", [0.0, 0.0])),
             **_cover(sim.get("sensor") or {})}
@@ -320,7 +321,7 @@ def kept_cases(folder: Path) -> list[KeptCase]:
 
 def _without_conditions(phantom: dict[str, Any]) -> dict[str, Any]:
     """A phantom file's content without what the realistic world adds (tissue.generator.draw_conditions)."""
-    table = {k: v for k, v in phantom.get("phantom", {}).items() if k not in ("material", "sides")}
+    table = {k: v for k, v in phantom.get("phantom", {}).items() if k not in ("material", "sides", "face_friction")}
     if "surface" in table:
         table["surface"] = [f for f in table["surface"] if not (isinstance(f, dict) and f.get("kind") == "relief")]
         if not table["surface"]:

@@ -144,6 +144,8 @@ class RealisticConditions:
     * **A thicker cover** than the array is specified with: its load spreads sideways by up to twice the
       stated 0.5 mm (``tissue.face.COVER_SPREAD_M``; assumed, we found no measurement of a capacitive
       array's cover to cite); the analysis uses the stated one, which the session's calibration records.
+    * **Friction at the face** (Coulomb): silicone elastomers on smooth polymer and metal sheets measure
+      0.2-1 and more (the issue's range; higher on dry rough faces); the analysis assumes a frictionless face.
     """
 
     c2_over_c1: tuple[float, float] = (-0.0118, 0.0119)
@@ -153,13 +155,14 @@ class RealisticConditions:
     relief_wavelength_m: tuple[float, float] = (3e-3, 8e-3)
     tilt_deg: tuple[float, float] = (-1.5, 1.5)
     cover_spread_m: tuple[float, float] = (0.5e-3, 1.0e-3)
+    face_friction: tuple[float, float] = (0.2, 1.0)
 
 
 def draw_conditions(rng: np.random.Generator, phantom: dict[str, Any], paper: bool = False,
                     dist: RealisticConditions = RealisticConditions()) -> tuple[dict[str, Any], dict[str, Any]]:
     """``phantom`` (a phantom file's content) under conditions drawn from ``dist``: the phantom file with its
-    law, sides and micro-relief, and the conditions as plain values (``probe_tilt_deg`` and ``cover_spread_m``
-    for the rig, the rest for the record)."""
+    law, sides, friction at the face and micro-relief, and the conditions as plain values (``probe_tilt_deg``
+    and ``cover_spread_m`` for the rig, the rest for the record)."""
     table = dict(phantom["phantom"])
     c3 = round(_uniform(rng, dist.c3_over_c1), 6)
     # a softening C2 needs C3 enough to keep the energy rising (tissue.phantom's check), as both fits have
@@ -169,13 +172,16 @@ def draw_conditions(rng: np.random.Generator, phantom: dict[str, Any], paper: bo
     wavelength = round(_uniform(rng, dist.relief_wavelength_m), 4)
     relief_seed = int(rng.integers(2**31))
     tilt = [round(_uniform(rng, dist.tilt_deg), 2) for _ in range(2)]
-    cover = round(_uniform(rng, dist.cover_spread_m), 6)  # drawn last: the draws before it stay as they were
+    cover = round(_uniform(rng, dist.cover_spread_m), 6)  # drawn after the others: theirs stay as they were
+    friction = round(_uniform(rng, dist.face_friction), 3)  # (and after the cover, for the same reason)
     table["material"] = {"law": "yeoh", "c2_over_c1": c2, "c3_over_c1": c3}
     table["sides"] = sides
+    table["face_friction"] = friction
     table["surface"] = [*table.get("surface", []),
                         {"kind": "relief", "rms_m": rms, "wavelength_m": wavelength, "seed": relief_seed,
                          "x_range_m": [0.0, table["length_m"]]}]
     data = {**phantom, "phantom": table}
     parse_phantom(data, str(table.get("name", "<phantom>")))  # valid by construction; a bug if not
     return data, {"law": "yeoh", "c2_over_c1": c2, "c3_over_c1": c3, "sides": sides, "relief_rms_m": rms,
-                  "relief_wavelength_m": wavelength, "probe_tilt_deg": tilt, "cover_spread_m": cover}
+                  "relief_wavelength_m": wavelength, "probe_tilt_deg": tilt, "cover_spread_m": cover,
+                  "face_friction": friction}

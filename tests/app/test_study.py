@@ -75,7 +75,7 @@ def test_the_same_seed_gives_the_same_study_and_another_seed_another():
 
 
 def test_the_realistic_world_palpates_the_same_phantoms_under_conditions_drawn_for_each():
-    """issue 48: law, sides, micro-relief and probe tilt drawn per phantom, the phantoms and seeds the ideal
+    """issue 48: law, sides, friction, micro-relief and probe tilt drawn per phantom, the phantoms and seeds the ideal
     world's, the paper's phantoms left free on the table; a kept case is told as the paper's by its content."""
     from app.study import _without_conditions
 
@@ -88,6 +88,7 @@ def test_the_realistic_world_palpates_the_same_phantoms_under_conditions_drawn_f
         phantom = parse_phantom(case.phantom, case.name)
         assert phantom.material.law == "yeoh" and phantom.surface[-1].kind == "relief"
         assert phantom.sides == case.conditions["sides"]
+        assert phantom.face_friction == case.conditions["face_friction"] > 0
         assert all(abs(a) <= 1.5 for a in case.conditions["probe_tilt_deg"])
     assert {c.conditions["sides"] for c in real if not c.paper} == {"free", "mould"}
     assert all(c.conditions["sides"] == "free" for c in real if c.paper)
@@ -236,6 +237,7 @@ def test_the_phantoms_are_palpated_with_the_configuration_given(tmp_path, capsys
         conditions = doc["cases"][0]["conditions"]
         assert session.phantom["phantom"]["material"]["law"] == "yeoh"
         assert session.phantom["phantom"]["sides"] == conditions["sides"]
+        assert session.phantom["phantom"]["face_friction"] == conditions["face_friction"] > 0
         assert session.phantom["phantom"]["surface"][-1]["rms_m"] == conditions["relief_rms_m"]
         assert session.config["sim"]["probe_tilt_deg"] == conditions["probe_tilt_deg"] != [0.0, 0.0]
         # a thicker cover than the array is specified with: the session's calibration states the specified one,

@@ -45,6 +45,7 @@ def test_conditions_drawn_for_a_phantom_stay_in_their_ranges_and_leave_its_kind_
         assert dist.relief_rms_m[0] <= conditions["relief_rms_m"] <= dist.relief_rms_m[1]
         assert all(dist.tilt_deg[0] <= a <= dist.tilt_deg[1] for a in conditions["probe_tilt_deg"])
         assert dist.cover_spread_m[0] <= conditions["cover_spread_m"] <= dist.cover_spread_m[1]
+        assert dist.face_friction[0] <= phantom.face_friction == conditions["face_friction"] <= dist.face_friction[1]
         sides.add(phantom.sides)
         paper, paper_conditions = draw_conditions(np.random.default_rng(1), data, paper=True)
         assert paper["phantom"]["sides"] == paper_conditions["sides"] == "free"
