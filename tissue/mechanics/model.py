@@ -27,11 +27,12 @@ model, two factors on each element's linear force, both functions of the element
 ``s`` (its indentation since its contact onset over its onset height):
 
 * the **homogeneous** factor ``1 + a s + b s^2``, per element: :mod:`.finite_strain` solves the face
-  pressed into the phantom's homogeneous base block at finite strain (its hyperelastic law and side
-  condition) once per phantom, up to ``FIT_STRAIN``, and fits each element's nonlinear/linear force. The
-  face's own pattern changes with it: its edge rows stiffen faster than its inner rows, the elements at
-  the phantom's free sides slower. Past ``FIT_STRAIN`` the pattern is held and only the total keeps
-  stiffening along its own fitted curve;
+  pressed into the phantom's homogeneous base block at finite strain (its hyperelastic law, side condition
+  and friction at the face; with friction the factor is ``1 + c + a s + b s^2``, a gripped layer being
+  stiffer than the frictionless linear model from the first touch) once per phantom, up to ``FIT_STRAIN``,
+  and fits each element's nonlinear/linear force. The face's own pattern changes with it: its edge rows
+  stiffen faster than its inner rows, the elements at the phantom's free sides slower. Past ``FIT_STRAIN``
+  the pattern is held and only the total keeps stiffening along its own fitted curve;
 * the **inclusion** factor: as the layer compresses, the tissue over a stiff inclusion thins, so the
   inclusion shows more the harder the face presses. A second set of linear tables has every inclusion
   where a layer compressed by ``COMPRESSED_STRAIN`` carries it (:func:`compressed_material`); an
@@ -270,7 +271,8 @@ FIT_STRAIN = 0.32
 
 
 def _stiffening(phantom: Phantom, sensor: Face, progress: Progress | None) -> dict[str, np.ndarray]:
-    """Nonlinear/linear force of each element, ``1 + a s + b s^2`` in the nominal strain s, fitted up to
+    """Nonlinear/linear force of each element, ``1 + a s + b s^2`` in the nominal strain s (``1 + c + a s +
+    b s^2`` with friction at the face), fitted up to
     ``FIT_STRAIN`` and extrapolated beyond, for the face pressed into the middle of the phantom's
     homogeneous base block; and the same fit for the total force."""
     from tissue.mechanics.finite_strain import homogeneous, punch
