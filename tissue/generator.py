@@ -144,8 +144,8 @@ class RealisticConditions:
     * **A thicker cover** than the array is specified with: its load spreads sideways by up to twice the
       stated 0.5 mm (``tissue.face.COVER_SPREAD_M``; assumed, we found no measurement of a capacitive
       array's cover to cite); the analysis uses the stated one, which the session's calibration records.
-    * **Friction at the face** (Coulomb): silicone elastomers on smooth polymer and metal sheets measure
-      0.2-1 and more (the issue's range; higher on dry rough faces); the analysis assumes a frictionless face.
+    * **Friction at the face** (Coulomb's mu, 0.2-1: the range issue 48 states; we found no measurement of
+      silicone on a tactile array's cover to cite); the analysis assumes a frictionless face.
     """
 
     c2_over_c1: tuple[float, float] = (-0.0118, 0.0119)

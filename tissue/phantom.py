@@ -87,8 +87,8 @@ FACE_SAMPLE_M = 0.5e-3
 SIDES = ("free", "mould")
 LAWS = ("neo_hookean", "yeoh")
 MAX_YEOH_RATIO = 100.0
-# silicone on a sensor sheet is 0.2-1 (the realistic world's range, tissue.generator); rubber on a dry rough
-# face reaches 2, and past that the face grips the tissue outright, as it already does at 1 (flat phantom)
+# the realistic world draws 0.2-1 (tissue.generator); on the flat phantom the face grips the tissue outright
+# from about 1 on (a 10 mm layer read the same with 1 and 2), so a larger value says nothing more
 MAX_FACE_FRICTION = 2.0
 
 
