@@ -16,9 +16,12 @@ session's own measurements, never from a phantom file, so a real session gets th
   pressing a flat surface (``measured_surface=False``, the face's own pattern), the stiffness map with the
   surface the level's onsets measured, which Eq. 1 then relates to each element's own indentation and
   thickness;
-* its sides are free, or held by the frictionless walls of a mould, whichever leaves the session's areas
-  reading most alike (:func:`supported_sides`): a session does not record which, and the wrong one misplaces
-  what lies near a side (held sides taken for free pulled a tumour 4 mm from the side 2 mm towards it);
+* its sides are free, or held by the frictionless walls of a mould, and the face frictionless or gripping
+  it, whichever leaves the session's areas reading most alike (:func:`supported_sides`): a session does not
+  record which, and the wrong one misplaces what lies near a side (held sides taken for free pulled a tumour
+  4 mm from the side 2 mm towards it), and a face that grips free sides loads the array's end columns over
+  them up to twice as much, more in the areas at the tissue's ends than the flat field's baseline can take
+  in (false tumours where an end area meets a side: docs/validation.md, "Friction at the face");
 * on the measured surface the tissue is pressed at finite strain: each element's force takes the reduced
   finite-strain model's factor (:class:`tissue.mechanics.model.FiniteStrain`, solved once for a
   homogeneous neo-Hookean block of the rebuilt extent and thickness) at its own nominal strain (the
@@ -27,6 +30,8 @@ session's own measurements, never from a phantom file, so a real session gets th
   than linear elasticity gives it: without this, the tops of the bumps read as tumours. What finite strain
   does to the face's own pattern at the typical strain is the same in every area of a level, and the
   level's baseline carries it (as it does for the force map's flat surface, pressed alike everywhere).
+  Not so the face's grip: its whole pattern, each element's gripped over its frictionless factor at its own
+  strain, is taken on (:data:`GRIP_FRICTION`).
 
 Forces are seen through the sensor's compliant cover when the session records one, and returned normalised
 to their mean over the elements pressing: the flat-field fits its own scale per level. The block's modulus is
@@ -207,15 +212,15 @@ class HomogeneousTissue(ABC):
         session of part of a tissue, where it ends not known, and its sides taken to be free."""
         if not ends_known:
             return BlockResponse.from_levels(session.levels, session, cache_dir, progress, ends_known=False)
-        # The sides are told apart on the linear patterns: finite strain only scales each element by its strain
-        # against the record's typical one, alike under either side (the choice was the same on 46 of 46 study
-        # sessions), and its fit takes about as long as the block's finite elements: solved for one side only.
-        step = 0.7 / len(SIDES)  # of the progress: the fit takes the rest
-        candidates = [BlockResponse.from_levels(session.levels, session, cache_dir,
-                                                stage(progress, k * step, (k + 1) * step), sides=sides,
-                                                finite_strain=False)
-                      for k, sides in enumerate(SIDES)]
-        return supported_sides(session.levels, candidates).at_finite_strain(cache_dir, stage(progress, 0.7, 1.0))
+        # The grip shows at finite strain only, and free sides gripped read much as sides in a mould: each side
+        # is solved at finite strain with the face frictionless and gripping, and the four compared.
+        step = 1.0 / len(SIDES)
+        candidates = []
+        for k, sides in enumerate(SIDES):
+            tissue = BlockResponse.from_levels(session.levels, session, cache_dir,
+                                               stage(progress, k * step, (k + 0.6) * step), sides=sides)
+            candidates += [tissue, tissue.gripped(cache_dir, stage(progress, (k + 0.6) * step, (k + 1) * step))]
+        return supported_sides(session.levels, candidates)
 
     @classmethod
     def from_phantom(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:
@@ -244,11 +249,14 @@ class BlockResponse(HomogeneousTissue):
     def __init__(self, block: SurfaceBlock, origin_xy_m: tuple[float, float], compliance: np.ndarray,
                  nodes_xy_m: np.ndarray, cover_spread_m: float, pitch_m: float, shape: tuple[int, int],
                  finite_strain: FiniteStrain | None = None, table_height_m: float = 0.0,
-                 ends_known: bool = True, sides: str = "free"):
+                 ends_known: bool = True, sides: str = "free", grip: FiniteStrain | None = None):
         if sides not in SIDES:
             raise ValueError(f"sides must be one of {SIDES}, got {sides!r}")
+        if grip is not None and finite_strain is None:
+            raise ValueError("the face's grip is a finite-strain factor: the block needs its own")
         ends = "" if ends_known else "; where the tissue ends not known"
         held = "" if sides == "free" else ", its sides held in a mould"
+        held += "" if grip is None else ", the face gripping it"
         super().__init__(f"homogeneous tissue rebuilt from the session (a {block.name}{held}: the palpated "
                          f"extent and the measured surface, finite elements{_finite(finite_strain)}{ends})",
                          cover_spread_m, pitch_m, shape)
@@ -260,6 +268,7 @@ class BlockResponse(HomogeneousTissue):
         self.block = block
         self.origin_xy_m = origin_xy_m
         self.finite_strain = finite_strain
+        self.grip = grip  # the factor with the face gripping the block (GRIP_FRICTION), or None: frictionless
         self.table_height_m = table_height_m
         self._compliance = compliance
         self._nodes = nodes_xy_m
@@ -302,6 +311,16 @@ class BlockResponse(HomogeneousTissue):
         tissue.description = tissue.description[:-1] + self.sides_why + ")"
         return tissue
 
+    def gripped(self, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
+        """This block at finite strain with the face gripping it (:data:`GRIP_FRICTION`; its factor solved for
+        the block's extent, thickness and sides, cached)."""
+        finite = self.finite_strain or _block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, None,
+                                                          self.sides)
+        return BlockResponse(self.block, self.origin_xy_m, self._compliance, self._nodes, self.cover_spread_m,
+                             self.pitch_m, self.shape, finite, self.table_height_m, self.ends_known, self.sides,
+                             _block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, progress, self.sides,
+                                               GRIP_FRICTION))
+
     def on_surface_of(self, levels: np.ndarray, extent_m: tuple[float, float, float, float] | None = None
                       ) -> BlockResponse:
         """This block's finite elements (its surface compliance and finite-strain factor) under the surface that
@@ -314,7 +333,8 @@ class BlockResponse(HomogeneousTissue):
                                                                                    atol=GRID_M / 10):
             raise ValueError(f"the areas reach beyond the {self.block.name} whose finite elements are known")
         tissue = BlockResponse(block, origin, self._compliance, self._nodes, self.cover_spread_m, self.pitch_m,
-                               self.shape, self.finite_strain, self.table_height_m, self.ends_known, self.sides)
+                               self.shape, self.finite_strain, self.table_height_m, self.ends_known, self.sides,
+                               self.grip)
         if block.content_hash() != self.block.content_hash():
             tissue.description = tissue.description[:-1] + f"; its finite elements meshed on the {self.block.name})"
         return tissue
@@ -443,7 +463,7 @@ class BlockResponse(HomogeneousTissue):
             pressed = forces.ravel() > 0
             if pressed.any():
                 typical = np.full(strain.shape, float(np.median(strain[pressed])))
-                factor = self.finite_strain.scale(strain) / self.finite_strain.scale(typical)
+                factor = (self.grip or self.finite_strain).scale(strain) / self.finite_strain.scale(typical)
                 forces = forces * factor.reshape(forces.shape)
         return self._finish(forces)
 
@@ -517,11 +537,12 @@ class BlockResponse(HomogeneousTissue):
 
 
 def supported_sides(levels: np.ndarray, candidates: list[BlockResponse]) -> BlockResponse:
-    """Of ``candidates``, blocks alike but for their sides, the one under which the areas of ``levels`` read
-    most like homogeneous tissue: the least scatter of their stiffness contrast, in the mean over the force
-    levels of its robust standard deviation (the flat field's own estimate of healthy tissue's scatter). A
-    tumour raises it alike under every candidate; the sides' pattern is at every area's ends of the face and at
-    the tissue's ends. Its description says which was chosen, and the scatter under each."""
+    """Of ``candidates``, blocks alike but for their sides and whether the face grips them, the one under which
+    the areas of ``levels`` read most like homogeneous tissue: the least scatter of their stiffness contrast, in
+    the mean over the force levels of its robust standard deviation (the flat field's own estimate of healthy
+    tissue's scatter). A tumour raises it alike under every candidate; the sides' and the grip's pattern is at
+    every area's ends of the face and at the tissue's ends. Its description says which was chosen, and the
+    scatter under each."""
     from session.flatfield import _robust_spread, contrast
     from session.stitch import level_groups
 
@@ -534,8 +555,11 @@ def supported_sides(levels: np.ndarray, candidates: list[BlockResponse]) -> Bloc
                                       if np.isfinite(c).any()])))
     best = int(np.argmin(scatter))
     chosen = candidates[best]
-    others = ", ".join(f"{c.sides} {s:.0%}" for k, (c, s) in enumerate(zip(candidates, scatter)) if k != best)
-    chosen.sides_why = (f"; sides {chosen.sides}: the areas' stiffness contrast scatters {scatter[best]:.0%} so, "
+    def named(c: BlockResponse) -> str:
+        return c.sides + ("" if c.grip is None else ", gripped")
+
+    others = "; ".join(f"{named(c)} {s:.1%}" for k, (c, s) in enumerate(zip(candidates, scatter)) if k != best)
+    chosen.sides_why = (f"; sides {named(chosen)}: the areas' stiffness contrast scatters {scatter[best]:.1%} so, "
                         f"{others}")
     chosen.description = chosen.description[:-1] + chosen.sides_why + ")"
     return chosen
@@ -764,11 +788,18 @@ def _finite(finite_strain: FiniteStrain | None) -> str:
     return ", finite strain"
 
 
+# The grip the analysis offers besides a frictionless face: a face that grips outright (the flat phantom's block
+# reads the same with mu 1 and 2). What a face's friction is, no session says; between none and this, what the
+# flat field's baseline takes in of every area's pattern is left to it.
+GRIP_FRICTION = 1.0
+
+
 def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: float, cache_dir=None,
-                      progress: Progress | None = None, sides: str = "free") -> FiniteStrain:
+                      progress: Progress | None = None, sides: str = "free", friction: float = 0.0) -> FiniteStrain:
     """The finite-strain factor of the face pressed into a homogeneous neo-Hookean block of the rebuilt
-    extent and thickness (the tissue ends where the palpation ends), its sides free or in a mould, cached. A
-    real tissue's law is not known to the analysis: neo-Hookean is the phantom's default (docs/phantoms.md)."""
+    extent and thickness (the tissue ends where the palpation ends), its sides free or in a mould, the face
+    frictionless or with Coulomb's ``friction``, cached. A real tissue's law is not known to the analysis:
+    neo-Hookean is the phantom's default (docs/phantoms.md)."""
     from hardware.interfaces import TactileConstraints
     from tissue.mechanics.model import homogeneous_stiffening
     from tissue.phantom import Phantom
@@ -776,7 +807,8 @@ def _block_stiffening(block: SurfaceBlock, shape: tuple[int, int], pitch_m: floa
     # The factor is a ratio of forces in the same material, so the modulus drops out; a soft silicone's
     # keeps the solver in the range it is tested in.
     homogeneous = Phantom("rebuilt", "the rebuilt block, homogeneous", block.length_m, block.width_m,
-                          block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio, sides=sides)
+                          block.thickness_m, youngs_modulus_pa=20e3, poisson_ratio=block.poisson_ratio, sides=sides,
+                          face_friction=friction)
     sensor = TactileConstraints(rows=shape[0], cols=shape[1], pitch_m=pitch_m)
     return homogeneous_stiffening(homogeneous, sensor, cache_dir, progress)
 

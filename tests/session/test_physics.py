@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from session.physics import SIDES, BlockResponse, _block_compliance, measured_surface, supported_sides
+from session.physics import (
+    SIDES,
+    BlockResponse,
+    _block_compliance,
+    _block_stiffening,
+    measured_surface,
+    supported_sides,
+)
 from session.synthetic import level_record
 from tests.session.test_stitch import levels_of
 from tissue.mechanics.model import FiniteStrain
@@ -193,7 +200,7 @@ def test_the_rebuilt_block_takes_the_sides_under_which_the_session_reads_most_al
     assert chosen.sides == truth
     assert f"sides {truth}: the areas' stiffness contrast scatters" in chosen.description
     assert ("held in a mould" in chosen.description) == (truth == "mould")
-    if truth == "mould":  # the sides are told on linear patterns, then finite strain is solved for those alone
+    if truth == "mould":  # a block told on linear patterns is solved at finite strain, what was said of it kept
         final = chosen.at_finite_strain(tmp_path)
         assert final.sides == "mould" and final.finite_strain is not None and chosen.finite_strain is None
         assert "finite strain" in final.description and chosen.sides_why in final.description
@@ -237,3 +244,43 @@ def test_the_cover_is_the_one_the_calibration_states_and_a_value_that_is_no_spre
     info = SessionInfo(config={"sim": {"sensor": {"cover_spread_m": 1.5e-3}}},
                        calibration={"cover_spread_m": stated}, rig={"backend": "sim"})
     assert _cover_of(info) == used
+
+
+@pytest.fixture(scope="module")
+def gripped_or_not(tmp_path_factory):
+    """Five flat areas along a 40 mm block 10 mm thick, free sides, pressed at 5 and 10 % strain; the block at
+    finite strain with the face frictionless and gripping it."""
+    cache, thickness = tmp_path_factory.mktemp("grip"), 0.010
+    records = []
+    for k, z in enumerate((0.0095, 0.009)):
+        for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
+            levels = levels_of(level_record(region, k, 1.0 + k, (x, 0.015), thickness_m=thickness))
+            levels["tsi_position_m"][0, 2] = z
+            levels["onset_height_m"] = thickness
+            levels["dL_m"] = thickness - z
+            records.append(levels)
+    levels = np.concatenate(records)
+    block, origin = measured_surface(levels, PITCH, 0.0)
+    plain = BlockResponse(block, origin, *_block_compliance(block, cache), 0.0, PITCH, (4, 15),
+                          _block_stiffening(block, (4, 15), PITCH, cache))
+    return levels, plain, plain.gripped(cache)
+
+
+@pytest.mark.parametrize("truth", ["frictionless", "gripped"])
+def test_the_rebuilt_block_takes_the_face_gripping_it_where_the_session_reads_so(gripped_or_not, truth):
+    """issue 48: a face that grips the tissue loads the array's end columns over its free sides far more than a
+    frictionless one, and more the harder it presses; which it was, the session's own areas tell."""
+    levels, plain, gripped = gripped_or_not
+    assert plain.grip is None and gripped.grip is not None and "the face gripping it" in gripped.description
+    free, held = (b.pattern(levels).share for b in (plain, gripped))
+    ends = (slice(None), slice(1, 3), [0, -1])
+    inside = (slice(None), slice(1, 3), slice(4, 11))
+    assert (held[ends] / held[inside].mean(axis=(1, 2))[:, None, None]).mean() > \
+        1.3 * (free[ends] / free[inside].mean(axis=(1, 2))[:, None, None]).mean()
+    rng = np.random.default_rng(11)
+    gain = np.exp(0.05 * rng.standard_normal((4, 15)))
+    truth_share = held if truth == "gripped" else free
+    levels["pressure_pa"] = 2e3 * (1.0 + levels["level"])[:, None, None] * truth_share * gain
+    chosen = supported_sides(levels, [plain, gripped])
+    assert (chosen.grip is not None) == (truth == "gripped")
+    assert ("sides free, gripped:" in chosen.description) == (truth == "gripped")
