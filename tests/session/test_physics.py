@@ -174,19 +174,24 @@ def test_a_block_solved_before_answers_another_surface_of_its_extent_and_refuses
         solved.on_surface_of(elsewhere)
 
 
+def five_flat_areas(thickness_m: float, face_heights_m: tuple[float, float]) -> np.ndarray:
+    """Five flat areas along a 40 mm block of ``thickness_m``, each pressed to the two face heights."""
+    records = []
+    for k, z in enumerate(face_heights_m):
+        for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
+            levels = levels_of(level_record(region, k, 1.0 + k, (x, 0.015), thickness_m=thickness_m))
+            levels["tsi_position_m"][0, 2] = z
+            levels["onset_height_m"] = thickness_m
+            levels["dL_m"] = thickness_m - z
+            records.append(levels)
+    return np.concatenate(records)
+
+
 @pytest.mark.parametrize("truth", SIDES)
 def test_the_rebuilt_block_takes_the_sides_under_which_the_session_reads_most_alike(tmp_path, truth):
-    # Five flat areas along a 40 mm block, pressed at two levels, read through an array whose elements' gains
-    # spread by 5 %: the areas' tissue is homogeneous, its sides held in a mould or free.
-    records = []
-    for k, z in enumerate((0.019, 0.018)):
-        for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
-            levels = levels_of(level_record(region, k, 1.0 + k, (x, 0.015), thickness_m=BASE_M))
-            levels["tsi_position_m"][0, 2] = z
-            levels["onset_height_m"] = BASE_M
-            levels["dL_m"] = BASE_M - z
-            records.append(levels)
-    levels = np.concatenate(records)
+    # Five flat areas pressed at two levels, read through an array whose elements' gains spread by 5 %: the
+    # areas' tissue is homogeneous, its sides held in a mould or free.
+    levels = five_flat_areas(BASE_M, (0.019, 0.018))
     block, origin = measured_surface(levels, PITCH, 0.0)
     blocks = [BlockResponse(block, origin, *_block_compliance(block, tmp_path, sides=sides), 0.0, PITCH, (4, 15),
                             sides=sides) for sides in SIDES]
@@ -250,16 +255,8 @@ def test_the_cover_is_the_one_the_calibration_states_and_a_value_that_is_no_spre
 def gripped_or_not(tmp_path_factory):
     """Five flat areas along a 40 mm block 10 mm thick, free sides, pressed at 5 and 10 % strain; the block at
     finite strain with the face frictionless and gripping it."""
-    cache, thickness = tmp_path_factory.mktemp("grip"), 0.010
-    records = []
-    for k, z in enumerate((0.0095, 0.009)):
-        for region, x in enumerate((0.004, 0.012, 0.020, 0.028, 0.036)):
-            levels = levels_of(level_record(region, k, 1.0 + k, (x, 0.015), thickness_m=thickness))
-            levels["tsi_position_m"][0, 2] = z
-            levels["onset_height_m"] = thickness
-            levels["dL_m"] = thickness - z
-            records.append(levels)
-    levels = np.concatenate(records)
+    cache = tmp_path_factory.mktemp("grip")
+    levels = five_flat_areas(0.010, (0.0095, 0.009))
     block, origin = measured_surface(levels, PITCH, 0.0)
     plain = BlockResponse(block, origin, *_block_compliance(block, cache), 0.0, PITCH, (4, 15),
                           _block_stiffening(block, (4, 15), PITCH, cache))
