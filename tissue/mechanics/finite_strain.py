@@ -357,8 +357,8 @@ class _Grip:
 
     def __init__(self, friction, k, gripped, anchor, disp, reaction, draggable, dofs, n_dofs):
         xdof, ydof, zdof = dofs
-        self._given = (friction, k, gripped, anchor)
-        self._fixed = (draggable, dofs, n_dofs)
+        self._law = (friction, k, gripped)  # what moved() keeps, with the anchor and the layout
+        self._layout = (draggable, dofs, n_dofs)
         self.anchor = anchor
         self.anchor_after = anchor
         self.active = bool(gripped.any())
@@ -392,7 +392,7 @@ class _Grip:
 
     def moved(self, disp: np.ndarray, reaction: np.ndarray) -> "_Grip":
         """The same grip with the nodes moved to ``disp`` and pushed by ``reaction``."""
-        return _Grip(*self._given, disp, reaction, *self._fixed)
+        return _Grip(*self._law, self.anchor, disp, reaction, *self._layout)
 
     def balance(self, net: np.ndarray) -> np.ndarray:
         """Each dof's out-of-balance force, the drag taken off the gripped nodes' ``net`` forces."""
