@@ -10,10 +10,17 @@ from tissue.mechanics.model import FIT_STRAIN, ContinuumTissue, FiniteStrain, Me
 from tissue.phantom import Hyperelastic, parse_phantom
 
 
-def block(nu=0.49):
+def block(nu=0.49, material=None, law=Hyperelastic()):
     x = np.linspace(0, 3e-3, 4)
     height = np.full((4, 3), 2e-3) + np.linspace(0, 0.5e-3, 4)[:, None]  # a sloping top: distorted elements
-    return HyperelasticBlock(HexGrid(x, x[:3], graded_levels(3, 0.2), height), homogeneous(20e3, nu))
+    return HyperelasticBlock(HexGrid(x, x[:3], graded_levels(3, 0.2), height), material or homogeneous(20e3, nu),
+                             law)
+
+
+def with_inclusion(points):
+    """Soft tissue with a stiff, less incompressible ball: moduli that differ between an element's points."""
+    inside = np.linalg.norm(points - np.array([1.5e-3, 1e-3, 1e-3]), axis=-1) < 0.8e-3
+    return np.where(inside, 160e3, 20e3), np.where(inside, 0.45, 0.49)
 
 
 def test_at_rest_the_finite_strain_element_is_the_linear_element():
@@ -24,8 +31,11 @@ def test_at_rest_the_finite_strain_element_is_the_linear_element():
     assert abs(k - linear).max() < 1e-12 * abs(linear).max()
 
 
-def test_the_complex_step_tangent_is_the_derivative_of_the_forces():
-    b = block()
+@pytest.mark.parametrize("material, law", [(None, Hyperelastic()),
+                                           (with_inclusion, Hyperelastic("yeoh", c2_over_c1=0.05, c3_over_c1=0.01))],
+                         ids=["homogeneous neo-Hookean", "inclusion, Yeoh"])
+def test_the_complex_step_tangent_is_the_derivative_of_the_forces(material, law):
+    b = block(material=material, law=law)
     rng = np.random.default_rng(1)
     u = 4e-5 * rng.standard_normal(b.n_dofs)  # strains of several percent, every element differently
     _, k = b.forces_and_tangent(u)
