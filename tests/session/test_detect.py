@@ -497,6 +497,35 @@ def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_f
     assert placed.depth_m == levels["indentation_m"][(levels["region"] == 1) & (levels["level"] == 0)][0]
 
 
+def test_a_weaker_tumour_a_stronger_ones_far_field_tips_under_the_threshold_is_kept_where_it_makes_little_of_it(
+        monkeypatch):
+    """s48003-0007: a 4.9 mm-deep tumour 7 mm from a 9.9 mm-deep one read +0.26 where that one's sphere made
+    +0.076, and over it fell under the threshold: a spot the stronger spheres make less than half of stays."""
+    from types import SimpleNamespace
+
+    import session.detect as detect_module
+    from session.detect import explained_away
+
+    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
+    xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
+    d = np.hypot(xy[..., 0] - 0.012, xy[..., 1] - 0.010)
+    strong = 1.5 * np.exp(-0.5 * (d / 3e-3) ** 2) + 0.4 * np.exp(-0.5 * (d / 6e-3) ** 2)
+    weak = 0.3 * np.exp(-0.5 * np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.020) ** 2 / 2.5e-3 ** 2)
+    seen = SimpleNamespace(map="stiffness", contrast=(1.0 + strong) * (1.0 + weak) - 1.0,
+                           sigma=np.full(d.shape, 0.18), modes=None)
+    found = detect(levels, seen, PITCH)
+    assert len(found) == 2
+    weaker = min(found, key=lambda t: t.score)
+
+    def signature(tumour, records):
+        return (weak if tumour is weaker else strong)[records], np.zeros((len(records), 4, 15))
+
+    assert len(explained_away(found, levels, seen, PITCH, DetectParams(), signature)) == 2
+    # over the stronger one's sphere alone it no longer passes the threshold
+    monkeypatch.setattr(detect_module, "EXPLAINED_SHARE", 0.0)
+    assert len(explained_away(found, levels, seen, PITCH, DetectParams(), signature)) == 1
+
+
 def test_a_tumours_depth_is_read_over_the_other_tumours_spheres():
     # s7043-0002: a 1.9 mm-deep tumour 8 mm across one face from a larger one was read 10.4 mm deep, the
     # other's skirt fitted as its own broad, deep sphere. What the model of one sphere is given is each
