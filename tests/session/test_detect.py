@@ -467,21 +467,29 @@ def test_a_strong_tumours_far_field_in_the_face_beside_it_is_explained_away_too(
 
 
 
-def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_field():
-    # A large stiff tumour in the first area, and a weaker one 14 mm away in the second: the large one's far
-    # field slopes across the weaker one's blob and pulls where it peaks 2 mm towards it. Over what the large
-    # one's sphere makes of those faces, the weaker one stands where it is.
+def _strong_and_weak(weak_contrast, sigma):
+    """Four areas without noise: a large stiff tumour's contrast (a core and a far field) in the first, and a
+    weaker one's, ``weak_contrast`` at its peak, 14 mm away in the second, every element's uncertainty
+    ``sigma``. Returns the levels, the contrast as detect takes it, and each tumour's own contrast."""
     from types import SimpleNamespace
-
-    from session.detect import explained_away
 
     levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
     xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
     d = np.hypot(xy[..., 0] - 0.012, xy[..., 1] - 0.010)
     strong = 1.5 * np.exp(-0.5 * (d / 3e-3) ** 2) + 0.4 * np.exp(-0.5 * (d / 6e-3) ** 2)
-    weak = 0.5 * np.exp(-0.5 * np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.020) ** 2 / 2.5e-3 ** 2)
+    weak = weak_contrast * np.exp(-0.5 * np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.020) ** 2 / 2.5e-3 ** 2)
     seen = SimpleNamespace(map="stiffness", contrast=(1.0 + strong) * (1.0 + weak) - 1.0,
-                           sigma=np.full(d.shape, 0.03), modes=None)
+                           sigma=np.full(d.shape, sigma), modes=None)
+    return levels, seen, strong, weak
+
+
+def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_field():
+    # A large stiff tumour in the first area, and a weaker one 14 mm away in the second: the large one's far
+    # field slopes across the weaker one's blob and pulls where it peaks 2 mm towards it. Over what the large
+    # one's sphere makes of those faces, the weaker one stands where it is.
+    from session.detect import explained_away
+
+    levels, seen, strong, weak = _strong_and_weak(0.5, 0.03)
     found = detect(levels, seen, PITCH)
     assert len(found) == 2
     pulled = min(found, key=lambda t: t.score)
@@ -501,18 +509,10 @@ def test_a_weaker_tumour_a_stronger_ones_far_field_tips_under_the_threshold_is_k
         monkeypatch):
     """s48003-0007: a 4.9 mm-deep tumour 7 mm from a 9.9 mm-deep one read +0.26 where that one's sphere made
     +0.076, and over it fell under the threshold: a spot the stronger spheres make less than half of stays."""
-    from types import SimpleNamespace
-
     import session.detect as detect_module
     from session.detect import explained_away
 
-    levels = strip_session([1.0, 1.0, 1.0, 1.0], noise=0.0)
-    xy = np.asarray(levels["tsi_position_m"][:, None, None, :2]) + element_offsets_m(4, 15, PITCH)[None]
-    d = np.hypot(xy[..., 0] - 0.012, xy[..., 1] - 0.010)
-    strong = 1.5 * np.exp(-0.5 * (d / 3e-3) ** 2) + 0.4 * np.exp(-0.5 * (d / 6e-3) ** 2)
-    weak = 0.3 * np.exp(-0.5 * np.hypot(xy[..., 0] - 0.021, xy[..., 1] - 0.020) ** 2 / 2.5e-3 ** 2)
-    seen = SimpleNamespace(map="stiffness", contrast=(1.0 + strong) * (1.0 + weak) - 1.0,
-                           sigma=np.full(d.shape, 0.18), modes=None)
+    levels, seen, strong, weak = _strong_and_weak(0.3, 0.18)
     found = detect(levels, seen, PITCH)
     assert len(found) == 2
     weaker = min(found, key=lambda t: t.score)
