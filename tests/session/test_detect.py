@@ -508,7 +508,10 @@ def test_a_weaker_tumour_is_placed_by_what_stands_out_over_a_stronger_ones_far_f
 def test_a_weaker_tumour_a_stronger_ones_far_field_tips_under_the_threshold_is_kept_where_it_makes_little_of_it(
         monkeypatch):
     """s48003-0007: a 4.9 mm-deep tumour 7 mm from a 9.9 mm-deep one read +0.26 where that one's sphere made
-    +0.076, and over it fell under the threshold: a spot the stronger spheres make less than half of stays."""
+    +0.076, and over it fell under the threshold: a spot the stronger spheres make less than half of stays, on
+    the stiffness map."""
+    from types import SimpleNamespace
+
     import session.detect as detect_module
     from session.detect import explained_away
 
@@ -521,6 +524,9 @@ def test_a_weaker_tumour_a_stronger_ones_far_field_tips_under_the_threshold_is_k
         return (weak if tumour is weaker else strong)[records], np.zeros((len(records), 4, 15))
 
     assert len(explained_away(found, levels, seen, PITCH, DetectParams(), signature)) == 2
+    # the spheres are fitted to the stiffness contrast: the force map's share of them is not asked
+    on_force_map = SimpleNamespace(**{**vars(seen), "map": "force"})
+    assert len(explained_away(found, levels, on_force_map, PITCH, DetectParams(), signature)) == 1
     # over the stronger one's sphere alone it no longer passes the threshold
     monkeypatch.setattr(detect_module, "EXPLAINED_SHARE", 0.0)
     assert len(explained_away(found, levels, seen, PITCH, DetectParams(), signature)) == 1
