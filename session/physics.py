@@ -302,11 +302,8 @@ class BlockResponse(HomogeneousTissue):
     def at_finite_strain(self, cache_dir=None, progress: Progress | None = None) -> BlockResponse:
         """This block pressed at finite strain: its finite-strain factor solved for its extent, thickness and
         sides (cached), what was said of its sides kept."""
-        tissue = BlockResponse(self.block, self.origin_xy_m, self._compliance, self._nodes, self.cover_spread_m,
-                               self.pitch_m, self.shape,
-                               _block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, progress,
-                                                 self.sides),
-                               self.table_height_m, self.ends_known, self.sides)
+        tissue = self._like(finite_strain=_block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, progress,
+                                                            self.sides))
         tissue.sides_why = self.sides_why
         tissue.description = tissue.description[:-1] + self.sides_why + ")"
         return tissue
@@ -316,10 +313,17 @@ class BlockResponse(HomogeneousTissue):
         the block's extent, thickness and sides, cached)."""
         finite = self.finite_strain or _block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, None,
                                                           self.sides)
-        return BlockResponse(self.block, self.origin_xy_m, self._compliance, self._nodes, self.cover_spread_m,
-                             self.pitch_m, self.shape, finite, self.table_height_m, self.ends_known, self.sides,
-                             _block_stiffening(self.block, self.shape, self.pitch_m, cache_dir, progress, self.sides,
-                                               GRIP_FRICTION))
+        return self._like(finite_strain=finite, grip=_block_stiffening(self.block, self.shape, self.pitch_m, cache_dir,
+                                                                       progress, self.sides, GRIP_FRICTION))
+
+    def _like(self, **changed) -> BlockResponse:
+        """A block as this one but for ``changed`` of its constructor's arguments (what was said of its sides not
+        carried)."""
+        given = dict(block=self.block, origin_xy_m=self.origin_xy_m, compliance=self._compliance,
+                     nodes_xy_m=self._nodes, cover_spread_m=self.cover_spread_m, pitch_m=self.pitch_m, shape=self.shape,
+                     finite_strain=self.finite_strain, table_height_m=self.table_height_m, ends_known=self.ends_known,
+                     sides=self.sides, grip=self.grip)
+        return BlockResponse(**(given | changed))
 
     def on_surface_of(self, levels: np.ndarray, extent_m: tuple[float, float, float, float] | None = None
                       ) -> BlockResponse:
@@ -332,9 +336,7 @@ class BlockResponse(HomogeneousTissue):
         if block.heights_m.shape != self.block.heights_m.shape or not np.allclose(origin, self.origin_xy_m,
                                                                                    atol=GRID_M / 10):
             raise ValueError(f"the areas reach beyond the {self.block.name} whose finite elements are known")
-        tissue = BlockResponse(block, origin, self._compliance, self._nodes, self.cover_spread_m, self.pitch_m,
-                               self.shape, self.finite_strain, self.table_height_m, self.ends_known, self.sides,
-                               self.grip)
+        tissue = self._like(block=block, origin_xy_m=origin)
         if block.content_hash() != self.block.content_hash():
             tissue.description = tissue.description[:-1] + f"; its finite elements meshed on the {self.block.name})"
         return tissue
@@ -555,6 +557,7 @@ def supported_sides(levels: np.ndarray, candidates: list[BlockResponse]) -> Bloc
                                       if np.isfinite(c).any()])))
     best = int(np.argmin(scatter))
     chosen = candidates[best]
+
     def named(c: BlockResponse) -> str:
         return c.sides + ("" if c.grip is None else ", gripped")
 
