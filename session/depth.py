@@ -85,10 +85,14 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from session.detect import DepthParams
+
+if TYPE_CHECKING:
+    from tissue.mechanics.fem import SchurStore
 
 # shipped as package data beside this module, in a checkout and in an installed wheel alike
 LIBRARY_PATH = Path(str(resources.files(__package__).joinpath("depth_library.npz")))
@@ -157,10 +161,11 @@ class LibraryGrid:
 
 
 def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
-                 tumour_y_m: float | None = None) -> np.ndarray:
+                 tumour_y_m: float | None = None, store: SchurStore | None = None) -> np.ndarray:
     """(offsets, face nodes along x, along y): the face's nodal forces at a unit indentation (per unit
     modulus) for each face offset; ``inclusion`` = (depth of its top, diameter, modulus ratio), at
-    ``tumour_y_m`` across the block (default: the library's, mid-array)."""
+    ``tumour_y_m`` across the block (default: the library's, mid-array); ``store`` keeps the finite elements'
+    boxes for the next solve (most of a block is the same whatever its sphere)."""
     from session.physics import SurfaceBlock
     from tissue.mechanics.model import MeshSettings, surface_compliance
     from tissue.phantom import Inclusion
@@ -179,7 +184,7 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
     # every face position the offsets need, condensed at once: the other retained nodes carry no load
     compliance, nodes = surface_compliance(
         block, MeshSettings(spacing_m=grid.grid_m),
-        keep=lambda x, _: (x >= tx - half - 1e-9) & (x <= tx + max(grid.offset_x_m) + half + 1e-9))
+        keep=lambda x, _: (x >= tx - half - 1e-9) & (x <= tx + max(grid.offset_x_m) + half + 1e-9), store=store)
     out = np.empty(grid.face_shape)
     for k, off in enumerate(grid.offset_x_m):
         under = np.flatnonzero(np.abs(nodes[:, 0] - (tx + off)) <= half + 1e-9)
@@ -193,7 +198,8 @@ SOLVE_VERSION = 1
 
 
 def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
-                      tumour_y_m: float | None = None, solving: Solving | None = None) -> np.ndarray:
+                      tumour_y_m: float | None = None, solving: Solving | None = None,
+                      store: SchurStore | None = None) -> np.ndarray:
     """:func:`_block_solve`, kept in the tissue model's cache: a session analysed again (a study re-analysed
     with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case.
     ``solving(what)`` is called before a solve the cache does not hold (not for one it loads)."""
@@ -210,7 +216,7 @@ def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[fl
     def solve():
         if solving is not None:
             solving("block without a sphere" if inclusion is None else f"sphere {inclusion[0] * 1e3:.1f} mm deep")
-        return {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m)}
+        return {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m, store)}
 
     return cached(default_cache_dir(), "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24], solve,
                   check)["forces"]
@@ -320,6 +326,7 @@ class DepthModel:
                                   f"{library.pitch_m * 1e3:g} mm, this session's is {shape[0]} x {shape[1]} at "
                                   f"{pitch_m * 1e3:g} mm")
         from tissue.mechanics.contact import tributary_weights
+        from tissue.mechanics.fem import SchurStore
         from tissue.mechanics.model import COMPRESSED_STRAIN
 
         self.library = library
@@ -332,6 +339,9 @@ class DepthModel:
         self._solves: dict = {}
         self._patterns: dict = {}  # what the library predicts of each sphere asked for (:meth:`_twin`)
         self._homogeneous: dict = {}
+        # the boxes of those solves' finite elements, kept for the next (most of a block is the same whatever
+        # its sphere): a session's spheres solved about 40 % sooner, for up to the store's budget of memory
+        self._store = SchurStore()
         nx, ny = library.homogeneous.shape[-2:]
         xs, ys = np.meshgrid(np.arange(nx) * library.grid_m, np.arange(ny) * library.grid_m, indexing="ij")
         self._weights = tributary_weights(xs.ravel(), ys.ravel(), (0.0, xs.max(), 0.0, ys.max()), (0.0, 0.0),
@@ -638,7 +648,8 @@ class DepthModel:
             else:
                 # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
                 grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
-                q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving)
+                q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving,
+                                                     store=self._store)
                                    ) / self._elements(self._homogeneous_solve(t, grid, solving))
                 cache[key] = (q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0, 0.0)
                 if np.all(np.isfinite(pattern)):
@@ -677,7 +688,7 @@ class DepthModel:
         cache = self._homogeneous
         key = round(thickness_m, 6)
         if key not in cache:
-            cache[key] = _kept_block_solve(grid, thickness_m, None, solving=solving)
+            cache[key] = _kept_block_solve(grid, thickness_m, None, solving=solving, store=self._store)
         return cache[key]
 
 

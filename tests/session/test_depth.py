@@ -394,7 +394,7 @@ def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_
     grid = replace(LibraryGrid(), offset_x_m=(0.0, 1e-3))
     solved = []
 
-    def solve(grid, thickness_m, inclusion, tumour_y_m):  # the solve itself is checked against the library
+    def solve(grid, thickness_m, inclusion, tumour_y_m, store=None):  # the solve itself is checked against the library
         solved.append((thickness_m, inclusion, tumour_y_m))
         return np.full((2, 9, 31), thickness_m + sum(inclusion) + tumour_y_m)
 
@@ -418,7 +418,7 @@ def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_sol
 
     solved = []
 
-    def solve(grid, thickness_m, inclusion, tumour_y_m=None, solving=None):
+    def solve(grid, thickness_m, inclusion, tumour_y_m=None, solving=None, store=None):
         solved.append(inclusion)
         return np.full(grid.face_shape, 1.0 + (0.0 if inclusion is None else inclusion[0]))
 

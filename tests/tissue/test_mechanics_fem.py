@@ -130,3 +130,47 @@ def test_a_bad_grid_is_refused_with_a_reason():
         HexGrid(x[::-1], x, np.linspace(0, 1, 3), np.ones((3, 3)))
     with pytest.raises(ValueError, match="levels"):
         HexGrid(x, x, np.linspace(0.1, 1, 3), np.ones((3, 3)))
+
+
+def test_boxes_alike_are_condensed_once_and_a_store_carries_them_to_the_next_block(monkeypatch):
+    # a flat block repeats its boxes (and a block with a sphere all those the sphere is not in): each is
+    # condensed once, to the same result to the bit as condensing every box, which the direct solve checks
+    from tissue.mechanics import fem
+
+    x, y = np.linspace(0, 12e-3, 13), np.linspace(0, 6e-3, 7)
+    grid = HexGrid(x, y, graded_levels(3, 0.25), np.full((13, 7), 3e-3))
+
+    def sphere(p):
+        inside = np.sum((p - [9.5e-3, 3e-3, 1.5e-3]) ** 2, axis=-1) < (1.2e-3) ** 2
+        return np.where(inside, 160e3, 20e3), np.full(p.shape[:-1], 0.49)
+
+    condensed = []
+    schur = fem._schur
+    monkeypatch.setattr(fem, "_schur", lambda mat, n: condensed.append(len(mat)) or schur(mat, n))
+    boxes = []
+    build = fem._Substructurer._build
+    monkeypatch.setattr(fem._Substructurer, "_build", lambda self, lo, hi: boxes.append(lo) or build(self, lo, hi))
+
+    _, alone = condensed_surface_stiffness(grid, sphere, leaf_dofs=60)
+    n_boxes = len(boxes)
+    assert len(condensed) < 0.8 * n_boxes
+    k = assemble_sparse(grid, sphere).tocsc()
+    free = np.flatnonzero(~table_dofs(grid))
+    dofs, _ = top_dofs(grid)
+    pos = np.searchsorted(free, dofs)
+    rhs = np.zeros((len(free), len(dofs)))
+    rhs[pos, np.arange(len(dofs))] = 1.0
+    compliance = spla.splu(k[free][:, free].tocsc()).solve(rhs)[pos]
+    assert np.allclose(np.linalg.inv(alone), compliance, rtol=1e-8, atol=1e-10 * np.abs(compliance).max())
+
+    store = fem.SchurStore()
+    condensed_surface_stiffness(grid, homogeneous(), leaf_dofs=60, store=store)
+    condensed.clear()
+    _, after = condensed_surface_stiffness(grid, sphere, leaf_dofs=60, store=store)
+    assert np.array_equal(after, alone)
+    assert 0 < len(condensed) < 0.5 * n_boxes  # the boxes the sphere is not in came from the store
+
+    small = fem.SchurStore(budget_bytes=8 * 30**2)  # too small for most boxes: it keeps what fits, no more
+    condensed_surface_stiffness(grid, homogeneous(), leaf_dofs=60, store=small)
+    assert 0 < small.held_bytes <= small.budget_bytes
+    assert np.array_equal(condensed_surface_stiffness(grid, sphere, leaf_dofs=60, store=small)[1], alone)

@@ -63,7 +63,15 @@ import numpy as np
 from tissue.face import Face
 from tissue.mechanics import cache as cache_mod
 from tissue.mechanics.contact import contact_path, tributary_weights
-from tissue.mechanics.fem import HexGrid, MaterialFn, condensed_surface_stiffness, graded_levels, table_dofs, wall_dofs
+from tissue.mechanics.fem import (
+    HexGrid,
+    MaterialFn,
+    SchurStore,
+    condensed_surface_stiffness,
+    graded_levels,
+    table_dofs,
+    wall_dofs,
+)
 from tissue.mechanics.progress import Progress, stage
 from tissue.mechanics.workers import Job, usable_cores
 from tissue.mechanics.workers import run as run_jobs
@@ -143,17 +151,19 @@ def phantom_material(phantom: Phantom):
 
 def surface_compliance(phantom: Phantom, settings: MeshSettings | None = None,
                        keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-                       progress: Progress | None = None, sides: str = "free") -> tuple[np.ndarray, np.ndarray]:
+                       progress: Progress | None = None, sides: str = "free", store: SchurStore | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """(C, node (x, y)): the surface compliance of ``phantom``'s block bonded to its table (vertical
     displacement per vertical force between its top nodes, every other top node free of load) and where
     those nodes are, x-major as C takes them; ``keep(x, y)`` says which top nodes to keep (default: all);
     ``sides``: "free", or "mould" (its four lateral faces on frictionless walls, as ``precompute`` holds a
-    phantom whose ``sides`` say so)."""
+    phantom whose ``sides`` say so); ``store``: boxes of the condensation kept between calls
+    (:class:`tissue.mechanics.fem.SchurStore`)."""
     grid = phantom_grid(phantom, settings or MeshSettings())
     mask = None if keep is None else keep(*np.meshgrid(grid.x_m, grid.y_m, indexing="ij"))
     fixed = table_dofs(grid) | wall_dofs(grid) if sides == "mould" else None
     ij, stiffness = condensed_surface_stiffness(grid, phantom_material(phantom), mask=mask, progress=progress,
-                                                fixed=fixed)
+                                                fixed=fixed, store=store)
     return _spd_inverse(stiffness), np.stack([grid.x_m[ij[:, 0]], grid.y_m[ij[:, 1]]], axis=1)
 
 
