@@ -52,6 +52,7 @@ from hardware.settings import ConfigError, Settings, bounded
 from hardware.udp import protocol as P
 from hardware.udp.intake import Intake, bound_socket
 from hardware.udp.protocol import is_loopback
+from tissue.face import MAX_COVER_SPREAD_M
 
 RTT_HISTORY = 65536  # round trips kept for the health display and benchmarks
 
@@ -302,6 +303,22 @@ class UdpSlaveLink(Connection, SlaveManipulator):
         self._latest = SlaveState(seq=self._published, t_s=min(st.t_sample_s - offset, now_s),
                                   position_m=st.position_m, velocity_m_s=st.velocity_m_s)
         self._heard()
+
+
+@dataclass(frozen=True)
+class ForwardedTactileSettings(Settings):
+    """``[hardware.sensor] kind = "udp"``: the array whose frames the slave forwards, calibrated and tared on its
+    side. What the console must still be told of it is what no frame says."""
+
+    # how far the array's elastomer cover spreads an element's load sideways, as its maker states it (0: not
+    # stated); sessions record it, and the analysis's expected pattern is blurred by it
+    cover_spread_m: float = 0.0
+
+    def __post_init__(self):
+        self._set("cover_spread_m", bounded("cover_spread_m", self.cover_spread_m, 0.0, MAX_COVER_SPREAD_M))
+
+    def constraints(self) -> TactileConstraints:
+        return TactileConstraints(cover_spread_m=self.cover_spread_m)
 
 
 class UdpTactileSensor(TactileSensor):

@@ -7,7 +7,8 @@ Configured by the ``[hardware]`` tables of the TOML config (``rig.backend = "udp
     port = 47600
 
     [hardware.sensor]         # kind = "udp": the slave forwards its sensor's frames over the link
-    kind = "serial"           #        "serial": SerialTactileSettings keys (port, baud, calibration, ...)
+    kind = "serial"           #        (ForwardedTactileSettings: the cover its maker states, cover_spread_m)
+                              #        "serial": SerialTactileSettings keys (port, baud, calibration, ...)
     port = "/dev/serial/by-id/usb-Palpation_Lab_TSI-if00"   # "usb": UsbTactileSettings keys (vid_pid, ...)
 
     [hardware.master]         # kind = "none": X_d from the console's jog
@@ -34,19 +35,19 @@ from hardware.device_tables import (
 from hardware.rig import Rig
 from hardware.serial_tactile.adapter import SerialTactileSettings
 from hardware.settings import ConfigError
-from hardware.udp.link import UdpLinkSettings, UdpSlaveLink
+from hardware.udp.link import ForwardedTactileSettings, UdpLinkSettings, UdpSlaveLink
 from hardware.usb.spacemouse import SpaceMouseSettings
 from hardware.usb.tactile import UsbTactileSettings
 
 # the array forwarded by the slave over the link, or one the console reads itself
-SENSOR_KINDS = {"udp": None, **ARRAY_KINDS}
+SENSOR_KINDS = {"udp": ForwardedTactileSettings, **ARRAY_KINDS}
 
 
 @dataclass(frozen=True)
 class HardwareSettings:
     slave: UdpLinkSettings = field(default_factory=UdpLinkSettings)
     sensor_kind: str = "udp"
-    sensor: SerialTactileSettings | UsbTactileSettings | None = None
+    sensor: ForwardedTactileSettings | SerialTactileSettings | UsbTactileSettings | None = None
     master_kind: str = "none"
     master: SpaceMouseSettings | None = None
 
@@ -72,8 +73,10 @@ class HardwareSettings:
 def build_hardware_rig(settings: HardwareSettings, usb_backend=None) -> Rig:
     """Build (not open) the rig; ``usb_backend`` replaces libusb (the tests' emulated bus)."""
     link = UdpSlaveLink(settings.slave)
-    sensor = (link.tactile_sensor() if settings.sensor_kind == "udp"
-              else build_array(settings.sensor_kind, settings.sensor, usb_backend))
+    if settings.sensor_kind == "udp":
+        sensor = link.tactile_sensor(settings.sensor.constraints() if settings.sensor is not None else None)
+    else:
+        sensor = build_array(settings.sensor_kind, settings.sensor, usb_backend)
     description = {"backend": "udp", "hardware": settings.to_mapping(), "slave": link.describe(),
                    "sensor": sensor.describe()}
     return Rig(sensor=sensor, slave=link,

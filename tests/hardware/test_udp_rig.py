@@ -18,11 +18,13 @@ from hardware.udp import SlaveServer, SlaveServerSettings, UdpSlaveLink, UdpTact
 from hardware.udp.rig import HardwareSettings, build_hardware_rig, build_rig
 from hardware.usb.emulator import EmulatedBackend, SpaceMouseDevice
 from hardware.usb.spacemouse import SpaceMouseMaster
+from session.info import calibration_of
 
 
 @pytest.mark.parametrize("table, key, problem", [
     ({"sensor": {"kind": "bluetooth"}}, "hardware.sensor.kind", "unknown kind 'bluetooth'"),
-    ({"sensor": {"port": "/dev/ttyACM0"}}, "hardware.sensor.port", "takes no settings"),
+    ({"sensor": {"port": "/dev/ttyACM0"}}, "hardware.sensor.port", r"unknown key \(known: cover_spread_m\)"),
+    ({"sensor": {"cover_spread_m": 0.005}}, "hardware.sensor.cover_spread_m", "between 0 and 0.002"),
     ({"sensor": {"kind": "serial"}}, "hardware.sensor.port", "non-empty"),
     ({"master": {"kind": "spacemouse", "speed": 1}}, "hardware.master.speed", "unknown key"),
     ({"slave": {"port": 70000}}, "hardware.slave.port", "within"),
@@ -38,7 +40,16 @@ def test_bad_hardware_tables_name_the_key(table, key, problem):
 def test_the_default_rig_is_the_slave_with_its_forwarded_sensor_and_the_console_jog():
     rig = build_rig(SimpleNamespace(hardware={}))
     assert isinstance(rig.slave, UdpSlaveLink) and isinstance(rig.sensor, UdpTactileSensor) and rig.master is None
-    assert rig.description["hardware"]["sensor"] == {"kind": "udp"}
+    assert rig.description["hardware"]["sensor"] == {"kind": "udp", "cover_spread_m": 0.0}
+    assert calibration_of(rig.sensor.constraints, 0.0)["cover_spread_m"] == 0.0  # none stated
+
+
+def test_the_forwarded_arrays_cover_is_stated_in_the_config_and_recorded_for_the_analysis():
+    # the slave's frames say nothing of the array's cover: a lab states it, as for an array the console reads
+    rig = build_rig(SimpleNamespace(hardware={"sensor": {"kind": "udp", "cover_spread_m": 0.8e-3}}))
+    assert isinstance(rig.sensor, UdpTactileSensor)
+    assert calibration_of(rig.sensor.constraints, 0.0)["cover_spread_m"] == 0.8e-3
+    assert rig.description["hardware"]["sensor"] == {"kind": "udp", "cover_spread_m": 0.8e-3}
 
 
 def test_a_rig_of_real_backends_runs_the_loop(tmp_path):
