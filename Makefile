@@ -39,10 +39,12 @@ study: bootstrap-run
 	QT_QPA_PLATFORM=offscreen $(PY) -m app study --phantoms 12 --seed 20261125 --paper --world both --out build/study \
 		--json build/bench/accuracy.json --plot build/bench/accuracy.png
 
-# The model-based depth's library of finite-element solves (session/depth.py), shipped beside it:
-# rebuild it after a change to the continuum mechanics (about 15 minutes on two cores).
+# The model-based depth's libraries of finite-element solves (session/depth.py), shipped beside it, the layer's
+# sides free and held in a mould: rebuild them after a change to the continuum mechanics (about 6 minutes each
+# on one core).
 depth-library: bootstrap-run
-	$(PY) -m session.depth --out session/depth_library.npz
+	$(PY) -m session.depth --sides free --out session/depth_library.npz
+	$(PY) -m session.depth --sides mould --out session/depth_library_mould.npz
 
 # constraints.txt pinned afresh: the dependencies of pyproject.toml (every extra) resolved today in a throwaway
 # environment; the file's opening comment is kept.

@@ -16,6 +16,12 @@ without and with one spherical inclusion under the middle of the TSI, for every 
 * the face's centre 0-4 mm along x from the tumour (an area's strip is 8 mm: every tumour lies within 4 mm
   of the centre of the area that covers it).
 
+A second library (``depth_library_mould.npz``) holds the same layer with its lateral faces on a mould's
+frictionless walls: the layer is as wide as the TSI is long, as the study's phantoms are and a phantom in its
+casting tray is, and the walls hold the tissue a sphere would push aside, so a deep sphere shows far less
+between them (8 mm deep, 10.25 mm across, 12 times stiffer: +0.18 against +0.31 under a free face's middle),
+which the free layer's library read as a sphere 0.3-1.7 mm deeper. The analysis takes the library of the
+sides its flat field's tissue has (:meth:`DepthModel.with_sides`; free where no model of the tissue says).
 Linear elasticity makes the pattern independent of the tissue's modulus, so one solve per combination
 serves every tissue. How far the face is pressed matters at finite strain: the tissue over a tumour thins.
 The estimate takes that from the project's reduced finite-strain model, the simulated rig's
@@ -94,8 +100,12 @@ from session.detect import DepthParams
 if TYPE_CHECKING:
     from tissue.mechanics.fem import SchurStore
 
-# shipped as package data beside this module, in a checkout and in an installed wheel alike
+# shipped as package data beside this module, in a checkout and in an installed wheel alike: the layer's sides
+# free, and held in a mould
 LIBRARY_PATH = Path(str(resources.files(__package__).joinpath("depth_library.npz")))
+LIBRARY_PATHS = {"free": LIBRARY_PATH,
+                 "mould": Path(str(resources.files(__package__).joinpath("depth_library_mould.npz")))}
+SIDES = tuple(LIBRARY_PATHS)  # as tissue.mechanics.finite_strain.SIDES
 GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
 SNAP_M = 0.25e-3  # spheres (and layers, and places across) within this of each other are one solve
 # A solve stands in for a sphere whose contrast the library predicts within this share of the model's error of
@@ -161,11 +171,13 @@ class LibraryGrid:
 
 
 def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
-                 tumour_y_m: float | None = None, store: SchurStore | None = None) -> np.ndarray:
+                 tumour_y_m: float | None = None, store: SchurStore | None = None, sides: str = "free") -> np.ndarray:
     """(offsets, face nodes along x, along y): the face's nodal forces at a unit indentation (per unit
     modulus) for each face offset; ``inclusion`` = (depth of its top, diameter, modulus ratio), at
     ``tumour_y_m`` across the block (default: the library's, mid-array); ``store`` keeps the finite elements'
-    boxes for the next solve (most of a block is the same whatever its sphere)."""
+    boxes for the next solve (most of a block is the same whatever its sphere); ``sides``: the block's lateral
+    faces free, or held by a mould's frictionless walls (the layer is as wide as the face is long: its walls
+    are where a phantom in its casting tray has them)."""
     from session.physics import SurfaceBlock
     from tissue.mechanics.model import MeshSettings, surface_compliance
     from tissue.phantom import Inclusion
@@ -184,7 +196,8 @@ def _block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, 
     # every face position the offsets need, condensed at once: the other retained nodes carry no load
     compliance, nodes = surface_compliance(
         block, MeshSettings(spacing_m=grid.grid_m),
-        keep=lambda x, _: (x >= tx - half - 1e-9) & (x <= tx + max(grid.offset_x_m) + half + 1e-9), store=store)
+        keep=lambda x, _: (x >= tx - half - 1e-9) & (x <= tx + max(grid.offset_x_m) + half + 1e-9), store=store,
+        sides=sides)
     out = np.empty(grid.face_shape)
     for k, off in enumerate(grid.offset_x_m):
         under = np.flatnonzero(np.abs(nodes[:, 0] - (tx + off)) <= half + 1e-9)
@@ -199,15 +212,17 @@ SOLVE_VERSION = 1
 
 def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[float, float, float] | None,
                       tumour_y_m: float | None = None, solving: Solving | None = None,
-                      store: SchurStore | None = None) -> np.ndarray:
+                      store: SchurStore | None = None, sides: str = "free") -> np.ndarray:
     """:func:`_block_solve`, kept in the tissue model's cache: a session analysed again (a study re-analysed
     with other options, ``stitch`` run twice) asks for the same spheres, about 8 s of solves a case.
     ``solving(what)`` is called before a solve the cache does not hold (not for one it loads)."""
     from tissue.mechanics.cache import default_cache_dir
     from tissue.mechanics.model import cached
 
+    # a free layer's key as it was before a mould's solves were asked for: the caches' free solves stay good
     described = json.dumps({"version": SOLVE_VERSION, "grid": asdict(grid), "thickness_m": thickness_m,
-                            "inclusion": inclusion, "tumour_y_m": tumour_y_m}, sort_keys=True)
+                            "inclusion": inclusion, "tumour_y_m": tumour_y_m,
+                            **({} if sides == "free" else {"sides": sides})}, sort_keys=True)
 
     def check(arrays):
         if np.shape(arrays["forces"]) != grid.face_shape:
@@ -216,34 +231,38 @@ def _kept_block_solve(grid: LibraryGrid, thickness_m: float, inclusion: tuple[fl
     def solve():
         if solving is not None:
             solving("block without a sphere" if inclusion is None else f"sphere {inclusion[0] * 1e3:.1f} mm deep")
-        return {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m, store)}
+        return {"forces": _block_solve(grid, thickness_m, inclusion, tumour_y_m, store, sides)}
 
     return cached(default_cache_dir(), "depth-" + hashlib.sha256(described.encode()).hexdigest()[:24], solve,
                   check)["forces"]
 
 
 def build_library(path: Path = LIBRARY_PATH, grid: LibraryGrid = LibraryGrid(),
-                  progress: Callable[[str], None] | None = None) -> Path:
-    """Solve every configuration of ``grid`` and write the library to ``path`` (about six minutes of
-    one core per thickness); configurations whose sphere would not fit in the layer are NaN."""
+                  progress: Callable[[str], None] | None = None, sides: str = "free") -> Path:
+    """Solve every configuration of ``grid`` with the layer's ``sides`` free or in a mould and write the library
+    to ``path`` (a few minutes of one core per thickness); configurations whose sphere would not fit in the
+    layer are NaN."""
+    from tissue.mechanics.fem import SchurStore
+
+    store = SchurStore()  # each sphere's block shares every box its sphere is not in with the one before
     shape = (len(grid.thickness_m), len(grid.depth_m), len(grid.diameter_m), len(grid.modulus_ratio))
     face = grid.face_shape
     homogeneous = np.empty((len(grid.thickness_m), *face))
     inclusion = np.full((*shape, *face), np.nan)
     started = time.perf_counter()
     for t, h in enumerate(grid.thickness_m):
-        homogeneous[t] = _block_solve(grid, h, None)
+        homogeneous[t] = _block_solve(grid, h, None, store=store, sides=sides)
         for index in np.ndindex(shape[1:]):
             d, a, r = (grid.depth_m[index[0]], grid.diameter_m[index[1]], grid.modulus_ratio[index[2]])
             if h - d - a < CLEARANCE_M:
                 continue
-            inclusion[(t, *index)] = _block_solve(grid, h, (d, a, r))
+            inclusion[(t, *index)] = _block_solve(grid, h, (d, a, r), store=store, sides=sides)
             if progress is not None:
                 progress(f"h {h * 1e3:.0f} mm, depth {d * 1e3:g} mm, diameter {a * 1e3:g} mm, ratio {r:g} "
                          f"({time.perf_counter() - started:.0f} s)")
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
-        path, format=np.array(LIBRARY_FORMAT), version=np.array(LIBRARY_VERSION),
+        path, format=np.array(LIBRARY_FORMAT), version=np.array(LIBRARY_VERSION), sides=np.array(sides),
         thickness_m=np.array(grid.thickness_m), depth_m=np.array(grid.depth_m),
         diameter_m=np.array(grid.diameter_m), modulus_ratio=np.array(grid.modulus_ratio),
         offset_x_m=np.array(grid.offset_x_m), geometry=np.array([grid.length_m, grid.rows, grid.cols,
@@ -269,6 +288,7 @@ class _Library:
     grid_m: float
     homogeneous: np.ndarray  # (thickness, offset, face nodes x, face nodes y)
     inclusion: np.ndarray  # (thickness, depth, diameter, ratio, offset, face nodes x, face nodes y)
+    sides: str = "free"  # the layer's lateral faces (a library that does not say was built with them free)
 
 
 def load_library(path: Path = LIBRARY_PATH) -> _Library:
@@ -288,6 +308,7 @@ def load_library(path: Path = LIBRARY_PATH) -> _Library:
         face = (int(round(rows * pitch / grid)) + 1, int(round(cols * pitch / grid)) + 1)
         homogeneous = np.asarray(arrays["homogeneous"], float)
         inclusion = np.asarray(arrays["inclusion"], float)
+        sides = str(arrays.get("sides", "free"))
     except (KeyError, ValueError, TypeError) as err:
         raise DepthModelError(f"depth model library {path}: incomplete ({err})") from None
     if (homogeneous.shape != (len(axes[0]), len(axes[4]), *face)
@@ -295,7 +316,9 @@ def load_library(path: Path = LIBRARY_PATH) -> _Library:
             or any(len(a) < 2 or np.any(np.diff(a) <= 0) for a in axes[:4])
             or not np.all(np.isfinite(homogeneous)) or not np.all(homogeneous > 0)):
         raise DepthModelError(f"depth model library {path}: its arrays do not fit its axes")
-    return _Library(*axes, int(rows), int(cols), pitch, grid, homogeneous, inclusion)
+    if sides not in SIDES:
+        raise DepthModelError(f"depth model library {path}: built for sides {sides!r}, not one of {', '.join(SIDES)}")
+    return _Library(*axes, int(rows), int(cols), pitch, grid, homogeneous, inclusion, sides)
 
 
 def _lerp_axis(values: np.ndarray, axis: np.ndarray, at: np.ndarray, dim: int) -> np.ndarray:
@@ -320,7 +343,8 @@ class DepthModel:
     law_steps = 5  # the laws marginalised, evenly spread (DepthParams.law_spread)
 
     def __init__(self, library: _Library, shape: tuple[int, int], pitch_m: float, table_height_m: float,
-                 cover: Callable[[np.ndarray], np.ndarray] | None = None, params: DepthParams = DepthParams()):
+                 cover: Callable[[np.ndarray], np.ndarray] | None = None, params: DepthParams = DepthParams(),
+                 sides: str = "free"):
         if (library.rows, library.cols) != tuple(shape) or abs(library.pitch_m - pitch_m) > 1e-9:
             raise DepthModelError(f"the depth model was built for a {library.rows} x {library.cols} array at "
                                   f"{library.pitch_m * 1e3:g} mm, this session's is {shape[0]} x {shape[1]} at "
@@ -330,6 +354,8 @@ class DepthModel:
         from tissue.mechanics.model import COMPRESSED_STRAIN
 
         self.library = library
+        self.sides = sides  # the layer's lateral faces, free or in a mould: the library's and every solve's
+        self._libraries = {sides: library}  # what with_sides takes; the others loaded when first asked for
         self.shape = tuple(shape)
         self.pitch_m = pitch_m
         self.table_height_m = table_height_m
@@ -361,7 +387,28 @@ class DepthModel:
         out._set(params)
         return out
 
+    def with_sides(self, sides: str) -> DepthModel:
+        """This model for tissue whose sides are ``sides`` (:data:`SIDES`): itself where they are its own, else
+        one on that library, with solves of its own (a mould's walls change every sphere's contrast: one 4 mm
+        deep and 6.7 mm wide, at +0.70 under a free face's middle, makes +0.42 between a mould's walls, which
+        the free layer reads as a sphere over a millimetre deeper). Raises :class:`DepthModelError` where that
+        library cannot be used."""
+        if sides == self.sides:
+            return self
+        if sides not in LIBRARY_PATHS:
+            raise DepthModelError(f"no depth model library for sides {sides!r} (known: {', '.join(SIDES)})")
+        if sides not in self._libraries:
+            self._libraries[sides] = load_library(LIBRARY_PATHS[sides])
+        library = self._libraries[sides]
+        if library.sides != sides:
+            raise DepthModelError(f"depth model library {LIBRARY_PATHS[sides]}: built for sides {library.sides!r}, "
+                                  f"not {sides!r}")
+        out = DepthModel(library, self.shape, self.pitch_m, self.table_height_m, self.cover, self.params, sides)
+        out._libraries = self._libraries
+        return out
+
     def _set(self, params: DepthParams) -> None:
+        self.params = params
         self.model_error = params.model_error
         self.scale_error = params.scale_error
         # each law as how fast it grows a tumour's contrast with the press, over the reduced model's
@@ -382,8 +429,12 @@ class DepthModel:
     def _described(cls, described, shape: tuple[int, int], pitch_m: float, path: Path) -> DepthModel:
         from session.physics import cover_for
 
-        return cls(load_library(path), shape, pitch_m, float(described.calibration.get("table_height_m", 0.0)),
-                   cover_for(described, shape, pitch_m))
+        model = cls(load_library(path), shape, pitch_m, float(described.calibration.get("table_height_m", 0.0)),
+                    cover_for(described, shape, pitch_m))
+        # the other sides' libraries read now: a damaged one is told before the analysis, not half-way through it
+        model._libraries.update({sides: load_library(other) for sides, other in LIBRARY_PATHS.items()
+                                 if sides != model.sides})
+        return model
 
     # ---- the forward model ----
 
@@ -650,7 +701,7 @@ class DepthModel:
                 # every whole-millimetre offset at once: the face's edges stay on the mesh's node lines
                 grid = replace(LibraryGrid(), offset_x_m=tuple(np.arange(0.0, SIGNATURE_REACH_M + 1e-9, 1e-3)))
                 q = self._elements(_kept_block_solve(grid, t, (d, a, ratio), tumour_y_m=y, solving=solving,
-                                                     store=self._store)
+                                                     store=self._store, sides=self.sides)
                                    ) / self._elements(self._homogeneous_solve(t, grid, solving))
                 cache[key] = (q / np.median(q.reshape(len(q), -1), axis=1)[:, None, None] - 1.0, 0.0)
                 if np.all(np.isfinite(pattern)):
@@ -689,7 +740,8 @@ class DepthModel:
         cache = self._homogeneous
         key = round(thickness_m, 6)
         if key not in cache:
-            cache[key] = _kept_block_solve(grid, thickness_m, None, solving=solving, store=self._store)
+            cache[key] = _kept_block_solve(grid, thickness_m, None, solving=solving, store=self._store,
+                                           sides=self.sides)
         return cache[key]
 
 
@@ -745,9 +797,13 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m session.depth",
                                      description="Rebuild the depth model's library of finite-element solves.")
-    parser.add_argument("--out", type=Path, default=LIBRARY_PATH, help=f"where to write it (default {LIBRARY_PATH})")
+    parser.add_argument("--sides", choices=SIDES, default="free",
+                        help="the layer's lateral faces free (default) or held in a mould")
+    parser.add_argument("--out", type=Path, help=f"where to write it (default {LIBRARY_PATH} for free sides, "
+                                                 f"{LIBRARY_PATHS['mould']} for a mould)")
     args = parser.parse_args(argv)
-    built = build_library(args.out, progress=lambda line: print(line, flush=True))
+    built = build_library(args.out or LIBRARY_PATHS[args.sides], progress=lambda line: print(line, flush=True),
+                          sides=args.sides)
     print(f"wrote {built}")
     return 0
 

@@ -723,6 +723,7 @@ class PhantomResponse(HomogeneousTissue):
     def __init__(self, tissue, cover_spread_m: float, pitch_m: float, shape: tuple[int, int], description: str):
         super().__init__(description, cover_spread_m, pitch_m, shape)
         self.tissue = tissue
+        self.sides = tissue.phantom.sides  # the phantom's own: free, or in its mould
 
     @classmethod
     def load(cls, session: Session, cache_dir=None, progress: Progress | None = None) -> PhantomResponse:

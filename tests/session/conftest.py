@@ -73,7 +73,7 @@ class Solves:
         self.go = threading.Event()
         self.go.set()
 
-    def __call__(self, grid, thickness_m, inclusion, tumour_y_m=None, store=None):
+    def __call__(self, grid, thickness_m, inclusion, tumour_y_m=None, store=None, sides="free"):
         self.started += 1
         self.entered.set()
         assert self.go.wait(20.0)

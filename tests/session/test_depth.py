@@ -12,6 +12,7 @@ import pytest
 
 from session.depth import (
     LIBRARY_PATH,
+    LIBRARY_PATHS,
     DepthModel,
     DepthModelError,
     LibraryGrid,
@@ -41,6 +42,43 @@ def test_the_shipped_library_is_what_the_mechanics_gives(library):
     np.testing.assert_allclose(library.homogeneous[t], _block_solve(grid, grid.thickness_m[t], None), rtol=1e-5)
     # a sphere that does not fit in the layer has no solve
     assert np.isnan(library.inclusion[0, -1, -1, 0]).all()
+
+
+def test_the_shipped_mould_library_is_what_the_mechanics_gives_between_a_moulds_walls(library):
+    # the same layer and sphere as above, its lateral faces on a mould's walls: its own solve, and a sphere's
+    # contrast there is not the free layer's (the walls hold the tissue the sphere would push aside)
+    mould = load_library(LIBRARY_PATHS["mould"])
+    assert mould.sides == "mould" and library.sides == "free"
+    grid = LibraryGrid()
+    t, d, a, r = 0, grid.depth_m.index(2.5e-3), 0, 1
+    sphere = (grid.depth_m[d], grid.diameter_m[a], grid.modulus_ratio[r])
+    solved = _block_solve(grid, grid.thickness_m[t], sphere, sides="mould")
+    np.testing.assert_allclose(mould.inclusion[t, d, a, r], solved, rtol=1e-5)
+    np.testing.assert_allclose(mould.homogeneous[t], _block_solve(grid, grid.thickness_m[t], None, sides="mould"),
+                               rtol=1e-5)
+    free_rise = (library.inclusion[t, d, a, r] / library.homogeneous[t]).max()
+    mould_rise = (mould.inclusion[t, d, a, r] / mould.homogeneous[t]).max()
+    assert mould_rise - 1.0 < 0.8 * (free_rise - 1.0)
+
+
+def test_a_model_for_tissue_in_a_mould_reads_a_moulds_sphere_at_its_depth_where_the_free_one_reads_it_deeper():
+    model = DepthModel.for_info(SimpleNamespace(calibration={"rows": 4, "cols": 15, "pitch_m": PITCH,
+                                                             "cover_spread_m": 0.0}))
+    assert model.sides == "free" and model.with_sides("free") is model
+    mould = model.with_sides("mould")
+    assert mould.sides == "mould" and mould.library.sides == "mould" and mould.with_sides("mould") is mould
+    # a deep sphere (8 mm, 10.25 mm across, 12 times stiffer): the walls take its contrast from +0.31 to +0.18,
+    # which the free layer reads as a sphere 1.4 mm deeper (its shape, not only its height, tells the depth:
+    # one 4 mm deep reads alike in both)
+    thickness, y, depth = 0.026, SHAPE[1] * PITCH / 2, 8e-3
+    entry = (list(mould.library.depth_m).index(depth), list(mould.library.diameter_m).index(10.25e-3), 2)
+    seen = mould.predict(thickness, 0.0, y)[entry]
+    rows, measured, tumour = _one_area(seen, 0.02, thickness, 0.030, y, 0.030)
+    read = mould.estimate(tumour, rows, measured)
+    assert read[1] <= depth <= read[2]
+    assert model.estimate(tumour, rows, measured)[0] > read[0] + 0.5e-3
+    with pytest.raises(DepthModelError, match="no depth model library for sides 'tray'"):
+        model.with_sides("tray")
 
 
 def test_a_damaged_foreign_or_missing_library_is_refused_in_one_line(tmp_path):
@@ -394,19 +432,20 @@ def test_a_spheres_solve_is_kept_for_the_next_analysis_and_a_damaged_one_solved_
     grid = replace(LibraryGrid(), offset_x_m=(0.0, 1e-3))
     solved = []
 
-    def solve(grid, thickness_m, inclusion, tumour_y_m, store=None):  # the solve itself is checked against the library
-        solved.append((thickness_m, inclusion, tumour_y_m))
+    def solve(grid, thickness_m, inclusion, tumour_y_m, store=None, sides="free"):  # checked against the library
+        solved.append((thickness_m, inclusion, tumour_y_m, sides))
         return np.full((2, 9, 31), thickness_m + sum(inclusion) + tumour_y_m)
 
     monkeypatch.setattr(depth_model, "_block_solve", solve)
     first = _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015)
     assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first)
-    assert solved == [(0.005, (1e-3, 2e-3, 5.0), 0.015)]
+    assert solved == [(0.005, (1e-3, 2e-3, 5.0), 0.015, "free")]
     _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 6.0), 0.015)  # another sphere is another solve
-    assert len(solved) == 2
+    _kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015, sides="mould")  # and so is a mould's
+    assert solved[1:] == [(0.005, (1e-3, 2e-3, 6.0), 0.015, "free"), (0.005, (1e-3, 2e-3, 5.0), 0.015, "mould")]
     for entry in tmp_path.iterdir():
         entry.write_bytes(entry.read_bytes()[:-7])
-    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first) and len(solved) == 3
+    assert np.array_equal(_kept_block_solve(grid, 0.005, (1e-3, 2e-3, 5.0), 0.015), first) and len(solved) == 4
 
 
 def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_solve(library, monkeypatch):
@@ -418,7 +457,7 @@ def test_a_sphere_the_library_cannot_tell_from_one_solved_already_shares_its_sol
 
     solved = []
 
-    def solve(grid, thickness_m, inclusion, tumour_y_m=None, solving=None, store=None):
+    def solve(grid, thickness_m, inclusion, tumour_y_m=None, solving=None, store=None, sides="free"):
         solved.append(inclusion)
         return np.full(grid.face_shape, 1.0 + (0.0 if inclusion is None else inclusion[0]))
 
