@@ -84,7 +84,8 @@ class SessionAnalysis:
         tumours = [t for source in SOURCES for t in detect(levels, contrasts[source], session.pitch_m, params.detect)]
         if depth_model is not None:
             # the layer's sides as the flat field's tissue has them (free where no model of the tissue says)
-            depth_model = depth_model.with_params(params.depth).with_sides(getattr(physics, "sides", "free"))
+            sides = physics.sides if physics is not None else "free"
+            depth_model = depth_model.with_params(params.depth).with_sides(sides)
 
             def fitted(tumour, seen, records):
                 return depth_model.signature(tumour, levels, seen, records, told.solving)

@@ -197,6 +197,8 @@ class HomogeneousTissue(ABC):
 
     ``description`` says which block, for the analysis report."""
 
+    sides = "free"  # the block's lateral faces: free, or held in a mould (SIDES); the depth model reads by them
+
     def __init__(self, description: str, cover_spread_m: float, pitch_m: float, shape: tuple[int, int]):
         self.description = description
         self.cover_spread_m = cover_spread_m
