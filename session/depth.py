@@ -96,6 +96,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from session.detect import DepthParams
+from tissue.mechanics.finite_strain import SIDES
 
 if TYPE_CHECKING:
     from tissue.mechanics.fem import SchurStore
@@ -105,7 +106,6 @@ if TYPE_CHECKING:
 LIBRARY_PATH = Path(str(resources.files(__package__).joinpath("depth_library.npz")))
 LIBRARY_PATHS = {"free": LIBRARY_PATH,
                  "mould": Path(str(resources.files(__package__).joinpath("depth_library_mould.npz")))}
-SIDES = tuple(LIBRARY_PATHS)  # as tissue.mechanics.finite_strain.SIDES
 GAP_M = 0.5e-3  # how far beyond the library's farthest face offset a tumour is still read at it
 SNAP_M = 0.25e-3  # spheres (and layers, and places across) within this of each other are one solve
 # A solve stands in for a sphere whose contrast the library predicts within this share of the model's error of
